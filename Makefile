@@ -1,0 +1,64 @@
+# Graylight: `make demo` sets everything up and runs a real scan; `make test` runs the suite.
+SHELL := /bin/bash
+PY ?= python3
+VENV := .venv
+BIN := $(VENV)/bin
+STAMP := $(VENV)/.graylight-installed
+# Debian packages the project needs: EGL/Mesa for headless OpenGL, Chromium for the viewer
+# test, Redis for the broker, Node for building the viewer's assets.
+APT_PACKAGES := libegl1 libgl1-mesa-dri chromium redis-server nodejs npm
+PYTEST_WORKERS ?= 2
+
+.PHONY: setup demo test test-fast bench lint services clean
+
+setup: $(STAMP)
+
+$(STAMP): pyproject.toml Makefile
+	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	if [ -n "$$missing" ]; then \
+	  echo "installing system packages:$$missing"; \
+	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq --no-install-recommends $$missing; \
+	fi
+	@test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install -q --upgrade pip >/dev/null
+	$(BIN)/python -m pip install -q -e '.[dev]'
+	@if [ -f services/viewer/package.json ]; then $(MAKE) --no-print-directory viewer; fi
+	@touch $(STAMP)
+
+.PHONY: viewer
+viewer:
+	@if [ -f services/viewer/package.json ]; then \
+	  cd services/viewer && npm ci --no-audit --no-fund --loglevel=error && npm run --silent build; \
+	fi
+
+# Start the local Redis and PostgreSQL the tests use, when they are not running.
+services:
+	@redis-cli -h 127.0.0.1 -p 6379 ping >/dev/null 2>&1 || \
+	  redis-server --daemonize yes --bind 127.0.0.1 --port 6379 --save "" --appendonly no
+	@for i in $$(seq 50); do redis-cli -h 127.0.0.1 -p 6379 ping >/dev/null 2>&1 && break; sleep 0.1; done
+	@if command -v pg_isready >/dev/null && ! pg_isready -q -h 127.0.0.1 -p 5432; then \
+	  command -v pg_ctlcluster >/dev/null && pg_ctlcluster --skip-systemctl-redirect $$(ls /etc/postgresql | head -1) main start || true; \
+	fi
+
+demo: setup
+	@rm -rf demo && mkdir -p demo
+	$(BIN)/graylight simulate --scene bunny --size 2048x1536 --out demo/capture
+	$(BIN)/graylight scan demo/capture --out demo/scan
+	@echo
+	@echo "Demo finished. Capture: demo/capture  Point cloud: demo/scan/cloud.ply  Report: demo/scan/report.json"
+
+test: setup services
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadgroup -q tests
+
+test-fast: setup services
+	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadgroup -q -m "not slow" tests
+
+bench: setup services
+	$(BIN)/python -m tests.bench.run
+
+lint: setup
+	$(BIN)/ruff check .
+
+clean:
+	rm -rf demo .pytest_cache

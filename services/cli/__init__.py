@@ -1,0 +1,1 @@
+"""The ``graylight`` command line: one module per command group, each registering its sub-commands."""

@@ -1,0 +1,24 @@
+"""Error types shared by every stage.
+
+``InputError`` is raised for bad external input (images, archives, JSON, HTTP
+bodies). Its message is one line that names the file or field and the problem,
+so the CLI can print it as is and the job service can store it as a failed
+stage's reason. Bad input is never retried.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+class GraylightError(Exception):
+    """Base of every error Graylight raises on purpose."""
+
+
+class InputError(GraylightError):
+    """Bad external input: ``where`` names the file or field, ``problem`` says what is wrong."""
+
+    def __init__(self, where: str | Path, problem: str) -> None:
+        self.where = str(where)
+        self.problem = problem
+        super().__init__(f"{self.where}: {problem}")

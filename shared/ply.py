@@ -1,0 +1,246 @@
+"""Point clouds as PLY files: the cloud contract between the scanner and the renderers.
+
+Graylight writes binary little-endian PLY with one ``vertex`` element::
+
+    x, y, z        float32   position in the rig's units (camera frame)
+    red, green, blue  uchar  colour from the white frame
+    nx, ny, nz     float32   unit normal, facing the camera
+    size           float32   world-space sample size Z / f_camera (renderers size splats with it)
+
+Reading accepts any PLY whose vertex element carries at least ``x, y, z`` (binary
+either endianness, or ASCII); binary files are memory-mapped, so a 15 M-point cloud
+is read in chunks without loading it whole.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shared.errors import InputError
+
+#: Field layout of the clouds Graylight writes (31 bytes per point, packed).
+CLOUD_DTYPE = np.dtype(
+    [
+        ("x", "<f4"), ("y", "<f4"), ("z", "<f4"),
+        ("red", "u1"), ("green", "u1"), ("blue", "u1"),
+        ("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4"),
+        ("size", "<f4"),
+    ]
+)  # fmt: skip
+
+_PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}  # fmt: skip
+_NP_TO_PLY = {"i1": "char", "u1": "uchar", "i2": "short", "u2": "ushort", "i4": "int", "u4": "uint", "f4": "float", "f8": "double"}
+
+#: Points written per chunk: bounds the writer's extra memory to a few tens of MB.
+CHUNK = 1 << 20
+
+
+@dataclass
+class PointCloud:
+    """A point cloud in memory. ``xyz`` (N, 3) float32; the rest optional, N rows each."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray | None = None  # (N, 3) uint8
+    normals: np.ndarray | None = None  # (N, 3) float32
+    size: np.ndarray | None = None  # (N,) float32
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+@dataclass(frozen=True)
+class PlyHeader:
+    """What a PLY header says about its vertex element."""
+
+    fmt: str  # "binary_little_endian", "binary_big_endian" or "ascii"
+    count: int
+    dtype: np.dtype  # one record of the vertex element
+    data_offset: int  # byte offset of the vertex data
+    comments: tuple[str, ...] = ()
+
+
+def _header_text(count: int, dtype: np.dtype, comments: tuple[str, ...]) -> bytes:
+    lines = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {count}"]
+    for name in dtype.names or ():
+        lines.append(f"property {_NP_TO_PLY[dtype[name].str[1:]]} {name}")
+    lines.append("end_header")
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def write_ply(
+    path: str | os.PathLike[str],
+    xyz: np.ndarray,
+    rgb: np.ndarray | None = None,
+    normals: np.ndarray | None = None,
+    size: np.ndarray | None = None,
+    comments: tuple[str, ...] = (),
+) -> Path:
+    """Write a binary little-endian PLY atomically (temporary name, then rename).
+
+    ``xyz`` is (N, 3); ``rgb`` (N, 3) uint8, ``normals`` (N, 3), ``size`` (N,) are written
+    when given. Data is converted and written in chunks of :data:`CHUNK` points.
+    """
+    path = Path(path)
+    xyz = np.asarray(xyz)
+    if xyz.ndim != 2 or xyz.shape[1] != 3:
+        raise ValueError(f"xyz must be (N, 3), got {xyz.shape}")
+    n = xyz.shape[0]
+    fields: list[tuple[str, str]] = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if rgb is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    if normals is not None:
+        fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
+    if size is not None:
+        fields += [("size", "<f4")]
+    for name, arr, shape in (("rgb", rgb, (n, 3)), ("normals", normals, (n, 3)), ("size", size, (n,))):
+        if arr is not None and np.shape(arr) != shape:
+            raise ValueError(f"{name} must be {shape}, got {np.shape(arr)}")
+    dtype = np.dtype(fields)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            f.write(_header_text(n, dtype, comments))
+            for start in range(0, n, CHUNK):
+                sl = slice(start, min(n, start + CHUNK))
+                rec = np.empty(sl.stop - sl.start, dtype=dtype)
+                rec["x"], rec["y"], rec["z"] = xyz[sl, 0], xyz[sl, 1], xyz[sl, 2]
+                if rgb is not None:
+                    rec["red"], rec["green"], rec["blue"] = rgb[sl, 0], rgb[sl, 1], rgb[sl, 2]
+                if normals is not None:
+                    rec["nx"], rec["ny"], rec["nz"] = normals[sl, 0], normals[sl, 1], normals[sl, 2]
+                if size is not None:
+                    rec["size"] = size[sl]
+                f.write(rec.tobytes())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def read_header(path: str | os.PathLike[str]) -> PlyHeader:
+    """Parse a PLY header; raises :class:`InputError` naming the file for anything we cannot read."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(path, "point cloud file not found")
+    with open(path, "rb") as f:
+        head = f.read(1 << 16)
+    if not head.startswith(b"ply"):
+        raise InputError(path, "not a PLY file (no 'ply' magic)")
+    end = head.find(b"end_header")
+    if end < 0:
+        raise InputError(path, "PLY header has no end_header within 64 KiB")
+    nl = head.find(b"\n", end)
+    if nl < 0:
+        raise InputError(path, "PLY header is truncated")
+    lines = head[:end].decode("ascii", errors="replace").splitlines()
+    fmt = None
+    count = None
+    props: list[tuple[str, str]] = []
+    comments: list[str] = []
+    current = None
+    seen_vertex_done = False
+    for raw in lines[1:]:
+        parts = raw.split()
+        if not parts:
+            continue
+        if parts[0] == "format" and len(parts) >= 2:
+            fmt = parts[1]
+        elif parts[0] == "comment":
+            comments.append(raw[len("comment") :].strip())
+        elif parts[0] == "element" and len(parts) == 3:
+            if current == "vertex":
+                seen_vertex_done = True
+            current = parts[1]
+            if current == "vertex":
+                if seen_vertex_done or count is not None:
+                    raise InputError(path, "PLY has more than one vertex element")
+                try:
+                    count = int(parts[2])
+                except ValueError:
+                    raise InputError(path, f"bad vertex count {parts[2]!r}") from None
+            elif count is None:
+                raise InputError(path, f"element {current!r} before the vertex element is not supported")
+        elif parts[0] == "property" and current == "vertex":
+            if parts[1] == "list":
+                raise InputError(path, "list properties in the vertex element are not supported")
+            if len(parts) != 3 or parts[1] not in _PLY_TYPES:
+                raise InputError(path, f"unsupported PLY property line {raw!r}")
+            props.append((parts[2], _PLY_TYPES[parts[1]]))
+    if fmt not in ("binary_little_endian", "binary_big_endian", "ascii"):
+        raise InputError(path, f"unsupported PLY format {fmt!r}")
+    if count is None or count < 0:
+        raise InputError(path, "PLY has no vertex element")
+    names = [p[0] for p in props]
+    for axis in ("x", "y", "z"):
+        if axis not in names:
+            raise InputError(path, f"PLY vertex element has no '{axis}' property")
+    order = ">" if fmt == "binary_big_endian" else "<"
+    dtype = np.dtype([(name, order + t if t[1] != "1" else t) for name, t in props])
+    return PlyHeader(fmt=fmt, count=count, dtype=dtype, data_offset=nl + 1, comments=tuple(comments))
+
+
+def _records(path: Path, header: PlyHeader) -> np.ndarray:
+    if header.fmt == "ascii":
+        with open(path, "rb") as f:
+            f.seek(header.data_offset)
+            try:
+                table = np.loadtxt(f, max_rows=header.count, ndmin=2, dtype=np.float64)
+            except ValueError as exc:
+                raise InputError(path, f"malformed ASCII PLY data: {exc}") from None
+        if table.shape[0] != header.count or table.shape[1] < len(header.dtype.names or ()):
+            raise InputError(path, f"ASCII PLY holds {table.shape[0]} vertices, header says {header.count}")
+        rec = np.empty(header.count, dtype=header.dtype)
+        for i, name in enumerate(header.dtype.names or ()):
+            rec[name] = table[:, i]
+        return rec
+    need = header.data_offset + header.count * header.dtype.itemsize
+    have = path.stat().st_size
+    if have < need:
+        raise InputError(path, f"PLY is truncated: {have} bytes, the header promises {need}")
+    if header.count == 0:
+        return np.empty(0, dtype=header.dtype)
+    return np.memmap(path, dtype=header.dtype, mode="r", offset=header.data_offset, shape=(header.count,))
+
+
+def _to_cloud(rec: np.ndarray) -> PointCloud:
+    names = rec.dtype.names or ()
+    xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float32, copy=False)
+    rgb = None
+    if {"red", "green", "blue"} <= set(names):
+        rgb = np.stack([rec["red"], rec["green"], rec["blue"]], axis=1)
+        if rgb.dtype != np.uint8:
+            rgb = np.clip(rgb, 0, 255).astype(np.uint8)
+    normals = None
+    if {"nx", "ny", "nz"} <= set(names):
+        normals = np.stack([rec["nx"], rec["ny"], rec["nz"]], axis=1).astype(np.float32, copy=False)
+    size = rec["size"].astype(np.float32, copy=False) if "size" in names else None
+    return PointCloud(xyz=xyz, rgb=rgb, normals=normals, size=size)
+
+
+def read_ply(path: str | os.PathLike[str]) -> PointCloud:
+    """Read a whole PLY point cloud into memory."""
+    path = Path(path)
+    header = read_header(path)
+    return _to_cloud(np.asarray(_records(path, header)))
+
+
+def iter_ply_chunks(path: str | os.PathLike[str], chunk: int = CHUNK) -> Iterator[PointCloud]:
+    """Yield a PLY's points in chunks of at most ``chunk`` points (memory-mapped for binary files)."""
+    path = Path(path)
+    header = read_header(path)
+    rec = _records(path, header)
+    for start in range(0, header.count, chunk):
+        yield _to_cloud(np.asarray(rec[start : start + chunk]))

@@ -1,0 +1,181 @@
+"""The rig contract: camera and projector intrinsics and their relative pose (``rig.json``).
+
+::
+
+    {"units": "mm",
+     "camera":    {"width": W, "height": H, "K": [[3x3]], "dist": [k1, k2, p1, p2, k3]},
+     "projector": {"width": W, "height": H, "K": [[3x3]], "dist": [k1, k2, p1, p2, k3]},
+     "R": [[3x3]], "T": [3]}
+
+``X_projector = R @ X_camera + T`` (OpenCV ``stereoCalibrate`` convention); ``T`` and all
+reconstructed points are in ``units``; pixel coordinates follow OpenCV (the centre of the
+top-left pixel is (0, 0)). Distortion is OpenCV's five-parameter model.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shared.errors import InputError
+
+
+@dataclass(frozen=True)
+class Device:
+    """A pinhole device (camera, or projector as an inverse camera) with OpenCV distortion."""
+
+    width: int
+    height: int
+    K: np.ndarray  # (3, 3) float64
+    dist: np.ndarray = field(default_factory=lambda: np.zeros(5))  # (5,) float64
+
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "width": int(self.width),
+            "height": int(self.height),
+            "K": np.asarray(self.K, dtype=float).tolist(),
+            "dist": np.asarray(self.dist, dtype=float).ravel().tolist(),
+        }
+
+
+@dataclass(frozen=True)
+class Rig:
+    """A calibrated camera-projector pair. ``X_projector = R @ X_camera + T``."""
+
+    camera: Device
+    projector: Device
+    R: np.ndarray  # (3, 3) float64, rotation camera -> projector
+    T: np.ndarray  # (3,) float64, in ``units``
+    units: str = "mm"
+
+    @property
+    def baseline(self) -> float:
+        """Distance between the two optical centres, in ``units``."""
+        return float(np.linalg.norm(self.R.T @ self.T))
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "units": self.units,
+            "camera": self.camera.to_json(),
+            "projector": self.projector.to_json(),
+            "R": np.asarray(self.R, dtype=float).tolist(),
+            "T": np.asarray(self.T, dtype=float).ravel().tolist(),
+        }
+
+
+def _matrix(value: Any, shape: tuple[int, ...], where: Path | str, name: str) -> np.ndarray:
+    try:
+        arr = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(where, f'field "{name}" must be numbers of shape {shape}') from None
+    if arr.shape != shape:
+        raise InputError(where, f'field "{name}" has shape {arr.shape}, expected {shape}')
+    if not np.all(np.isfinite(arr)):
+        raise InputError(where, f'field "{name}" holds NaN or infinite values')
+    return arr
+
+
+def _device(doc: Any, where: Path | str, name: str) -> Device:
+    if not isinstance(doc, dict):
+        raise InputError(where, f'field "{name}" must be an object')
+    for key in ("width", "height"):
+        v = doc.get(key)
+        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
+            raise InputError(where, f'field "{name}.{key}" must be a positive integer, got {v!r}')
+    if "K" not in doc:
+        raise InputError(where, f'missing field "{name}.K"')
+    K = _matrix(doc["K"], (3, 3), where, f"{name}.K")
+    if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0:
+        raise InputError(where, f'field "{name}.K" is not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0')
+    dist_raw = doc.get("dist", [0, 0, 0, 0, 0])
+    dist = np.asarray(dist_raw, dtype=np.float64).ravel() if isinstance(dist_raw, list) else None
+    if dist is None or dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+        raise InputError(where, f'field "{name}.dist" must be OpenCV distortion coefficients [k1, k2, p1, p2, k3]')
+    if dist.size == 4:
+        dist = np.append(dist, 0.0)
+    return Device(width=doc["width"], height=doc["height"], K=K, dist=dist)
+
+
+def parse_rig(doc: Any, where: Path | str = "rig.json") -> Rig:
+    """Validate a rig document; raises :class:`InputError` naming ``where`` and the field."""
+    if not isinstance(doc, dict):
+        raise InputError(where, "must be a JSON object")
+    units = doc.get("units", "mm")
+    if not isinstance(units, str) or not units:
+        raise InputError(where, f'field "units" must be a string such as "mm", got {units!r}')
+    for key in ("camera", "projector", "R", "T"):
+        if key not in doc:
+            raise InputError(where, f'missing field "{key}"')
+    R = _matrix(doc["R"], (3, 3), where, "R")
+    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+        raise InputError(where, 'field "R" is not a rotation matrix')
+    T = _matrix(doc["T"], (3,), where, "T")
+    if np.linalg.norm(T) == 0:
+        raise InputError(where, 'field "T" is zero: camera and projector cannot share an optical centre')
+    return Rig(
+        camera=_device(doc["camera"], where, "camera"),
+        projector=_device(doc["projector"], where, "projector"),
+        R=R,
+        T=T,
+        units=units,
+    )
+
+
+def load_rig(path: str | os.PathLike[str]) -> Rig:
+    """Read and validate ``rig.json``."""
+    import json
+
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "rig file not found")
+    try:
+        doc = json.loads(p.read_text(encoding="utf-8"))
+    except UnicodeDecodeError as exc:
+        raise InputError(p, f"not UTF-8 text ({exc.reason})") from None
+    except json.JSONDecodeError as exc:
+        raise InputError(p, f"malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    return parse_rig(doc, p)
+
+
+def save_rig(rig: Rig, path: str | os.PathLike[str]) -> Path:
+    """Write ``rig.json`` atomically."""
+    from shared.capture import write_json_atomic
+
+    p = Path(path)
+    write_json_atomic(p, rig.to_json())
+    return p
+
+
+def check_rig_matches(rig: Rig, camera_size: tuple[int, int], projector_size: tuple[int, int], where: Path | str) -> None:
+    """Raise :class:`InputError` if the rig's device sizes (width, height) disagree with the capture's."""
+    if (rig.camera.width, rig.camera.height) != tuple(camera_size):
+        raise InputError(
+            where,
+            f"rig camera is {rig.camera.width}x{rig.camera.height} but the images are {camera_size[0]}x{camera_size[1]}",
+        )
+    if (rig.projector.width, rig.projector.height) != tuple(projector_size):
+        raise InputError(
+            where,
+            f"rig projector is {rig.projector.width}x{rig.projector.height} but the capture's projector is "
+            f"{projector_size[0]}x{projector_size[1]}",
+        )
