@@ -5,16 +5,18 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.graylight-installed
 # Debian packages the project needs: EGL/Mesa for headless OpenGL, Chromium for the viewer
-# test, Redis for the broker, Node for building the viewer's assets.
-APT_PACKAGES := libegl1 libgl1-mesa-dri chromium redis-server nodejs npm
+# test, Redis for the broker. Node and npm (viewer assets) are installed only when missing,
+# since a machine may carry another build of Node that ships its own npm.
+APT_PACKAGES := libegl1 libgl1-mesa-dri chromium redis-server
 PYTEST_WORKERS ?= 2
 
 .PHONY: setup demo test test-fast bench lint services clean
 
 setup: $(STAMP)
 
-$(STAMP): pyproject.toml Makefile
+$(STAMP): pyproject.toml Makefile $(wildcard services/viewer/package-lock.json)
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \
+	command -v npm >/dev/null 2>&1 || missing="$$missing nodejs npm"; \
 	if [ -n "$$missing" ]; then \
 	  echo "installing system packages:$$missing"; \
 	  SUDO=""; [ "$$(id -u)" = 0 ] || SUDO=sudo; \
