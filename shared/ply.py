@@ -123,6 +123,8 @@ def write_ply(
                 if size is not None:
                     rec["size"] = size[sl]
                 f.write(rec.tobytes())
+        # mkstemp creates 0600 files; results are meant to be shared like any other output.
+        os.chmod(tmp, 0o644)
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -16,6 +16,10 @@ from shared.errors import GraylightError
 
 COMMAND_MODULES = [
     "services.cli.scan",
+    "services.cli.simulate",
+    "services.cli.jobs",
+    "services.cli.render",
+    "services.cli.calibrate",
 ]
 
 

@@ -1,0 +1,398 @@
+"""Job-service commands: ``serve``, ``worker``, ``beat``, ``submit``, ``jobs`` and ``keys``.
+
+``graylight serve [--host H] [--port P]`` runs the API; ``graylight worker [--queues
+cpu,render] [--concurrency N]`` a Celery worker (the ``control`` queue, where the
+reconciler runs, is added unless ``--no-control``); ``graylight beat`` the one beat
+scheduler. ``graylight submit CAPTURE_DIR_OR_ARCHIVE... [--wait] [--batch NAME]`` sends
+captures to ``GRAYLIGHT_API_URL`` with ``GRAYLIGHT_API_KEY`` and prints one job id per
+line; ``--wait`` follows them with a progress bar (on stderr) and exits 1 if any failed.
+``graylight keys create NAME`` prints a new API key (stored hashed in the job database).
+"""
+
+from __future__ import annotations
+
+import argparse
+import atexit
+import json
+import logging
+import os
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from shared.config import get_settings
+from shared.errors import GraylightError, InputError
+
+log = logging.getLogger(__name__)
+
+#: Archives larger than this go through a resumable upload session instead of one request.
+SESSION_THRESHOLD = 32 << 20
+CHUNK = 16 << 20
+TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+class ServiceError(GraylightError):
+    """The API answered with an error, or could not be reached."""
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("serve", help="run the HTTP API")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.set_defaults(func=cmd_serve)
+
+    p = sub.add_parser("worker", help="run a Celery worker for the job service")
+    p.add_argument("--queues", default="cpu,render", help="comma-separated logical queues (cpu, render)")
+    p.add_argument("--concurrency", type=int, default=None, help="worker processes (default: CPU count)")
+    p.add_argument("--no-control", action="store_true", help="do not also consume the control queue (reconciler)")
+    p.add_argument("--loglevel", default="INFO")
+    p.set_defaults(func=cmd_worker)
+
+    p = sub.add_parser("beat", help="run the beat scheduler (reconciler, nightly re-render); run exactly one")
+    p.add_argument("--loglevel", default="INFO")
+    p.set_defaults(func=cmd_beat)
+
+    p = sub.add_parser("submit", help="submit captures (folders or zip/tar archives) to the job service")
+    p.add_argument("captures", nargs="+", metavar="CAPTURE_DIR_OR_ARCHIVE")
+    p.add_argument("--wait", action="store_true", help="follow the jobs; exit 1 if any failed")
+    p.add_argument("--batch", default=None, metavar="NAME", help="put the jobs in this batch")
+    p.add_argument("--kind", default="scan", help="job kind (scan, calibrate)")
+    p.add_argument("--rig", type=Path, default=None, help="rig.json to use instead of the capture's")
+    p.add_argument("--params", default=None, metavar="JSON",
+                   help='job parameters, e.g. \'{"render": false}\' or \'{"preview": {"seconds": 5}}\'')
+    p.add_argument("--timeout", type=float, default=None, help="with --wait: give up after this many seconds")
+    p.set_defaults(func=cmd_submit)
+
+    p = sub.add_parser("jobs", help="list your jobs on the job service")
+    p.add_argument("--state", default=None, choices=["queued", "running", "succeeded", "failed", "cancelled"])
+    p.add_argument("--batch", default=None)
+    p.add_argument("--limit", type=int, default=50)
+    p.add_argument("--json", action="store_true", help="print the API's JSON")
+    p.set_defaults(func=cmd_jobs)
+
+    p = sub.add_parser("keys", help="manage API keys (in the job database)")
+    ks = p.add_subparsers(dest="keys_command", required=True)
+    c = ks.add_parser("create", help="create a key and print it (shown once)")
+    c.add_argument("name")
+    c.set_defaults(func=cmd_keys_create)
+    c = ks.add_parser("list", help="list keys (name, prefix)")
+    c.set_defaults(func=cmd_keys_list)
+    c = ks.add_parser("revoke", help="revoke the key with this prefix")
+    c.add_argument("prefix")
+    c.set_defaults(func=cmd_keys_revoke)
+
+
+# ---- service processes ----------------------------------------------------------------------
+def cmd_serve(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from services.api.app import create_app
+
+    uvicorn.run(create_app(), host=args.host, port=args.port, log_level="info", timeout_graceful_shutdown=10)
+    return 0
+
+
+def cmd_worker(args: argparse.Namespace) -> int:
+    from workers.celery_app import get_app
+
+    settings = get_settings()
+    logical = [q.strip() for q in args.queues.split(",") if q.strip()]
+    for q in logical:
+        if q not in ("cpu", "render", "control"):
+            raise InputError("--queues", f"unknown queue {q!r} (cpu, render, control)")
+    if not args.no_control and "control" not in logical:
+        logical.append("control")
+    argv = [
+        "worker",
+        "-Q", ",".join(settings.queue(q) for q in logical),
+        "-l", args.loglevel,
+        "-n", f"graylight-{os.getpid()}@%h",
+        "--without-gossip", "--without-mingle", "--without-heartbeat",
+    ]  # fmt: skip
+    if args.concurrency:
+        argv += ["-c", str(args.concurrency)]
+    get_app(settings).worker_main(argv)
+    return 0
+
+
+def cmd_beat(args: argparse.Namespace) -> int:
+    from celery.apps.beat import Beat
+
+    from workers.celery_app import get_app
+
+    settings = get_settings()
+    settings.data_dir.mkdir(parents=True, exist_ok=True)
+    hold_beat_lock(settings)
+    app = get_app(settings)
+    Beat(app=app, loglevel=args.loglevel, schedule=app.conf.beat_schedule_filename).run()
+    return 0
+
+
+#: Seconds a beat's lock lives without renewal (a dead beat frees it this fast).
+BEAT_LOCK_TTL = 30
+
+
+def hold_beat_lock(settings: Any) -> None:
+    """Make sure this is the only beat of its queues: take a lock in Redis (renewed by a
+    thread; it expires when the beat dies) or refuse to start. Only a Redis broker is checked."""
+    import secrets
+    import threading
+
+    if not settings.broker_url.startswith(("redis://", "rediss://")):
+        return
+    import redis
+
+    name = f"{settings.queue_prefix}graylight-beat-lock"
+    token = secrets.token_hex(8)
+    client = redis.Redis.from_url(settings.broker_url, socket_timeout=5, socket_connect_timeout=5)
+    try:
+        got = client.set(name, token, nx=True, ex=BEAT_LOCK_TTL)
+    except redis.exceptions.ConnectionError as exc:
+        raise ServiceError(f"beat: cannot reach the broker at {settings.broker_url}: {exc}") from None
+    if not got:
+        raise ServiceError(f"another beat already runs for these queues (Redis key {name!r}); run exactly one")
+
+    def renew() -> None:
+        while True:
+            time.sleep(BEAT_LOCK_TTL / 3)
+            try:
+                held = client.get(name)
+                if held is None:
+                    # Redis restarted (keys gone): take the lock back unless another beat did.
+                    if not client.set(name, token, nx=True, ex=BEAT_LOCK_TTL):
+                        log.critical("another beat took the lock; stopping this one")
+                        os._exit(3)
+                elif held.decode() != token:
+                    log.critical("another beat holds the lock; stopping this one")
+                    os._exit(3)
+                else:
+                    client.expire(name, BEAT_LOCK_TTL)
+            except redis.exceptions.RedisError as exc:  # the broker blinks; beat itself retries too
+                log.warning("beat lock: %s", exc)
+
+    def release() -> None:
+        # Free the lock at a clean exit so a replacement need not wait for it to expire.
+        try:
+            if client.get(name) == token.encode():
+                client.delete(name)
+        except redis.exceptions.RedisError:
+            pass
+
+    atexit.register(release)
+    threading.Thread(target=renew, name="beat-lock", daemon=True).start()
+
+
+# ---- keys -------------------------------------------------------------------------------------
+def cmd_keys_create(args: argparse.Namespace) -> int:
+    from shared.jobstore import JobStore
+
+    name = args.name.strip()
+    if not name or len(name) > 200:
+        raise InputError("NAME", "a key name must be 1-200 characters")
+    _rec, secret = JobStore(get_settings().database_url).create_key(name)
+    print(secret)
+    return 0
+
+
+def cmd_keys_list(args: argparse.Namespace) -> int:
+    from shared.jobstore import JobStore
+
+    for k in JobStore(get_settings().database_url).list_keys():
+        print(f"{k.prefix}\t{k.name}\t{time.strftime('%Y-%m-%d %H:%M', time.gmtime(k.created_at))}")
+    return 0
+
+
+def cmd_keys_revoke(args: argparse.Namespace) -> int:
+    from shared.jobstore import JobStore
+
+    if not JobStore(get_settings().database_url).revoke_key(args.prefix):
+        raise InputError(args.prefix, "no key with this prefix")
+    return 0
+
+
+# ---- the client -------------------------------------------------------------------------------
+class Client:
+    """A small client of the job-service API (``GRAYLIGHT_API_URL``, ``GRAYLIGHT_API_KEY``)."""
+
+    def __init__(self, url: str | None = None, key: str | None = None, timeout: float = 120.0, http: Any = None) -> None:
+        import httpx
+
+        settings = get_settings()
+        self.url = (url or settings.api_url).rstrip("/")
+        key = key or settings.api_key
+        if not key:
+            raise InputError("GRAYLIGHT_API_KEY", "not set (create one with `graylight keys create NAME`)")
+        # ``http``: any httpx.Client-like object (tests pass the API's TestClient).
+        self.http = http or httpx.Client(base_url=self.url, timeout=timeout)
+        self.http.headers["Authorization"] = f"Bearer {key}"
+
+    def request(self, method: str, path: str, **kw: Any) -> Any:
+        import httpx
+
+        try:
+            r = self.http.request(method, path, **kw)
+        except httpx.HTTPError as exc:
+            raise ServiceError(f"{self.url}{path}: {exc}") from None
+        if r.status_code >= 400:
+            try:
+                detail = r.json().get("detail")
+            except ValueError:
+                detail = r.text[:300]
+            raise ServiceError(f"{method} {path}: HTTP {r.status_code}: {detail}")
+        return r.json() if r.content else None
+
+    def submit_archive(self, archive: Path, label: str, kind: str = "scan", batch: str | None = None,
+                       rig: Path | None = None, params: dict[str, Any] | None = None,
+                       session_threshold: int = SESSION_THRESHOLD, chunk: int = CHUNK) -> dict[str, Any]:  # fmt: skip
+        """Submit one archive: in one multipart request, or by a resumable upload session when
+        larger than ``session_threshold`` bytes."""
+        data: dict[str, str] = {"kind": kind, "name": label}
+        if batch:
+            data["batch"] = batch
+        if params:
+            data["params"] = json.dumps(params)
+        if archive.stat().st_size <= session_threshold or rig is not None:
+            files: dict[str, Any] = {"capture": (label, open(archive, "rb"), "application/octet-stream")}
+            if rig is not None:
+                files["rig"] = ("rig.json", rig.read_bytes(), "application/json")
+            try:
+                return self.request("POST", "/v1/jobs", data=data, files=files)
+            finally:
+                files["capture"][1].close()
+        upload = self.upload(archive, label, chunk=chunk)
+        body: dict[str, Any] = {"kind": kind, "name": label, "upload_id": upload, "params": params or {}}
+        if batch:
+            body["batch"] = batch
+        return self.request("POST", "/v1/jobs", json=body)
+
+    def upload(self, archive: Path, label: str, chunk: int = CHUNK, attempts: int = 6, resume: str | None = None) -> str:
+        """Send ``archive`` through an upload session, resuming after a failed chunk; its id.
+        ``resume`` continues an earlier session from the offset the server reports."""
+        if resume:
+            up = self.request("GET", f"/v1/uploads/{resume}")
+        else:
+            up = self.request("POST", "/v1/uploads", json={"filename": label})
+        size = archive.stat().st_size
+        offset = int(up["offset"])
+        failures = 0
+        with open(archive, "rb") as f:
+            while offset < size:
+                f.seek(offset)
+                block = f.read(chunk)
+                try:
+                    r = self.request("PATCH", f"/v1/uploads/{up['id']}", content=block,
+                                     headers={"Upload-Offset": str(offset), "Content-Type": "application/octet-stream"})  # fmt: skip
+                    offset = int(r["offset"])
+                    failures = 0
+                except ServiceError as exc:
+                    failures += 1
+                    if failures >= attempts:
+                        raise
+                    log.warning("upload chunk at %d failed (%s); resuming", offset, exc)
+                    time.sleep(min(2.0**failures * 0.2, 5.0))
+                    offset = int(self.request("GET", f"/v1/uploads/{up['id']}")["offset"])
+        return str(up["id"])
+
+    def job(self, job_id: str) -> dict[str, Any]:
+        return self.request("GET", f"/v1/jobs/{job_id}")
+
+
+def _as_archive(path: Path, tmp: Path) -> Path:
+    from shared.archive import pack_folder
+
+    if path.is_dir():
+        return pack_folder(path, tmp / f"{path.name or 'capture'}.zip")
+    if path.is_file():
+        return path
+    raise InputError(path, "no such capture folder or archive")
+
+
+def cmd_submit(args: argparse.Namespace) -> int:
+    params = None
+    if args.params:
+        try:
+            params = json.loads(args.params)
+        except json.JSONDecodeError as exc:
+            raise InputError("--params", f"not JSON ({exc.msg})") from None
+        if not isinstance(params, dict):
+            raise InputError("--params", "must be a JSON object")
+    client = Client()
+    ids: list[str] = []
+    with tempfile.TemporaryDirectory(prefix="graylight-submit-") as tmp:
+        for raw in args.captures:
+            path = Path(raw)
+            archive = _as_archive(path, Path(tmp))
+            label = path.name if path.is_dir() else archive.name
+            job = client.submit_archive(archive, label, kind=args.kind, batch=args.batch, rig=args.rig, params=params)
+            print(job["id"], flush=True)
+            ids.append(job["id"])
+            if archive.parent == Path(tmp):
+                archive.unlink()
+    if not args.wait:
+        return 0
+    return follow(client, ids, timeout=args.timeout)
+
+
+def follow(client: Client, ids: list[str], timeout: float | None = None, interval: float = 0.5) -> int:
+    """Follow jobs with a progress bar on stderr until each is final; 1 if any did not succeed."""
+    from rich.console import Console
+    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
+
+    console = Console(stderr=True)
+    states: dict[str, dict[str, Any]] = {}
+    deadline = None if timeout is None else time.monotonic() + timeout
+    with Progress(TextColumn("{task.description}"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
+                  TimeElapsedColumn(), console=console, transient=False) as bar:  # fmt: skip
+        many = len(ids) > 8
+        tasks = {j: bar.add_task(j[:8], total=1.0) for j in ([] if many else ids)}
+        overall = bar.add_task(f"{len(ids)} jobs", total=float(len(ids))) if many else None
+        while True:
+            for j in ids:
+                if states.get(j, {}).get("state") in TERMINAL:
+                    continue
+                try:
+                    states[j] = client.job(j)
+                except ServiceError as exc:
+                    log.warning("%s", exc)
+            done = [j for j in ids if states.get(j, {}).get("state") in TERMINAL]
+            for j, t in tasks.items():
+                s = states.get(j, {})
+                running = next((st["name"] for st in s.get("stages", []) if st["state"] == "running"), "")
+                bar.update(t, completed=float(s.get("progress", 0.0)),
+                           description=f"{j[:8]} {s.get('state', '?')} {running}".rstrip())  # fmt: skip
+            if overall is not None:
+                bar.update(overall, completed=len(done) + sum(float(states.get(j, {}).get("progress", 0)) for j in ids if j not in done))
+            if len(done) == len(ids):
+                break
+            if deadline is not None and time.monotonic() > deadline:
+                console.print(f"gave up waiting after {timeout:g} s")
+                return 1
+            time.sleep(interval)
+    bad = [j for j in ids if states[j]["state"] != "succeeded"]
+    for j in bad:
+        console.print(f"{j} {states[j]['state']}: {states[j].get('error') or ''}")
+    return 1 if bad else 0
+
+
+def cmd_jobs(args: argparse.Namespace) -> int:
+    client = Client()
+    params: dict[str, Any] = {"limit": args.limit}
+    if args.state:
+        params["state"] = args.state
+    if args.batch:
+        params["batch"] = args.batch
+    page = client.request("GET", "/v1/jobs", params=params)
+    if args.json:
+        print(json.dumps(page, indent=2))
+        return 0
+    for j in page["jobs"]:
+        created = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(j["created_at"]))
+        line = f"{j['id']}  {j['state']:<9}  {j['progress'] * 100:5.1f}%  {created}  {j['name']}"
+        if j.get("error"):
+            line += f"  [{j['error']}]"
+        print(line)
+    if page["total"] > len(page["jobs"]):
+        print(f"({len(page['jobs'])} of {page['total']})", file=sys.stderr)
+    return 0

@@ -1,0 +1,66 @@
+"""``graylight tiles`` and ``graylight preview``: the render stages, in-process."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import re
+from pathlib import Path
+
+from shared.errors import InputError
+
+
+def _size(text: str) -> tuple[int, int]:
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m:
+        raise InputError("--size", f"expected WIDTHxHEIGHT such as 1280x720, got {text!r}")
+    return int(m.group(1)), int(m.group(2))
+
+
+def _tiles(args: argparse.Namespace) -> int:
+    from shared.render_stages import tiles_stage
+
+    if args.workers is not None and args.workers < 1:
+        raise InputError("--workers", f"must be at least 1, got {args.workers}")
+    report = tiles_stage(Path(args.cloud), Path(args.out), workers=args.workers)
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+def _preview(args: argparse.Namespace) -> int:
+    from shared.render_stages import preview_stage
+
+    report = preview_stage(
+        Path(args.tiles),
+        Path(args.out),
+        path=args.path,
+        size=_size(args.size),
+        seconds=args.seconds,
+        fps=args.fps,
+        renderer=args.renderer,
+    )
+    print(json.dumps(report, indent=2))
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("tiles", help="build Potree 2.0 level-of-detail tiles from a cloud PLY")
+    p.add_argument("cloud", help="cloud PLY (x, y, z; colour, normal, size when present)")
+    p.add_argument("--out", required=True, help="output folder (replaced atomically)")
+    p.add_argument("--workers", type=int, default=None, help="processes building chunks (default: CPU count)")
+    p.set_defaults(func=_tiles)
+
+    p = subparsers.add_parser("preview", help="render a flythrough MP4 and poster PNG of tiles")
+    p.add_argument("tiles", help="tiles folder written by 'graylight tiles'")
+    p.add_argument("--out", required=True, help="output MP4 (the poster is written beside it as .png)")
+    p.add_argument("--path", default="orbit", help="orbit, dolly or a JSON keyframe file (default orbit)")
+    p.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT (default 1280x720)")
+    p.add_argument("--seconds", type=float, default=10.0, help="duration (default 10)")
+    p.add_argument("--fps", type=int, default=30, help="frames per second (default 30)")
+    p.add_argument(
+        "--renderer",
+        choices=["auto", "cpu", "gl"],
+        default="auto",
+        help="auto: OpenGL on a hardware GPU, else the CPU rasteriser (default)",
+    )
+    p.set_defaults(func=_preview)

@@ -1,0 +1,154 @@
+/**
+ * GLSL ES 3.00 shaders. One point vertex shader serves three passes, chosen by a #define:
+ * PASS_COLOR (plain splats: colour + linear depth), PASS_DEPTH (high-quality depth pre-pass,
+ * pushed back by the splat radius) and PASS_ACCUM (weighted additive blend).
+ *
+ * Splat sizing per the seed: a point sampled by the scanner at depth Z_s with focal length F_s
+ * covers the world size s = Z_s / F_s (the tiles' `size` attribute); seen by the virtual camera
+ * at view depth Z_v with focal length F_v pixels it covers H_v = s * F_v / Z_v pixels, i.e.
+ * H_v = (F_v / F_s) * (Z_s / Z_v).
+ */
+
+export const POINT_VS = `
+layout(location = 0) in vec3 aPosition;
+layout(location = 1) in vec3 aColor;
+layout(location = 2) in float aSize;
+layout(location = 3) in vec3 aNormal;
+
+uniform mat4 uModelView;
+uniform mat4 uProjection;
+uniform float uFocalPx;     // F_v: viewport focal length in pixels
+uniform int uSizing;        // 0: seed (per-point world size / view depth), 1: fixed pixels
+uniform float uFixedPx;
+uniform float uSplatScale;  // splat diameter in units of the sample size
+uniform float uFill;        // world size standing in for undrawn finer nodes (0 when none)
+uniform float uMaxPx;
+uniform float uBlendDepth;  // depth pre-pass offset, in splat radii
+uniform int uGrazing;       // 1: widen splats of surfaces the scanner saw at a grazing angle
+uniform vec3 uScanner;      // scanner position in the local frame
+
+out vec3 vColor;
+out float vDepth;
+out float vSizePx;
+
+void main() {
+  vec4 viewPos = uModelView * vec4(aPosition, 1.0);
+  float zv = max(-viewPos.z, 1e-9);
+  float px;
+  if (uSizing == 0) {
+    float world = aSize;
+    if (uGrazing == 1 && dot(aNormal, aNormal) > 0.5) {
+      // The scanner's samples lie size / cos(incidence) apart along a tilted surface; the seed's
+      // size holds across the ray only. Cap the stretch so silhouette samples stay bounded.
+      float cosInc = abs(dot(normalize(aNormal), normalize(uScanner - aPosition)));
+      world /= max(cosInc, 0.35);
+    }
+    world = max(world, uFill);
+    px = uSplatScale * world * uFocalPx / zv;
+  } else {
+    px = uFixedPx;
+  }
+  px = clamp(px, 1.0, uMaxPx);
+  gl_PointSize = px;
+  vSizePx = px;
+  vColor = aColor;
+  vDepth = zv;
+#ifdef PASS_DEPTH
+  // Push the depth back by the splat's world radius so that splats of the same surface pass the
+  // accumulation pass's depth test and blend, while surfaces further behind stay hidden.
+  float radiusWorld = 0.5 * px * zv / uFocalPx;
+  viewPos.z -= uBlendDepth * radiusWorld;
+#endif
+  gl_Position = uProjection * viewPos;
+}
+`;
+
+export const POINT_FS = `
+precision highp float;
+in vec3 vColor;
+in float vDepth;
+in float vSizePx;
+#ifdef PASS_COLOR
+layout(location = 0) out vec4 oColor;
+layout(location = 1) out float oDepth;
+#endif
+#ifdef PASS_DEPTH
+layout(location = 0) out float oDepth;
+#endif
+#ifdef PASS_ACCUM
+layout(location = 0) out vec4 oAccum;
+#endif
+
+void main() {
+  vec2 c = gl_PointCoord * 2.0 - 1.0;
+  // Round splats. The test is in pixels and never removes a splat's only pixel: a 1-px point's
+  // pixel centre can lie anywhere in its square (up to 0.71 px from the point's centre).
+  float rPx = 0.5 * vSizePx * length(c);
+  if (rPx > max(0.5 * vSizePx, 0.7072)) discard;
+  float r2 = min(dot(c, c), 1.0);
+#ifdef PASS_COLOR
+  oColor = vec4(vColor, 1.0);
+  oDepth = vDepth;
+#endif
+#ifdef PASS_DEPTH
+  oDepth = vDepth;
+#endif
+#ifdef PASS_ACCUM
+  // Weight falls off towards the splat's rim; c = sum(w_i c_i) / sum(w_i) in the composite pass.
+  float w = 1.0 - 0.9 * r2;
+  oAccum = vec4(vColor * w, w);
+#endif
+}
+`;
+
+export const QUAD_VS = `
+void main() {
+  // One triangle covering the viewport.
+  vec2 p = vec2(float((gl_VertexID << 1) & 2), float(gl_VertexID & 2));
+  gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
+}
+`;
+
+export const COMPOSITE_FS = `
+precision highp float;
+uniform sampler2D uColor;
+uniform sampler2D uAccum;
+uniform sampler2D uDepth;
+uniform int uHQ;
+uniform int uEDL;
+uniform float uEdlStrength;
+uniform float uEdlRadius;
+uniform vec3 uBackground;
+out vec4 oColor;
+
+void main() {
+  ivec2 p = ivec2(gl_FragCoord.xy);
+  vec4 c;
+  if (uHQ == 1) {
+    vec4 a = texelFetch(uAccum, p, 0);
+    c = a.a > 0.0 ? vec4(a.rgb / a.a, 1.0) : vec4(0.0);
+  } else {
+    c = texelFetch(uColor, p, 0);
+  }
+  if (c.a == 0.0) {
+    oColor = vec4(uBackground, 1.0);
+    return;
+  }
+  if (uEDL == 1) {
+    // Eye-dome lighting: darken a pixel by how far it lies behind its 8 neighbours (log depth).
+    float d = texelFetch(uDepth, p, 0).r;
+    float ld = log2(max(d, 1e-12));
+    float sum = 0.0;
+    ivec2 size = textureSize(uDepth, 0);
+    for (int i = 0; i < 8; i++) {
+      float a = float(i) * 0.78539816;
+      ivec2 q = clamp(p + ivec2(round(vec2(cos(a), sin(a)) * uEdlRadius)), ivec2(0), size - 1);
+      float dn = texelFetch(uDepth, q, 0).r;
+      if (dn > 0.0) sum += max(0.0, ld - log2(dn));
+    }
+    float shade = exp(-sum / 8.0 * 300.0 * uEdlStrength);
+    c.rgb *= shade;
+  }
+  oColor = vec4(c.rgb, 1.0);
+}
+`;

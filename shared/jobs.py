@@ -1,0 +1,275 @@
+"""Jobs and stages: their states, the allowed transitions, and the job graphs as data.
+
+This is the one module the API, the workers and the reconciler share for what a job is.
+A job of a given ``kind`` runs the stages of :func:`graph_for` ``(kind)``; each
+:class:`StageSpec` names its inputs (``"capture"`` — the submitted capture — or an
+upstream stage), the queue it runs on, its time limit, and the files of its output that
+the API publishes under short names (``cloud.ply``). A stage whose ``requires`` function
+cannot be imported yet is left out of new jobs, so later stages (tiles, preview video)
+plug in by appearing here and in ``workers.stages`` without touching the runner.
+
+A *map* stage (``fanout_from``) has no row when the job is created: when the stage it fans
+out from succeeds, its summary's ``fanout`` count gives the number of instances
+(``tiles_chunk#0``, ``tiles_chunk#1`` ...), each its own task, and every stage that reads the
+map stage reads all of them; the database counts the fan-in (no Celery chords).
+
+Stage outputs are addressed by :func:`stage_key`: a SHA-256 of the stage, its version,
+its parameters and the keys of its inputs, so identical work is found, not redone.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import importlib
+import json
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass, field
+from enum import StrEnum
+from typing import Any
+
+
+class JobState(StrEnum):
+    QUEUED = "queued"
+    RUNNING = "running"
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
+class StageState(StrEnum):
+    PENDING = "pending"  # waiting for its inputs
+    QUEUED = "queued"  # inputs ready, a message is (or should be) on the broker
+    RUNNING = "running"  # a worker holds its lease
+    SUCCEEDED = "succeeded"
+    FAILED = "failed"
+    CANCELLED = "cancelled"
+
+
+JOB_TERMINAL = frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED})
+STAGE_TERMINAL = frozenset({StageState.SUCCEEDED, StageState.FAILED, StageState.CANCELLED})
+
+#: Allowed job state changes. ``succeeded -> queued`` is a retry after inputs changed
+#: (or the nightly preview re-render); ``failed``/``cancelled -> queued`` is a retry.
+JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
+    JobState.QUEUED: frozenset({JobState.RUNNING, JobState.CANCELLED, JobState.FAILED, JobState.SUCCEEDED}),
+    JobState.RUNNING: frozenset({JobState.SUCCEEDED, JobState.FAILED, JobState.CANCELLED, JobState.QUEUED}),
+    JobState.SUCCEEDED: frozenset({JobState.QUEUED}),
+    JobState.FAILED: frozenset({JobState.QUEUED}),
+    JobState.CANCELLED: frozenset({JobState.QUEUED}),
+}
+
+#: Allowed stage state changes. ``running -> queued`` happens when a lease expires (the
+#: reconciler) or a transient fault is retried; ``succeeded -> pending`` when a retry finds
+#: that the stage's inputs changed.
+STAGE_TRANSITIONS: dict[StageState, frozenset[StageState]] = {
+    StageState.PENDING: frozenset({StageState.QUEUED, StageState.CANCELLED}),
+    StageState.QUEUED: frozenset({StageState.RUNNING, StageState.CANCELLED, StageState.SUCCEEDED}),
+    StageState.RUNNING: frozenset(
+        {StageState.SUCCEEDED, StageState.FAILED, StageState.QUEUED, StageState.CANCELLED}
+    ),
+    StageState.SUCCEEDED: frozenset({StageState.PENDING}),
+    StageState.FAILED: frozenset({StageState.PENDING}),
+    StageState.CANCELLED: frozenset({StageState.PENDING}),
+}
+
+
+def can_move_job(old: str, new: str) -> bool:
+    """Whether a job may go from state ``old`` to ``new``."""
+    return JobState(new) in JOB_TRANSITIONS[JobState(old)]
+
+
+def can_move_stage(old: str, new: str) -> bool:
+    """Whether a stage may go from state ``old`` to ``new``."""
+    return StageState(new) in STAGE_TRANSITIONS[StageState(old)]
+
+
+#: The input name that refers to the job's submitted capture (or calibration session).
+CAPTURE = "capture"
+
+
+@dataclass(frozen=True)
+class StageSpec:
+    """One stage of a job graph.
+
+    ``inputs`` are ``"capture"`` and/or names of earlier stages; ``queue`` is the logical
+    queue (``cpu`` or ``render``); ``time_limit`` is seconds (hard; the soft limit is 90 %);
+    ``publish`` are output files the API also serves under their bare name; ``requires``
+    is ``"module:function"`` that must be importable for the stage to join new jobs;
+    ``version`` enters the output key, so bumping it makes retries re-run the stage.
+    """
+
+    name: str
+    queue: str
+    inputs: tuple[str, ...]
+    time_limit: int
+    publish: tuple[str, ...] = ()
+    requires: str | None = None
+    version: int = 1
+    params: tuple[str, ...] = ()  # job parameters that enter this stage's key
+    switch: str | None = None  # a job parameter that, when false, leaves this stage out
+    fanout_from: str | None = None  # a map stage: one instance per item counted by that stage
+
+    @property
+    def is_map(self) -> bool:
+        return self.fanout_from is not None
+
+    @property
+    def depends_on(self) -> tuple[str, ...]:
+        """Upstream stages (inputs other than the capture)."""
+        return tuple(i for i in self.inputs if i != CAPTURE)
+
+    def available(self) -> bool:
+        """Whether the function this stage needs can be imported in this installation."""
+        if self.requires is None:
+            return True
+        module, _, attr = self.requires.partition(":")
+        try:
+            mod = importlib.import_module(module)
+        except ImportError:
+            return False
+        return not attr or hasattr(mod, attr)
+
+
+GRAPHS: dict[str, tuple[StageSpec, ...]] = {
+    "scan": (
+        StageSpec("ingest", "cpu", (CAPTURE,), 600, publish=("capture.json",), params=("rig",),
+                  requires="shared.pipeline:ingest_stage"),
+        StageSpec("decode", "cpu", (CAPTURE, "ingest"), 3600, publish=("decoded.npz",),
+                  requires="shared.pipeline:decode_stage"),
+        StageSpec("triangulate", "cpu", (CAPTURE, "ingest", "decode"), 3600,
+                  publish=("cloud.ply", "range.npz", "triangulate.json"), params=("rig",),
+                  requires="shared.pipeline:triangulate_stage"),
+        # Tiles fan out: a plan, one task per chunk (subtree), a merge (fan-in counted in the
+        # database). The merge keeps the name "tiles": its folder is what viewers load.
+        StageSpec("tiles_plan", "render", ("triangulate",), 7200, requires="shared.octree:plan_tiles",
+                  switch="render", params=("tiles",)),
+        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, requires="shared.octree:build_chunk",
+                  switch="render", fanout_from="tiles_plan"),
+        StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, requires="shared.octree:merge_tiles",
+                  switch="render"),
+        StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
+                  params=("preview", "preview_epoch"), requires="shared.render_stages:preview_stage",
+                  switch="render"),
+    ),
+    "calibrate": (
+        StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json"),
+                  requires="shared.calibrate:calibrate_session"),
+    ),
+    # A service self-test: one trivial stage that sleeps params["seconds"] (at most 60) and
+    # writes probe.json. It measures queue overhead and proves the workers are alive.
+    "probe": (StageSpec("probe", "cpu", (CAPTURE,), 120, publish=("probe.json",), params=("seconds",)),),
+}  # fmt: skip
+
+
+#: The file that marks the root folder of a job kind's submitted archive.
+ROOT_FILES: dict[str, str] = {"scan": "capture.json", "calibrate": "board.json"}
+
+
+def root_file(kind: str) -> str | None:
+    """The file a ``kind`` job's archive must hold (its folder is the capture root), or None."""
+    return ROOT_FILES.get(kind)
+
+
+def graph_for(kind: str, params: Mapping[str, Any] | None = None) -> tuple[StageSpec, ...]:
+    """The stages a new job of ``kind`` runs, in topological order: unavailable ones, and
+    those switched off by the job's parameters (``{"render": false}`` skips tiles and
+    preview), are left out together with everything downstream of them."""
+    if kind not in GRAPHS:
+        raise KeyError(kind)
+    params = params or {}
+    kept: list[StageSpec] = []
+    names: set[str] = set()
+    for spec in GRAPHS[kind]:
+        if spec.switch is not None and params.get(spec.switch, True) is False:
+            continue
+        if spec.available() and all(d in names for d in spec.depends_on):
+            kept.append(spec)
+            names.add(spec.name)
+    return tuple(kept)
+
+
+def stage_spec(kind: str, name: str) -> StageSpec:
+    """The declared spec of stage ``name`` (or of a map stage's row ``name#i``) in graph ``kind``."""
+    name = base_name(name)
+    for spec in GRAPHS[kind]:
+        if spec.name == name:
+            return spec
+    raise KeyError(f"{kind}.{name}")
+
+
+def all_stage_specs() -> dict[str, StageSpec]:
+    """Every declared stage by name (one Celery task each)."""
+    out: dict[str, StageSpec] = {}
+    for specs in GRAPHS.values():
+        for spec in specs:
+            out.setdefault(spec.name, spec)
+    return out
+
+
+def longest_time_limit() -> int:
+    """The longest stage time limit in seconds (the broker's visibility timeout must exceed it)."""
+    return max(s.time_limit for s in all_stage_specs().values())
+
+
+#: Separates a map stage's name from the index of one of its instances (``tiles_chunk#3``).
+FANOUT_SEP = "#"
+
+
+def base_name(stage: str) -> str:
+    """The spec name of a stage row (``tiles_chunk#3`` -> ``tiles_chunk``)."""
+    return stage.split(FANOUT_SEP, 1)[0]
+
+
+def fanout_index(stage: str) -> int | None:
+    """The instance index of a map stage's row (``tiles_chunk#3`` -> 3), None for other stages."""
+    _, sep, idx = stage.partition(FANOUT_SEP)
+    return int(idx) if sep else None
+
+
+def stage_key(
+    spec: StageSpec, capture_key: str, params: Mapping[str, Any], upstream: Mapping[str, str], index: int | None = None
+) -> str:
+    """Content address of a stage's output: SHA-256 (hex) of the stage name and version, the
+    parameters it reads, the capture's key (when it reads the capture), the keys of the
+    upstream stage rows it reads (``upstream``: row name -> key) and, for an instance of a
+    map stage, its index."""
+    doc = {
+        "stage": spec.name,
+        "version": spec.version,
+        "params": {p: params.get(p) for p in spec.params},
+        "capture": capture_key if CAPTURE in spec.inputs else None,
+        "upstream": {d: upstream[d] for d in sorted(upstream)},
+        "index": index,
+    }
+    blob = json.dumps(doc, sort_keys=True, separators=(",", ":"), default=str).encode()
+    return hashlib.sha256(blob).hexdigest()
+
+
+@dataclass
+class StageView:
+    """What the graph logic needs of a stage row: its name, state and dependencies."""
+
+    name: str
+    state: str
+    depends_on: tuple[str, ...] = field(default_factory=tuple)
+
+
+def ready_to_queue(stages: Iterable[StageView]) -> list[str]:
+    """Names of pending stages whose upstream stages have all succeeded (the fan-in count)."""
+    stages = list(stages)
+    done = {s.name for s in stages if s.state == StageState.SUCCEEDED}
+    return [s.name for s in stages if s.state == StageState.PENDING and all(d in done for d in s.depends_on)]
+
+
+def job_state_from_stages(states: Iterable[str], cancelled: bool = False) -> JobState:
+    """The job state its stages imply."""
+    states = [StageState(s) for s in states]
+    if cancelled:
+        return JobState.CANCELLED
+    if any(s == StageState.FAILED for s in states):
+        return JobState.FAILED
+    if states and all(s == StageState.SUCCEEDED for s in states):
+        return JobState.SUCCEEDED
+    if any(s in (StageState.RUNNING, StageState.SUCCEEDED) for s in states):
+        return JobState.RUNNING
+    return JobState.QUEUED

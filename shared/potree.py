@@ -1,0 +1,194 @@
+"""Reader of Potree 2.0 tiles (our :mod:`shared.octree` output, or PotreeConverter 2's "DEFAULT").
+
+In: a folder with ``metadata.json``, ``hierarchy.bin`` and ``octree.bin``. Out:
+:class:`PotreeTiles` — metadata, every node of the hierarchy (proxies resolved, the same walk
+as Potree's ``OctreeLoader.js``) with its cubic bounding box, and per-node points decoded to
+world coordinates (units of the source cloud) with colour, normal and world ``size``.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from shared.errors import InputError
+
+_TYPES = {
+    "int8": "i1", "uint8": "u1", "int16": "<i2", "uint16": "<u2", "int32": "<i4", "uint32": "<u4",
+    "int64": "<i8", "uint64": "<u8", "float": "<f4", "double": "<f8",
+}  # fmt: skip
+_HIER = np.dtype([("type", "u1"), ("mask", "u1"), ("points", "<u4"), ("offset", "<i8"), ("size", "<i8")])
+
+
+@dataclass
+class PotreeNode:
+    """One octree node. ``box_min``/``box_max`` are world coordinates of its cube."""
+
+    name: str
+    level: int
+    num_points: int
+    byte_offset: int
+    byte_size: int
+    child_mask: int
+    node_type: int  # 0 inner, 1 leaf (after proxies are resolved)
+    box_min: np.ndarray
+    box_max: np.ndarray
+    spacing: float
+
+
+@dataclass
+class NodePoints:
+    """Decoded points of a node: ``xyz`` (N, 3) float64 world; ``rgb`` (N, 3) uint8;
+    ``normal`` (N, 3) float32 or None; ``size`` (N,) float32 world sample size or None."""
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    normal: np.ndarray | None
+    size: np.ndarray | None
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+@dataclass
+class PotreeTiles:
+    """An opened tiles folder; ``nodes`` maps name -> node in breadth-first order."""
+
+    root: Path
+    metadata: dict
+    nodes: dict[str, PotreeNode]
+    point_dtype: np.dtype
+    offset: np.ndarray
+    scale: np.ndarray
+
+    @property
+    def points(self) -> int:
+        return int(self.metadata["points"])
+
+    @property
+    def box_min(self) -> np.ndarray:
+        return np.asarray(self.metadata["boundingBox"]["min"], np.float64)
+
+    @property
+    def box_max(self) -> np.ndarray:
+        return np.asarray(self.metadata["boundingBox"]["max"], np.float64)
+
+    def records(self, name: str) -> np.ndarray:
+        """Raw records of node ``name`` as a structured array of :attr:`point_dtype`."""
+        node = self.nodes[name]
+        if node.byte_size == 0:
+            return np.empty(0, self.point_dtype)
+        with open(self.root / "octree.bin", "rb") as f:
+            f.seek(node.byte_offset)
+            buf = f.read(node.byte_size)
+        if len(buf) != node.byte_size or node.byte_size != node.num_points * self.point_dtype.itemsize:
+            raise InputError(self.root / "octree.bin", f"node {name} bytes do not match its record")
+        return np.frombuffer(buf, self.point_dtype)
+
+    def read_node(self, name: str) -> NodePoints:
+        """Decoded points of node ``name``."""
+        rec = self.records(name)
+        names = rec.dtype.names or ()
+        xyz = rec["position"].astype(np.float64) * self.scale + self.offset
+        if "rgb" in names:
+            c = rec["rgb"].astype(np.uint32)
+            # Potree's decoder: values above 255 are 16-bit colour.
+            rgb = np.where(c > 255, c // 256, c).astype(np.uint8)
+        else:
+            rgb = np.full((len(rec), 3), 255, np.uint8)
+        if "normal" in names:
+            normal = rec["normal"].astype(np.float32)
+        elif {"NormalX", "NormalY", "NormalZ"} <= set(names):
+            normal = np.stack([rec["NormalX"], rec["NormalY"], rec["NormalZ"]], axis=1).astype(np.float32)
+        else:
+            normal = None
+        size = rec["size"].astype(np.float32) if "size" in names else None
+        return NodePoints(xyz=xyz, rgb=rgb, normal=normal, size=size)
+
+
+def _child_box(lo: np.ndarray, hi: np.ndarray, index: int) -> tuple[np.ndarray, np.ndarray]:
+    lo, hi = lo.copy(), hi.copy()
+    half = (hi - lo) / 2
+    for axis, bit in ((0, 4), (1, 2), (2, 1)):
+        if index & bit:
+            lo[axis] += half[axis]
+        else:
+            hi[axis] -= half[axis]
+    return lo, hi
+
+
+def open_tiles(root: Path) -> PotreeTiles:
+    """Open a Potree 2.0 folder; raises :class:`InputError` naming the file that is wrong."""
+    root = Path(root)
+    meta_path = root / "metadata.json"
+    if not meta_path.is_file():
+        raise InputError(root, "not a tiles folder (no metadata.json)")
+    try:
+        meta = json.loads(meta_path.read_text())
+        if meta.get("version") != "2.0":
+            raise InputError(meta_path, f"unsupported Potree version {meta.get('version')!r}")
+        if meta.get("encoding", "DEFAULT") != "DEFAULT":
+            raise InputError(meta_path, f"unsupported encoding {meta.get('encoding')!r}")
+        fields = []
+        for a in meta["attributes"]:
+            t = _TYPES[a["type"]]
+            n = int(a["numElements"])
+            fields.append((a["name"], t, (n,)) if n > 1 else (a["name"], t))
+        dtype = np.dtype(fields)
+        offset = np.asarray(meta["offset"], np.float64)
+        scale = np.asarray(meta["scale"], np.float64)
+        bmin = np.asarray(meta["boundingBox"]["min"], np.float64)
+        bmax = np.asarray(meta["boundingBox"]["max"], np.float64)
+        first = int(meta["hierarchy"]["firstChunkSize"])
+        spacing = float(meta["spacing"])
+    except InputError:
+        raise
+    except (KeyError, TypeError, ValueError) as exc:
+        raise InputError(meta_path, f"malformed Potree metadata: {exc!r}") from None
+    hpath = root / "hierarchy.bin"
+    if not hpath.is_file() or not (root / "octree.bin").is_file():
+        raise InputError(root, "tiles folder lacks hierarchy.bin or octree.bin")
+    hier = np.fromfile(hpath, dtype=np.uint8)
+
+    nodes: dict[str, PotreeNode] = {}
+    root_node = PotreeNode("r", 0, 0, 0, 0, 0, 2, bmin, bmax, spacing)
+    pending = [(root_node, 0, first)]  # proxies to expand: (node, hierarchy offset, size)
+    while pending:
+        start, h_off, h_size = pending.pop()
+        if h_size % _HIER.itemsize or h_off + h_size > hier.size:
+            raise InputError(hpath, f"hierarchy chunk at {h_off}+{h_size} is out of range")
+        recs = np.frombuffer(hier[h_off : h_off + h_size].tobytes(), _HIER)
+        queue = [start]
+        for i, r in enumerate(recs):
+            if i >= len(queue):
+                raise InputError(hpath, "hierarchy chunk has more records than its nodes announce")
+            cur = queue[i]
+            cur.num_points = int(r["points"])
+            cur.child_mask = int(r["mask"])
+            if int(r["type"]) == 2 and cur is not start:
+                cur.node_type = 2
+                pending.append((cur, int(r["offset"]), int(r["size"])))
+                continue
+            cur.node_type = int(r["type"])
+            cur.byte_offset = int(r["offset"])
+            cur.byte_size = int(r["size"])
+            nodes[cur.name] = cur
+            for k in range(8):
+                if cur.child_mask & (1 << k):
+                    lo, hi = _child_box(cur.box_min, cur.box_max, k)
+                    queue.append(
+                        PotreeNode(cur.name + str(k), cur.level + 1, 0, 0, 0, 0, 0, lo, hi, cur.spacing / 2)
+                    )
+    ordered = dict(sorted(nodes.items(), key=lambda kv: (len(kv[0]), kv[0])))
+    return PotreeTiles(root=root, metadata=meta, nodes=ordered, point_dtype=dtype, offset=offset, scale=scale)
+
+
+def tight_bounds(tiles: PotreeTiles) -> tuple[np.ndarray, np.ndarray]:
+    """The points' own bounds (the position attribute's min/max), else the cubic box."""
+    for a in tiles.metadata.get("attributes", []):
+        if a.get("name") == "position" and len(a.get("min", [])) == 3 and len(a.get("max", [])) == 3:
+            return np.asarray(a["min"], np.float64), np.asarray(a["max"], np.float64)
+    return tiles.box_min, tiles.box_max

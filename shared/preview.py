@@ -1,0 +1,302 @@
+"""Preview flythrough videos of Potree tiles, rendered headlessly and encoded to H.264 MP4.
+
+In: a tiles folder (:mod:`shared.octree` output), a camera path ("orbit", "dolly" or a JSON
+keyframe file, :mod:`shared.camera_path`), a frame size, duration and rate. Out: an MP4
+(H.264, yuv420p, via the ffmpeg that ships with imageio-ffmpeg) and a poster PNG beside it
+(same name, ``.png``), both written under temporary names and renamed when complete.
+
+Per frame the octree nodes are chosen by projected size under a point budget
+(:func:`shared.raster.select_nodes`) and drawn by the CPU software rasteriser (or by
+OpenGL through moderngl when a hardware GPU is present: Mesa's llvmpipe is far slower than
+the CPU rasteriser, so it is never picked automatically); nodes drawn
+without all their children get splats at least as wide as their spacing, so coarse levels
+close up as well. Encoding runs in ffmpeg's own process, overlapping the rendering.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from shared.camera_path import CameraPose, make_path
+from shared.errors import InputError
+from shared.potree import PotreeTiles, open_tiles, tight_bounds
+from shared.raster import Camera, GLRasterizer, NodeTable, Rasterizer, select_nodes
+
+log = logging.getLogger(__name__)
+
+MAX_WIDTH, MAX_HEIGHT = 3840, 2160
+MIN_SIDE = 16
+MAX_SECONDS = 600.0
+MAX_FPS = 120
+#: Points drawn a frame: 1.5 M covers a 1280x720 frame about 1.6 times over.
+DEFAULT_BUDGET = 1_500_000
+#: Points held in memory for a preview; deeper nodes of a bigger cloud are left out.
+MAX_LOADED = 40_000_000
+BACKGROUND = (18, 18, 24)
+
+
+@dataclass
+class LoadedScene:
+    """Points of the loaded nodes in one set of arrays, node after node (breadth-first).
+
+    ``xyz`` (N, 3) float32 relative to ``origin`` (3,) float64; ``colour`` (N,) uint32
+    0x00BBGGRR; ``size`` (N,) float32; ``ranges`` (M, 2) int64 per node; ``table`` for
+    node selection; ``names`` the nodes' Potree names.
+    """
+
+    origin: np.ndarray
+    xyz: np.ndarray
+    colour: np.ndarray
+    size: np.ndarray
+    ranges: np.ndarray
+    table: NodeTable
+    names: list[str]
+    bounds_min: np.ndarray
+    bounds_max: np.ndarray
+
+    @property
+    def points(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+def load_scene(tiles: PotreeTiles, max_points: int = MAX_LOADED) -> LoadedScene:
+    """Decode nodes breadth-first until ``max_points`` would be exceeded (children of
+    skipped nodes are skipped too)."""
+    chosen = []
+    total = 0
+    loaded: set[str] = set()
+    for name, node in tiles.nodes.items():
+        if name != "r" and name[:-1] not in loaded:
+            continue
+        if total + node.num_points > max_points:
+            continue
+        chosen.append(node)
+        loaded.add(name)
+        total += node.num_points
+    if total == 0:
+        raise InputError(tiles.root, "the tiles hold no points")
+    lo, hi = tight_bounds(tiles)
+    origin = (lo + hi) / 2
+    xyz = np.empty((total, 3), np.float32)
+    colour = np.empty(total, np.uint32)
+    size = np.zeros(total, np.float32)
+    ranges = np.empty((len(chosen), 2), np.int64)
+    shift = (tiles.offset - origin).astype(np.float64)
+    mm = np.memmap(tiles.root / "octree.bin", dtype=np.uint8, mode="r")
+    item = tiles.point_dtype.itemsize
+    names_in = tiles.point_dtype.names or ()
+    pos = 0
+    for j, node in enumerate(chosen):
+        n = node.num_points
+        if node.byte_offset + n * item > mm.size or node.byte_size != n * item:
+            raise InputError(tiles.root / "octree.bin", f"node {node.name} lies outside the file")
+        rec = np.frombuffer(mm[node.byte_offset : node.byte_offset + n * item], tiles.point_dtype)
+        xyz[pos : pos + n] = rec["position"] * tiles.scale + shift
+        if "rgb" in names_in:
+            c = rec["rgb"].astype(np.uint32)
+            c = np.where(c > 255, c >> 8, c)
+            colour[pos : pos + n] = c[:, 0] | (c[:, 1] << 8) | (c[:, 2] << 16)
+        else:
+            colour[pos : pos + n] = 0xFFFFFF
+        if "size" in names_in:
+            size[pos : pos + n] = rec["size"]
+        ranges[j] = pos, pos + n
+        pos += n
+    index = {node.name: j for j, node in enumerate(chosen)}
+    centre = np.stack([(nd.box_min + nd.box_max) / 2 - origin for nd in chosen])
+    radius = np.array([np.linalg.norm(nd.box_max - nd.box_min) / 2 for nd in chosen])
+    parent = np.array([index.get(nd.name[:-1], -1) if nd.name != "r" else -1 for nd in chosen])
+    table = NodeTable(
+        center=centre,
+        radius=radius,
+        parent=parent,
+        points=np.array([nd.num_points for nd in chosen], np.int64),
+        spacing=np.array([nd.spacing for nd in chosen]),
+    )
+    return LoadedScene(origin=origin, xyz=xyz, colour=colour, size=size, ranges=ranges, table=table,
+                       names=[nd.name for nd in chosen], bounds_min=lo, bounds_max=hi)  # fmt: skip
+
+
+def frame_camera(pose: CameraPose, scene: LoadedScene, width: int, height: int) -> Camera:
+    """The rasteriser camera of a pose (moved into the scene's local frame)."""
+    diag = float(np.linalg.norm(scene.bounds_max - scene.bounds_min)) or 1.0
+    return Camera.look_at(pose.eye - scene.origin, pose.target - scene.origin, pose.up, pose.fov_y,
+                          width, height, near=diag * 1e-4)  # fmt: skip
+
+
+def frame_selection(scene: LoadedScene, camera: Camera, budget: int) -> tuple[np.ndarray, np.ndarray]:
+    """Ranges and per-range smallest splat size for one frame (see module docstring)."""
+    chosen, visible = select_nodes(scene.table, camera, budget)
+    picked = np.zeros(len(scene.names), bool)
+    picked[chosen] = True
+    min_size = np.zeros(chosen.size, np.float32)
+    for k, i in enumerate(chosen):
+        # A visible child left out (budget) leaves gaps of about this node's spacing.
+        if any(visible[c] and not picked[c] for c in scene.table.children[i]):
+            min_size[k] = scene.table.spacing[i]
+    return scene.ranges[chosen], min_size
+
+
+def hardware_gl(width: int, height: int) -> GLRasterizer | None:
+    """An OpenGL rasteriser when a real GPU drives it, else None (Mesa's llvmpipe draws
+    points several times slower than the CPU rasteriser, so it is never chosen)."""
+    if not any(Path("/dev/dri").glob("renderD*")):  # no GPU render node: do not even probe EGL
+        return None
+    try:
+        gl = GLRasterizer(width, height)
+    except Exception as exc:  # no EGL, no driver: the CPU path is the normal case
+        log.info("no OpenGL context (%s); rendering on the CPU", exc)
+        return None
+    if gl.hardware:
+        log.info("rendering with OpenGL on %s", gl.renderer)
+        return gl
+    gl.release()
+    return None
+
+
+def render_frames(
+    scene: LoadedScene,
+    poses: list[CameraPose],
+    width: int,
+    height: int,
+    budget: int = DEFAULT_BUDGET,
+    edl: float = 0.0,
+    gl: GLRasterizer | None = None,
+):
+    """Yield (rgb (H, W, 3) uint8, points drawn) for every pose, with the CPU rasteriser or,
+    when ``gl`` is given, with OpenGL (the caller releases it)."""
+    far = 1e3 * float(np.linalg.norm(scene.bounds_max - scene.bounds_min) or 1.0)
+    if gl is not None:
+        gl.upload(scene.xyz, scene.colour, scene.size)
+        for pose in poses:
+            cam = frame_camera(pose, scene, width, height)
+            ranges, min_size = frame_selection(scene, cam, budget)
+            yield gl.render(cam, ranges, min_size, far, BACKGROUND), int((ranges[:, 1] - ranges[:, 0]).sum())
+        return
+    # CPU: a batch of frames at once, one a thread.
+    rz = Rasterizer(width, height)
+    for start in range(0, len(poses), rz.threads):
+        cams = [frame_camera(p, scene, width, height) for p in poses[start : start + rz.threads]]
+        sel = [frame_selection(scene, c, budget) for c in cams]
+        frames = rz.render_batch(cams, scene.xyz, scene.colour, scene.size, [r for r, _ in sel],
+                                 [m for _, m in sel], BACKGROUND, edl)  # fmt: skip
+        for frame, (ranges, _) in zip(frames, sel, strict=True):
+            yield frame.rgb, int((ranges[:, 1] - ranges[:, 0]).sum())
+
+
+def check_video_args(size: tuple[int, int], seconds: float, fps: float) -> tuple[int, int, int]:
+    """Validate the video request; returns (width, height, frames). InputError names the field."""
+    try:
+        width, height = (int(v) for v in size)
+    except (TypeError, ValueError):
+        raise InputError("size", f"must be two integers WIDTHxHEIGHT, got {size!r}") from None
+    if width > MAX_WIDTH or height > MAX_HEIGHT:
+        raise InputError("size", f"{width}x{height} is too large (at most {MAX_WIDTH}x{MAX_HEIGHT})")
+    if width < MIN_SIDE or height < MIN_SIDE:
+        raise InputError("size", f"{width}x{height} is too small (at least {MIN_SIDE}x{MIN_SIDE})")
+    if width % 2 or height % 2:
+        raise InputError("size", f"{width}x{height}: H.264 needs even width and height")
+    if not (isinstance(seconds, int | float) and math.isfinite(seconds) and 0 < seconds <= MAX_SECONDS):
+        raise InputError("seconds", f"must be in (0, {MAX_SECONDS:g}], got {seconds!r}")
+    if not (isinstance(fps, int | float) and math.isfinite(fps) and 1 <= fps <= MAX_FPS):
+        raise InputError("fps", f"must be in [1, {MAX_FPS}], got {fps!r}")
+    frames = max(1, int(round(seconds * fps)))
+    return width, height, frames
+
+
+def render_preview(
+    tiles_dir: Path,
+    out_path: Path,
+    *,
+    path: str | Path = "orbit",
+    size: tuple[int, int] = (1280, 720),
+    seconds: float = 10.0,
+    fps: float = 30,
+    budget: int = DEFAULT_BUDGET,
+    edl: float = 0.0,
+    renderer: str = "auto",
+) -> dict:
+    """Render a flythrough of ``tiles_dir`` to ``out_path`` (MP4) and its poster PNG.
+
+    ``renderer`` is "auto" (OpenGL when a hardware GPU is there, else the CPU rasteriser),
+    "cpu" or "gl". Returns a report: video, poster, frames, width, height, fps, seconds,
+    points (loaded), mean_points_per_frame, render_seconds, render_fps, elapsed_seconds.
+    """
+    import imageio_ffmpeg
+
+    t0 = time.perf_counter()
+    width, height, frames = check_video_args(size, seconds, fps)
+    if budget < 1:
+        raise InputError("budget", f"must be at least 1 point, got {budget}")
+    if renderer not in ("auto", "cpu", "gl"):
+        raise InputError("renderer", f"must be auto, cpu or gl, got {renderer!r}")
+    out_path = Path(out_path)
+    tiles = open_tiles(Path(tiles_dir))
+    scene = load_scene(tiles)
+    poses = make_path(path, scene.bounds_min, scene.bounds_max, frames)
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    poster_path = out_path.with_suffix(".png")
+    tmp_video = out_path.with_name(f".{out_path.stem}.{os.getpid()}.tmp.mp4")
+    tmp_poster = out_path.with_name(f".{out_path.stem}.{os.getpid()}.tmp.png")
+    render_s = 0.0
+    drawn = 0
+    gl = None
+    if renderer == "gl":
+        gl = GLRasterizer(width, height)
+    elif renderer == "auto":
+        gl = hardware_gl(width, height)
+    used = "cpu" if gl is None else f"opengl: {gl.renderer}"
+    try:
+        writer = imageio_ffmpeg.write_frames(
+            str(tmp_video), (width, height), fps=fps, codec="libx264", pix_fmt_in="rgb24",
+            pix_fmt_out="yuv420p", macro_block_size=1, quality=None, ffmpeg_log_level="error",
+            output_params=["-preset", "veryfast", "-crf", "23", "-movflags", "+faststart"],
+        )  # fmt: skip
+        writer.send(None)
+        it = None
+        try:
+            it = render_frames(scene, poses, width, height, budget, edl, gl)
+            for k in range(frames):
+                t1 = time.perf_counter()
+                rgb, n = next(it)
+                render_s += time.perf_counter() - t1
+                drawn += n
+                if k == 0:
+                    if not cv2.imwrite(str(tmp_poster), rgb[:, :, ::-1]):
+                        raise OSError(f"could not write {tmp_poster}")
+                writer.send(np.ascontiguousarray(rgb))
+        finally:
+            if it is not None:
+                it.close()
+            if gl is not None:
+                gl.release()
+            writer.close()
+        os.replace(tmp_video, out_path)
+        os.replace(tmp_poster, poster_path)
+    except BaseException:
+        tmp_video.unlink(missing_ok=True)
+        tmp_poster.unlink(missing_ok=True)
+        raise
+    return {
+        "video": str(out_path),
+        "poster": str(poster_path),
+        "frames": frames,
+        "width": width,
+        "height": height,
+        "fps": fps,
+        "seconds": frames / fps,
+        "points": scene.points,
+        "renderer": used,
+        "mean_points_per_frame": drawn / frames,
+        "render_seconds": render_s,
+        "render_fps": frames / render_s if render_s > 0 else 0.0,
+        "elapsed_seconds": time.perf_counter() - t0,
+    }

@@ -1,0 +1,47 @@
+"""Render stages as the job service and the CLI run them: tiles from a cloud, a preview video
+from tiles.
+
+``tiles_stage(cloud_ply, out_dir)`` builds Potree 2.0 tiles (:mod:`shared.octree`);
+``preview_stage(tiles_dir, out_path, ...)`` renders an MP4 and a poster PNG
+(:mod:`shared.preview`). Both return a JSON-able report and write their outputs atomically
+(a temporary folder or file renamed when complete), so a failure leaves no finished-looking
+artifact. Bad input raises :class:`shared.errors.InputError`.
+
+For fan-out under the job service, the tile build splits into
+:func:`shared.octree.plan_tiles` (one task), :func:`shared.octree.build_chunk` (one task a
+chunk, independent) and :func:`shared.octree.merge_tiles` (one task).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+from shared.octree import build_tiles
+from shared.preview import render_preview
+
+
+def tiles_stage(cloud_ply: Path, out_dir: Path, *, workers: int | None = None) -> dict:
+    """Build tiles of ``cloud_ply`` into ``out_dir``; returns points, nodes, depth, bytes,
+    chunks, seconds, points_per_second and the output folder."""
+    report = build_tiles(Path(cloud_ply), Path(out_dir), workers=workers)
+    report["tiles"] = str(out_dir)
+    return report
+
+
+def preview_stage(
+    tiles_dir: Path,
+    out_path: Path,
+    *,
+    path: str = "orbit",
+    size: tuple[int, int] = (1280, 720),
+    seconds: float = 10.0,
+    fps: int = 30,
+    renderer: str = "auto",
+) -> dict:
+    """Render a preview flythrough of ``tiles_dir`` to ``out_path`` (MP4) plus a poster PNG.
+
+    ``renderer``: "auto" (OpenGL on a hardware GPU, else the CPU rasteriser), "cpu" or "gl".
+    """
+    return render_preview(
+        Path(tiles_dir), Path(out_path), path=path, size=size, seconds=seconds, fps=fps, renderer=renderer
+    )

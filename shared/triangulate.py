@@ -1,0 +1,396 @@
+"""Triangulation: decoded projector coordinates + calibrated rig -> coloured, oriented 3D points.
+
+In: a :class:`~shared.decode.Decoded` (per camera pixel: sub-pixel projector column, projector
+row, colour) and a :class:`~shared.rig.Rig` (OpenCV pinhole + five-parameter distortion on
+both devices; ``X_projector = R @ X_camera + T``).
+Out: a :class:`Triangulated`: points in the camera frame in the rig's units, their colours,
+camera-facing unit normals, sample sizes ``Z / f_camera``, the (H, W) range image of Z and
+the camera pixel of every point.
+
+Each camera pixel's ray (undistorted with the camera's model) is intersected with the
+plane through the projector's centre that contains its decoded column. A distorted projector
+column is a curve, not a line, so the plane is the one tangent to the undistorted column
+curve at the projector row where the ray meets it; that row is found by iterating
+(start from the decoded row, intersect, project the point into the projector, repeat).
+The decoded row then checks the result: a correspondence whose decoded row disagrees with
+the row the point projects to (beyond the row code's own precision plus
+``row_tolerance``) is rejected. Points with no support from their neighbours in the range
+image (isolated spikes of a wrong code) are rejected too. Normals come from the range image
+(cross product of neighbouring points' differences), turned to face the camera.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numba
+import numpy as np
+
+from shared.decode import Decoded, kernel_thread_scope
+from shared.rig import Device, Rig
+
+log = logging.getLogger(__name__)
+
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12)
+#: Margin in pixels around a device's image covered by its undistortion table.
+_MARGIN = 8
+
+
+@dataclass
+class Triangulated:
+    """Points of one scan, N of them; arrays row-aligned.
+
+    xyz : (N, 3) float32, camera frame, rig units.
+    rgb : (N, 3) uint8.
+    normals : (N, 3) float32 unit vectors facing the camera.
+    size : (N,) float32 world-space sample size ``Z / f_camera``.
+    pixel : (N, 2) int32 camera pixel (x, y) of each point.
+    range_image : (H, W) float32 Z, NaN where no point.
+    stats : counts (JSON-ready).
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    normals: np.ndarray
+    size: np.ndarray
+    pixel: np.ndarray
+    range_image: np.ndarray
+    stats: dict[str, Any] = field(default_factory=dict)
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+    @property
+    def flat_index(self) -> np.ndarray:
+        """(N,) int64 index of each point's pixel in the flattened (H, W) image."""
+        return self.pixel[:, 1].astype(np.int64) * self.range_image.shape[1] + self.pixel[:, 0]
+
+
+def _undistort_table(dev: Device, stride: int) -> tuple[np.ndarray, np.ndarray, float]:
+    """Normalised undistorted coordinates of a grid over the device image (and a margin).
+
+    Returns (a, b) maps of shape (gh, gw) float64 sampled at pixel (x0 + i*stride, y0 + j*stride)
+    with x0 = y0 = -_MARGIN, and the origin offset.
+    """
+    xs = np.arange(-_MARGIN, dev.width + _MARGIN + stride, stride, dtype=np.float64)
+    ys = np.arange(-_MARGIN, dev.height + _MARGIN + stride, stride, dtype=np.float64)
+    gx, gy = np.meshgrid(xs, ys)
+    pts = np.stack([gx.ravel(), gy.ravel()], axis=1).reshape(-1, 1, 2)
+    if np.any(dev.dist != 0):
+        und = cv2.undistortPoints(pts, dev.K, dev.dist, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+    else:
+        # A skew-free pinhole: invert K directly.
+        Kinv = np.linalg.inv(dev.K)
+        und = (pts.reshape(-1, 2) @ Kinv[:2, :2].T) + Kinv[:2, 2]
+    return und[:, 0].reshape(gx.shape), und[:, 1].reshape(gx.shape), float(-_MARGIN)
+
+
+@numba.njit(inline="always")
+def _bilinear(tab, u, v):  # pragma: no cover
+    gh, gw = tab.shape
+    if u < 0.0:
+        u = 0.0
+    if v < 0.0:
+        v = 0.0
+    if u > gw - 1.001:
+        u = gw - 1.001
+    if v > gh - 1.001:
+        v = gh - 1.001
+    i = int(u)
+    j = int(v)
+    fu = u - i
+    fv = v - j
+    return (tab[j, i] * (1 - fu) * (1 - fv) + tab[j, i + 1] * fu * (1 - fv)
+            + tab[j + 1, i] * (1 - fu) * fv + tab[j + 1, i + 1] * fu * fv)
+
+
+@numba.njit(parallel=True, cache=True)
+def _intersect_grid(column, row, row_span, has_row, row_tol, cam_a, cam_b, cam_stride, cam_org,
+                    pa, pb, pta, ptb, p_org, R, T, Kp, distp, iters, P, valid, reasons):  # pragma: no cover
+    """Ray-plane intersection for every decoded pixel of the (H, W) image.
+
+    Writes P (H, W, 3) float32 points (NaN where none) and valid (H, W); counts rejections in
+    reasons (H, 2): [geometry, row mismatch] per image row.
+    """
+    H, W = column.shape
+    fyp = Kp[1, 1]
+    cyp = Kp[1, 2]
+    k1 = distp[0]
+    k2 = distp[1]
+    p1 = distp[2]
+    p2 = distp[3]
+    k3 = distp[4]
+    for yu in numba.prange(H):
+        y = np.int64(yu)
+        n_geom = 0
+        n_row = 0
+        for x in range(W):
+            P[y, x, 0] = np.nan
+            P[y, x, 1] = np.nan
+            P[y, x, 2] = np.nan
+            valid[y, x] = False
+            pcol = column[y, x]
+            if not (pcol == pcol):
+                continue
+            r0 = row[y, x]
+            if has_row and not (r0 == r0):
+                continue
+            u = (x - cam_org) / cam_stride
+            v = (y - cam_org) / cam_stride
+            rx = _bilinear(cam_a, u, v)
+            ry = _bilinear(cam_b, u, v)
+            pc = pcol - p_org
+            q = r0 if has_row else cyp
+            X = np.nan
+            Y = np.nan
+            Z = np.nan
+            qp = np.nan
+            for _ in range(iters):
+                qc = q - p_org
+                a = _bilinear(pa, pc, qc)
+                b = _bilinear(pb, pc, qc)
+                ta = _bilinear(pta, pc, qc)
+                tb = _bilinear(ptb, pc, qc)
+                # Plane through the projector centre containing (a, b, 1) and the column tangent (ta, tb, 0).
+                n0 = -tb
+                n1 = ta
+                n2 = a * tb - b * ta
+                # In the camera frame: (R^T n) . X = -n . T
+                m0 = R[0, 0] * n0 + R[1, 0] * n1 + R[2, 0] * n2
+                m1 = R[0, 1] * n0 + R[1, 1] * n1 + R[2, 1] * n2
+                m2 = R[0, 2] * n0 + R[1, 2] * n1 + R[2, 2] * n2
+                den = m0 * rx + m1 * ry + m2
+                num = -(n0 * T[0] + n1 * T[1] + n2 * T[2])
+                if den == 0.0:
+                    X = np.nan
+                    break
+                lam = num / den
+                if lam <= 0.0:
+                    X = np.nan
+                    break
+                X = lam * rx
+                Y = lam * ry
+                Z = lam
+                xp = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + T[0]
+                yp = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * Z + T[1]
+                zp = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + T[2]
+                if zp <= 0.0:
+                    X = np.nan
+                    break
+                xn = xp / zp
+                yn = yp / zp
+                r2 = xn * xn + yn * yn
+                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+                qp = fyp * yd + cyp
+                q = qp
+            if not (X == X):
+                n_geom += 1
+                continue
+            if has_row and abs(qp - r0) > 0.5 * row_span[y, x] + row_tol:
+                n_row += 1
+                continue
+            P[y, x, 0] = X
+            P[y, x, 1] = Y
+            P[y, x, 2] = Z
+            valid[y, x] = True
+        reasons[y, 0] = n_geom
+        reasons[y, 1] = n_row
+
+
+@numba.njit(parallel=True, cache=True)
+def _gather(keep, P, normals, colour, offsets, inv_f, xyz, nrm, rgb, size, pixel):  # pragma: no cover
+    """Compact the kept pixels of the images into point arrays, row by row (offsets: per-row start)."""
+    H, W = keep.shape
+    for yu in numba.prange(H):
+        y = np.int64(yu)
+        k = offsets[y]
+        for x in range(W):
+            if not keep[y, x]:
+                continue
+            for c in range(3):
+                xyz[k, c] = P[y, x, c]
+                nrm[k, c] = normals[y, x, c]
+                rgb[k, c] = colour[y, x, c]
+            size[k] = P[y, x, 2] * inv_f
+            pixel[k, 0] = x
+            pixel[k, 1] = y
+            k += 1
+
+
+@numba.njit(parallel=True, cache=True)
+def _support_and_normals(P, valid, rel_tol, min_support, keep, normals):  # pragma: no cover
+    """Reject points without ``min_support`` neighbours (8-neighbourhood) within ``rel_tol * Z``
+    of their depth; compute normals from neighbouring points' differences."""
+    H, W = valid.shape
+    for y in numba.prange(H):
+        for x in range(W):
+            keep[y, x] = False
+            if not valid[y, x]:
+                continue
+            z = P[y, x, 2]
+            tol = rel_tol * z
+            cnt = 0
+            for dy in range(-1, 2):
+                yy = y + dy
+                if yy < 0 or yy >= H:
+                    continue
+                for dx in range(-1, 2):
+                    xx = x + dx
+                    if (dx == 0 and dy == 0) or xx < 0 or xx >= W:
+                        continue
+                    if valid[yy, xx] and abs(P[yy, xx, 2] - z) <= tol:
+                        cnt += 1
+            keep[y, x] = cnt >= min_support
+    for yu in numba.prange(H):
+        y = np.int64(yu)
+        for x in range(W):
+            if not keep[y, x]:
+                continue
+            z = P[y, x, 2]
+            tol = rel_tol * z
+            # Horizontal and vertical differences: central where both sides agree, else one-sided.
+            hx0 = x - 1 if x > 0 and keep[y, x - 1] and abs(P[y, x - 1, 2] - z) <= tol else x
+            hx1 = x + 1 if x + 1 < W and keep[y, x + 1] and abs(P[y, x + 1, 2] - z) <= tol else x
+            vy0 = y - 1 if y > 0 and keep[y - 1, x] and abs(P[y - 1, x, 2] - z) <= tol else y
+            vy1 = y + 1 if y + 1 < H and keep[y + 1, x] and abs(P[y + 1, x, 2] - z) <= tol else y
+            X0 = P[y, x, 0]
+            Y0 = P[y, x, 1]
+            if hx0 == hx1 or vy0 == vy1:
+                # No tangent estimate: face the camera.
+                nrm = np.sqrt(X0 * X0 + Y0 * Y0 + z * z)
+                normals[y, x, 0] = -X0 / nrm
+                normals[y, x, 1] = -Y0 / nrm
+                normals[y, x, 2] = -z / nrm
+                continue
+            ax = P[y, hx1, 0] - P[y, hx0, 0]
+            ay = P[y, hx1, 1] - P[y, hx0, 1]
+            az = P[y, hx1, 2] - P[y, hx0, 2]
+            bx = P[vy1, x, 0] - P[vy0, x, 0]
+            by = P[vy1, x, 1] - P[vy0, x, 1]
+            bz = P[vy1, x, 2] - P[vy0, x, 2]
+            nx = ay * bz - az * by
+            ny = az * bx - ax * bz
+            nz = ax * by - ay * bx
+            nrm = np.sqrt(nx * nx + ny * ny + nz * nz)
+            if nrm == 0.0:
+                nrm = np.sqrt(X0 * X0 + Y0 * Y0 + z * z)
+                nx = -X0
+                ny = -Y0
+                nz = -z
+            if nx * X0 + ny * Y0 + nz * z > 0.0:
+                nx = -nx
+                ny = -ny
+                nz = -nz
+            normals[y, x, 0] = nx / nrm
+            normals[y, x, 1] = ny / nrm
+            normals[y, x, 2] = nz / nrm
+
+
+def triangulate(
+    decoded: Decoded,
+    rig: Rig,
+    *,
+    row_tolerance: float = 3.0,
+    support_tolerance: float = 0.01,
+    min_support: int = 2,
+    iterations: int = 2,
+) -> Triangulated:
+    """Triangulate every decoded camera pixel against its projector column plane.
+
+    Parameters
+    ----------
+    decoded : per-pixel projector coordinates; (H, W) must equal the rig camera's size.
+    rig : calibrated camera-projector pair.
+    row_tolerance : projector rows allowed between the decoded row (its code's centre) and
+        the row the point projects to, beyond half the row code's span.
+    support_tolerance : relative depth difference within which a neighbour supports a point.
+    min_support : neighbours (of 8) a point needs to be kept; 0 keeps isolated points.
+    iterations : ray-plane intersections per point (the plane depends on the row).
+
+    Returns
+    -------
+    Triangulated (see there).
+    """
+    with kernel_thread_scope():
+        return _triangulate(decoded, rig, row_tolerance, support_tolerance, min_support, iterations)
+
+
+def _triangulate(
+    decoded: Decoded, rig: Rig, row_tolerance: float, support_tolerance: float, min_support: int, iterations: int
+) -> Triangulated:
+    t0 = time.perf_counter()
+    h, w = decoded.shape
+    cam, proj = rig.camera, rig.projector
+    has_row = bool(np.isfinite(decoded.row).any())
+    if has_row and decoded.row_level is not None:
+        row_span = np.exp2(np.maximum(decoded.row_level, 0).astype(np.float32))
+    else:
+        row_span = np.ones((1, 1), np.float32) if not has_row else np.ones((h, w), np.float32)
+    stride = 4
+    cam_a, cam_b, cam_org = _undistort_table(cam, stride)
+    pa, pb, p_org = _undistort_table(proj, 1)
+    # Tangent of the undistorted column curve along the projector row (per projector pixel).
+    pta = np.gradient(pa, axis=0)
+    ptb = np.gradient(pb, axis=0)
+    P = np.empty((h, w, 3), np.float32)
+    vmask = np.empty((h, w), bool)
+    reasons = np.zeros((h, 2), np.int64)
+    _intersect_grid(np.ascontiguousarray(decoded.column, np.float32), np.ascontiguousarray(decoded.row, np.float32),
+                    row_span, has_row, float(row_tolerance), cam_a, cam_b, float(stride), cam_org,
+                    pa, pb, pta, ptb, p_org, np.ascontiguousarray(rig.R, np.float64),
+                    np.ascontiguousarray(rig.T, np.float64).ravel(), np.ascontiguousarray(proj.K, np.float64),
+                    np.ascontiguousarray(proj.dist[:5], np.float64), iterations, P, vmask, reasons)
+    del row_span
+    t_int = time.perf_counter()
+    n_geom, n_row_reject = (int(v) for v in reasons.sum(axis=0))
+    keep = np.empty((h, w), bool)
+    normals_img = np.zeros((h, w, 3), np.float32)
+    _support_and_normals(P, vmask, np.float32(support_tolerance), min_support, keep, normals_img)
+    n_valid = int(np.count_nonzero(vmask))
+    del vmask
+    counts = np.count_nonzero(keep, axis=1)
+    offsets = np.zeros(h, np.int64)
+    np.cumsum(counts[:-1], out=offsets[1:])
+    n_pts = int(counts.sum())
+    xyz = np.empty((n_pts, 3), np.float32)
+    normals = np.empty((n_pts, 3), np.float32)
+    rgb = np.empty((n_pts, 3), np.uint8)
+    size = np.empty(n_pts, np.float32)
+    pixel = np.empty((n_pts, 2), np.int32)
+    f_cam = 0.5 * (cam.fx + cam.fy)
+    _gather(keep, P, normals_img, np.ascontiguousarray(decoded.colour), offsets, np.float32(1.0 / f_cam),
+            xyz, normals, rgb, size, pixel)
+    del normals_img
+    # The range image: Z where a point was kept (P is reused in place to save memory).
+    range_image = np.ascontiguousarray(P[..., 2])
+    range_image[~keep] = np.nan
+    del P
+    n_unsupported = n_valid - n_pts
+    n = n_valid + n_geom + n_row_reject
+    kx = pixel[:, 0]
+    t_end = time.perf_counter()
+    stats = {
+        "decoded_pixels": int(n),
+        "points": int(len(kx)),
+        "rejected_geometry": n_geom,
+        "rejected_row_mismatch": n_row_reject,
+        "rejected_unsupported": n_unsupported,
+        "row_check": has_row,
+        "seconds_intersect": round(t_int - t0, 4),
+        "seconds_total": round(t_end - t0, 4),
+    }
+    log.info("triangulated %d points from %d decoded pixels", len(kx), n)
+    return Triangulated(
+        xyz=xyz,
+        rgb=rgb,
+        normals=normals,
+        size=size,
+        pixel=pixel,
+        range_image=range_image,
+        stats=stats,
+    )

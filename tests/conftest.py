@@ -1,0 +1,57 @@
+"""Root pytest fixtures: simulated captures from the virtual rig (:mod:`shared.simulate`).
+
+- ``sim_capture_factory(scene, size=(2048, 1536), seed=0, **kw) -> Path``: renders a capture once per
+  test session (cached by its arguments) and returns the folder (``capture.json``, ``rig.json``,
+  ``truth.npz``, images). ``kw`` goes to :class:`shared.simulate.ImagingParams` (e.g. ``colour=True``,
+  ``bits=16``, ``noise=False``, ``inverses=False``), plus ``projector=(w, h)``. Under pytest-xdist the
+  workers share one cache (a file lock makes the first worker render and the others wait), so each
+  capture is rendered once per run. Treat the folder as read-only: other tests share it.
+- ``bunny_capture``: the ``bunny`` scene at 2048x1536, seed 0.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+
+@pytest.fixture(scope="session")
+def sim_capture_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., Path]:
+    from shared.simulate import ImagingParams, simulate_named
+
+    base = tmp_path_factory.getbasetemp()
+    # xdist gives each worker its own basetemp under one shared run folder: cache there.
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "graylight-sim-cache"
+    root.mkdir(parents=True, exist_ok=True)
+
+    def make(scene: str, size: tuple[int, int] = (2048, 1536), seed: int = 0, **kw: Any) -> Path:
+        projector = tuple(kw.pop("projector", (1024, 768)))
+        w, h = size
+        key = json.dumps([scene, [w, h], seed, list(projector), sorted(kw.items())], default=str)
+        digest = hashlib.sha1(key.encode()).hexdigest()[:10]
+        folder = root / f"{scene}-{w}x{h}-s{seed}-{digest}"
+        with open(root / f"{folder.name}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the holder finishes or dies
+            try:
+                # simulate_named renames a complete folder into place, so its presence means done.
+                if not (folder / "capture.json").is_file():
+                    simulate_named(scene, folder, size=(w, h), projector=projector, seed=seed,
+                                   imaging=ImagingParams(**kw), overwrite=True)
+            finally:
+                fcntl.flock(lock, fcntl.LOCK_UN)
+        return folder
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def bunny_capture(sim_capture_factory: Callable[..., Path]) -> Path:
+    """The ``bunny`` scene at 2048x1536 (seed 0): a capture folder with ``truth.npz``."""
+    return sim_capture_factory("bunny", size=(2048, 1536), seed=0)

@@ -1,0 +1,97 @@
+"""The reconciler against a real Redis (private queue names): expired leases are re-queued
+and re-published, lost messages are re-published, a stage that keeps killing workers fails,
+and the nightly re-render resets only preview stages."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import pytest
+import redis
+
+from shared.jobs import StageSpec, fanout_index, graph_for, stage_key, stage_spec
+from shared.jobstore import JobStore, NewJob
+from tests.workers.jobsvc import ServiceEnv
+from workers.reconciler import enqueue_preview_rerender, reconcile_once
+
+
+def queue_len(senv: ServiceEnv, queue: str) -> int:
+    s = senv.settings
+    return int(redis.Redis.from_url(s.broker_url).llen(s.queue(queue)))
+
+
+def probe_job(store: JobStore, owner: int, i: int = 0):
+    return store.create_job(owner, NewJob(kind="probe", capture_ref="none:", capture_key=f"{i:064x}",
+                                          graph=graph_for("probe"), params={"seconds": 0}))  # fmt: skip
+
+
+def test_expired_lease_requeued_and_published(svc_env: ServiceEnv) -> None:
+    settings = svc_env.settings
+    store = JobStore(settings.database_url)
+    owner, _ = store.create_key("r")
+    job, ready = probe_job(store, owner.id)
+    claim = store.claim_stage(ready[0].id, "doomed-worker")
+    assert reconcile_once(settings, store).expired == 0  # the lease is fresh
+    report = reconcile_once(settings, store, now=time.time() + settings.lease_seconds + 1)
+    assert report.expired == 1 and report.republished == 1
+    assert store.get_job(job.id).stage("probe").state == "queued"
+    assert queue_len(svc_env, "cpu") == 1
+    assert not store.heartbeat(claim.stage.id, claim.token)
+
+
+def test_lost_message_republished_only_when_queue_is_empty(svc_env: ServiceEnv) -> None:
+    settings = svc_env.settings
+    store = JobStore(settings.database_url)
+    owner, _ = store.create_key("r")
+    probe_job(store, owner.id, 1)  # queued in the database, never published (a lost message)
+    later = time.time() + settings.lease_seconds + 1
+    assert reconcile_once(settings, store, now=later).republished == 1
+    assert queue_len(svc_env, "cpu") == 1
+    # Its message now waits in the queue: no duplicate while it does.
+    assert reconcile_once(settings, store, now=later + settings.lease_seconds + 1).republished == 0
+    assert queue_len(svc_env, "cpu") == 1
+
+
+def test_stage_that_keeps_killing_workers_fails(svc_env: ServiceEnv) -> None:
+    settings = svc_env.with_(GRAYLIGHT_MAX_ATTEMPTS="2").settings
+    store = JobStore(settings.database_url)
+    owner, _ = store.create_key("r")
+    job, ready = probe_job(store, owner.id, 2)
+    for _ in range(2):
+        store.claim_stage(ready[0].id, "oom")
+        reconcile_once(settings, store, now=time.time() + settings.lease_seconds + 1)
+    j = store.get_job(job.id)
+    assert j.state == "failed" and "worker lost 2 times" in j.error
+
+
+@pytest.mark.skipif(not any(s.name == "preview" for s in graph_for("scan")), reason="render stages not installed")
+def test_nightly_rerender_resets_only_previews(svc_env: ServiceEnv, tmp_path: Path) -> None:
+    settings = svc_env.settings
+    store = JobStore(settings.database_url)
+    owner, _ = store.create_key("r")
+    graph = graph_for("scan")
+    job, ready = store.create_job(owner.id, NewJob(kind="scan", capture_ref="object:x", capture_key="c" * 64, graph=graph))
+    keys: dict[str, str] = {}
+    while True:  # finish every queued stage with the key it would really have (two map pieces)
+        queued = [s for s in store.get_job(job.id).stages if s.state == "queued"]
+        if not queued:
+            break
+        for st in queued:
+            spec = stage_spec("scan", st.name)
+            keys[st.name] = stage_key(spec, "c" * 64, {}, {d: keys[d] for d in st.depends_on}, fanout_index(st.name))
+            expand = [(m.name, m.queue, 2) for m in graph if m.fanout_from == spec.name]
+            c = store.claim_stage(st.id, "w")
+            assert store.complete_stage(st.id, c.token, keys[st.name], expand=expand)[0]
+    done = store.get_job(job.id)
+    assert done.state == "succeeded"
+    if any(m.is_map for m in graph):
+        assert {"tiles_chunk#0", "tiles_chunk#1"} <= {s.name for s in done.stages}
+        assert sorted(done.stage("tiles").depends_on) == ["tiles_chunk#0", "tiles_chunk#1", "tiles_plan"]
+    assert enqueue_preview_rerender(settings, "changed", store) == 0  # nothing changed
+    assert enqueue_preview_rerender(settings, "all", store) == 1
+    j = store.get_job(job.id)
+    assert j.stage("preview").state == "queued" and j.params["preview_epoch"]
+    assert all(s.state == "succeeded" for s in j.stages if s.name != "preview")
+    assert queue_len(svc_env, "render") == 1 and queue_len(svc_env, "cpu") == 0
+    assert isinstance(stage_spec("scan", "preview"), StageSpec)

@@ -1,0 +1,144 @@
+"""The reconciler: makes the broker agree with the database again, every few seconds.
+
+Run by beat every ``GRAYLIGHT_RECONCILE_SECONDS`` (on the ``control`` queue). It
+
+1. re-queues running stages whose lease has expired (no heartbeat for
+   ``GRAYLIGHT_LEASE_SECONDS``: the worker died, was killed, or lost its database), and
+   fails a stage that has lost ``GRAYLIGHT_MAX_ATTEMPTS`` workers (it keeps killing them);
+2. re-publishes queued stages whose message was lost (a Redis restart, a publish while
+   the broker was down): those queued for longer than a lease while their queue is empty,
+   and any queued for ten leases regardless (a duplicate message is harmless: the claim is
+   a compare-and-set, so the second copy finds the stage running or done and does nothing);
+3. re-derives the state of jobs that have no queued or running stage (a crash between
+   two transactions).
+
+:func:`enqueue_preview_rerender` is what the nightly beat entry calls.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import logging
+import time
+from dataclasses import asdict, dataclass
+
+from shared.config import Settings
+from shared.jobs import JobState, StageState, stage_key, stage_spec
+from shared.jobstore import JobStore, Stage
+from workers.dispatch import publish_stages
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class ReconcileReport:
+    expired: int = 0
+    republished: int = 0
+    failed: int = 0
+    settled: int = 0
+
+    def as_dict(self) -> dict[str, int]:
+        return asdict(self)
+
+
+def _queue_lengths(settings: Settings, queues: set[str]) -> dict[str, int] | None:
+    """Messages waiting in each broker queue, or None when the broker cannot be asked."""
+    if not settings.broker_url.startswith(("redis://", "rediss://")):
+        return None
+    try:
+        import redis
+
+        client = redis.Redis.from_url(settings.broker_url, socket_timeout=2, socket_connect_timeout=2)
+        try:
+            return {q: int(client.llen(settings.queue(q))) for q in queues}
+        finally:
+            client.close()
+    except Exception as exc:
+        log.warning("reconciler: cannot read queue lengths: %s", exc)
+        return None
+
+
+def reconcile_once(settings: Settings, store: JobStore | None = None, now: float | None = None) -> ReconcileReport:
+    """One pass of the reconciler (see the module docstring)."""
+    store = store or JobStore(settings.database_url)
+    now = time.time() if now is None else now
+    lease = settings.lease_seconds
+    report = ReconcileReport()
+    to_publish: list[Stage] = []
+
+    for st in store.expired_leases(now - lease):
+        if st.attempts >= settings.max_attempts:
+            if store.fail_queued_stage(
+                st.id, f"worker lost {st.attempts} times while running stage {st.name} (killed or out of memory?)"
+            ):
+                report.failed += 1
+            continue
+        if store.requeue_expired(st):
+            log.warning("reconciler: stage %s (%s) of job %s lost its worker %s; re-queued",
+                        st.id, st.name, st.job_id, st.lease_owner)  # fmt: skip
+            report.expired += 1
+            to_publish.append(st)
+
+    stale = store.stale_queued(now - lease)
+    if stale:
+        lengths = _queue_lengths(settings, {s.queue for s in stale})
+        requeued = {s.id for s in to_publish}
+        for st in stale:
+            if st.id in requeued:
+                continue
+            queue_empty = lengths is not None and lengths.get(st.queue, 1) == 0
+            very_old = st.queued_at is not None and st.queued_at < now - 10 * lease
+            if queue_empty or very_old:
+                store.touch_queued(st.id)
+                to_publish.append(st)
+
+    for job_id in store.unsettled_jobs():
+        job = store.get_job(job_id)
+        if job is None or any(s.state in (StageState.QUEUED, StageState.RUNNING) for s in job.stages):
+            continue
+        newly = store.settle(job_id)
+        report.settled += 1
+        to_publish.extend(newly)
+
+    if to_publish:
+        report.republished = publish_stages(to_publish, settings)
+    return report
+
+
+def enqueue_preview_rerender(settings: Settings, mode: str = "changed", store: JobStore | None = None) -> int:
+    """Re-render the previews of finished scan jobs, on the render queue; returns how many.
+
+    ``mode="all"`` re-renders every preview (a new ``preview_epoch`` parameter changes the
+    stage's key, so the stored video is not simply reused); ``"changed"`` only those whose
+    preview key differs from the stored one (the preview stage's version or its parameters
+    changed). Only the preview stage runs again; scan stages are untouched, and the cpu
+    queue is not used, so new scan jobs are not held up.
+    """
+    if mode not in ("changed", "all"):
+        raise ValueError(f"mode must be 'changed' or 'all', got {mode!r}")
+    store = store or JobStore(settings.database_url)
+    epoch = dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M")
+    # Collect first: resetting a job takes it out of the "succeeded" pages being walked.
+    finished = []
+    offset = 0
+    while True:
+        jobs, _total = store.list_jobs(state=JobState.SUCCEEDED, limit=200, offset=offset)
+        if not jobs:
+            break
+        offset += len(jobs)
+        finished.extend(j for j in jobs if any(s.name == "preview" for s in j.stages))
+    count = 0
+    for job in finished:
+        preview = job.stage("preview")
+        spec = stage_spec(job.kind, "preview")
+        params = dict(job.params)
+        if mode == "all":
+            params["preview_epoch"] = epoch
+        upstream = {d: job.stage(d).output_key or "" for d in preview.depends_on}
+        if stage_key(spec, job.capture_key, params, upstream) == preview.output_key:
+            continue
+        newly = store.reset_stages(job.id, ["preview"], params=params)
+        publish_stages(newly, settings)
+        count += 1
+    log.info("nightly re-render: %d previews queued (%s)", count, mode)
+    return count

@@ -1,0 +1,309 @@
+"""The runner: executes one stage of one job, holding its lease, idempotently.
+
+In: a stage id (the only thing a message carries). Out: the stage's artifact in the store
+and its new state in the database; the stages it unblocks are published.
+
+1. Claim the stage in the database (compare-and-set ``queued -> running`` with a fresh
+   lease token). A duplicate or stale message finds it not queued and does nothing.
+2. Compute the stage's key from its inputs and parameters. If the store already holds
+   that object (a retry, a duplicate, an identical earlier job), finish at once.
+3. Otherwise fetch the inputs to local folders, run the adapter into a temporary folder
+   while a heartbeat thread renews the lease, store the folder under the key (atomic),
+   and mark the stage succeeded — only if the lease is still ours.
+
+Bad input (:class:`~shared.errors.InputError`) fails the stage with its one-line reason
+and is never retried; transient faults (connections, timeouts) give the stage back to
+the queue and are retried with backoff by Celery; anything else fails the stage.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import socket
+import tempfile
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+from shared.archive import ArchiveLimits, extract_archive
+from shared.artifacts import ArtifactError, ArtifactStore
+from shared.config import Settings
+from shared.errors import InputError
+from shared.jobs import CAPTURE, GRAPHS, base_name, fanout_index, root_file, stage_key, stage_spec
+from shared.jobstore import Job, JobStore, Stage
+from workers.stages import STAGE_FUNCS, StageContext
+
+log = logging.getLogger(__name__)
+
+
+def transient_errors() -> tuple[type[BaseException], ...]:
+    """Exception types worth retrying: the network, the broker, the database, the store."""
+    import redis.exceptions
+    import sqlalchemy.exc
+
+    types: list[type[BaseException]] = [
+        ConnectionError,
+        TimeoutError,
+        redis.exceptions.ConnectionError,
+        redis.exceptions.TimeoutError,
+        sqlalchemy.exc.OperationalError,
+        sqlalchemy.exc.InterfaceError,
+    ]
+    try:
+        import botocore.exceptions
+
+        types += [botocore.exceptions.EndpointConnectionError, botocore.exceptions.ConnectionClosedError]
+    except ImportError:
+        pass
+    try:
+        import aiohttp
+
+        types.append(aiohttp.ClientConnectionError)
+    except ImportError:
+        pass
+    return tuple(types)
+
+
+TRANSIENT = transient_errors()
+
+
+def worker_name() -> str:
+    return f"{socket.gethostname()}:{os.getpid()}"
+
+
+class Heartbeat(threading.Thread):
+    """Renews a stage's lease every ``interval`` seconds and carries its progress; notes when
+    the lease is lost (the reconciler gave the stage to someone else, or the job was cancelled)."""
+
+    def __init__(self, store: JobStore, stage_id: int, token: str, interval: float) -> None:
+        super().__init__(name=f"heartbeat-{stage_id}", daemon=True)
+        self.store = store
+        self.stage_id = stage_id
+        self.token = token
+        self.interval = interval
+        self.progress: float | None = None
+        self.lost = threading.Event()
+        self._stop_event = threading.Event()
+
+    def set_progress(self, fraction: float) -> None:
+        self.progress = fraction
+
+    def run(self) -> None:
+        while not self._stop_event.wait(self.interval):
+            try:
+                if not self.store.heartbeat(self.stage_id, self.token, self.progress):
+                    log.warning("stage %s: lease lost", self.stage_id)
+                    self.lost.set()
+                    return
+            except Exception as exc:  # the database may blink; the lease survives a missed beat
+                log.warning("stage %s: heartbeat failed: %s", self.stage_id, exc)
+
+    def stop(self) -> None:
+        self._stop_event.set()
+        if self.is_alive():
+            self.join(timeout=self.interval + 5)
+
+
+@dataclass(frozen=True)
+class Outcome:
+    """What happened to a message: ``skipped`` (not ours to run), ``reused``, ``succeeded``,
+    ``failed``, ``lost`` (lease taken away while running) or ``released`` (transient, retried)."""
+
+    status: str
+    stage_id: int
+    detail: str = ""
+
+
+def materialize_capture(job: Job, arts: ArtifactStore, settings: Settings) -> Path:
+    """A local folder holding the job's capture, unpacked once per machine into the cache."""
+    dest = settings.cache_dir / "captures" / job.capture_key
+    limits = ArchiveLimits.from_settings(settings)
+    require = root_file(job.kind)
+    if dest.is_dir():
+        return _capture_root(dest, require)
+    kind, _, ref = job.capture_ref.partition(":")
+    work = settings.cache_dir / "work"
+    work.mkdir(parents=True, exist_ok=True)
+    with tempfile.TemporaryDirectory(dir=work) as tmp:
+        if kind == "object":
+            folder = arts.fetch(ref, settings.cache_dir)
+            manifest = arts.manifest(ref)
+            names = sorted(manifest.files) if manifest else []
+            if len(names) != 1:
+                raise ArtifactError(f"capture object {ref} holds {len(names)} files, expected one archive")
+            archive = folder / names[0]
+            label = job.name or archive.name
+        elif kind == "ref":
+            try:
+                info = arts.ref_info(ref)
+            except FileNotFoundError:
+                raise InputError(ref, "no such file or folder in storage") from None
+            if info.get("type") == "directory":
+                staged = Path(tmp) / "dir"
+                try:
+                    arts.ref_read(ref, staged, settings.max_unpacked_bytes, settings.max_archive_files)
+                except ArtifactError as exc:
+                    raise InputError(ref, str(exc).split(": ", 1)[-1]) from None
+                dest.parent.mkdir(parents=True, exist_ok=True)
+                try:
+                    os.rename(staged, dest)
+                except OSError:
+                    if not dest.is_dir():
+                        raise
+                return _capture_root(dest, require)
+            archive = Path(tmp) / "archive"
+            try:
+                arts.ref_read(ref, archive, settings.max_upload_bytes, 1)
+            except ArtifactError as exc:
+                raise InputError(ref, str(exc).split(": ", 1)[-1]) from None
+            label = ref
+        else:
+            raise InputError("capture", f"job has no capture to read ({job.capture_ref!r})")
+        return extract_archive(archive, dest, limits, label=label, require=require)
+
+
+def _capture_root(folder: Path, require: str | None) -> Path:
+    if require is None or (folder / require).is_file():
+        return folder
+    hits = sorted(folder.rglob(require), key=lambda p: len(p.parts))
+    if not hits:
+        raise InputError(folder.name, f"no {require} in the capture")
+    return hits[0].parent
+
+
+def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publish: bool = True) -> Outcome:
+    """Run one stage (see the module docstring). Transient faults are re-raised after the
+    stage is given back to the queue, when ``retries_left``; otherwise they fail it."""
+    from workers.dispatch import publish_stages
+
+    store = JobStore(settings.database_url)
+    claim = store.claim_stage(stage_id, worker_name())
+    if claim is None:
+        return Outcome("skipped", stage_id)
+    job, stage, token = claim.job, claim.stage, claim.token
+    if stage.attempts > settings.max_attempts:
+        store.fail_stage(stage_id, token, f"gave up after {stage.attempts - 1} attempts; last error: {stage.error or 'worker lost'}")
+        return Outcome("failed", stage_id, "too many attempts")
+    spec = stage_spec(job.kind, stage.name)
+    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
+    beat = Heartbeat(store, stage_id, token, settings.heartbeat_seconds)
+    beat.start()
+    try:
+        # The row's own dependencies: for a fan-in stage, every instance of the map stage.
+        upstream = {d: _output_key(job, d) for d in stage.depends_on}
+        key = stage_key(spec, job.capture_key, job.params, upstream, fanout_index(stage.name))
+        store.set_input_key(stage_id, token, key)
+        reused = arts.exists(key)
+        if reused:
+            log.info("job %s stage %s: output %s exists, reusing", job.id, stage.name, key[:12])
+            summary = _stored_summary(arts, key)
+        else:
+            summary = _execute(job, stage, spec.inputs, upstream, arts, settings, beat, key)
+            if summary is None:
+                return Outcome("lost", stage_id)
+        expand = [(m.name, m.queue, int(summary.get("fanout", 0))) for m in GRAPHS[job.kind] if m.fanout_from == spec.name]
+        ok, newly = store.complete_stage(stage_id, token, key, summary, reused=reused, expand=expand)
+        if not ok:
+            return Outcome("lost", stage_id)
+        if publish and newly:
+            publish_stages(newly, settings)
+        return Outcome("reused" if reused else "succeeded", stage_id)
+    except InputError as exc:
+        msg = _user_facing(exc, job, settings)
+        store.fail_stage(stage_id, token, msg)
+        return Outcome("failed", stage_id, msg)
+    except TRANSIENT as exc:
+        reason = f"transient fault: {type(exc).__name__}: {exc}"
+        if retries_left:
+            store.release_stage(stage_id, token, reason)
+            raise
+        store.fail_stage(stage_id, token, f"gave up after retries; {reason}")
+        return Outcome("failed", stage_id, reason)
+    except Exception as exc:
+        from celery.exceptions import SoftTimeLimitExceeded
+
+        if isinstance(exc, SoftTimeLimitExceeded):
+            msg = f"stage {stage.name} exceeded its time limit of {spec.time_limit} s"
+        else:
+            log.exception("job %s stage %s failed", job.id, stage.name)
+            msg = f"{type(exc).__name__}: {exc}"
+        store.fail_stage(stage_id, token, msg)
+        return Outcome("failed", stage_id, msg)
+    finally:
+        beat.stop()
+
+
+def _user_facing(exc: InputError, job: Job, settings: Settings) -> str:
+    """The error with a path inside this machine's capture cache replaced by the capture's
+    name and the file's path inside it (``scan7.zip:col_02.png: truncated PNG``)."""
+    cache = settings.cache_dir / "captures" / job.capture_key
+    where = Path(exc.where)
+    if where.is_absolute() and where.is_relative_to(cache):
+        rel = where.relative_to(cache).as_posix()
+        label = job.name or job.capture_ref
+        return f"{label}:{rel}: {exc.problem}"
+    return str(exc)
+
+
+#: File in every stage object holding the stage's summary (hidden from artifact listings);
+#: a stage that finds its output stored reads its summary (say, how many pieces it fans out
+#: into) from here.
+SUMMARY_FILE = ".summary.json"
+
+
+def _stored_summary(arts: ArtifactStore, key: str) -> dict:
+    m = arts.manifest(key)
+    if m is None or SUMMARY_FILE not in m.files:
+        return {}
+    with arts.open(key, SUMMARY_FILE) as f:
+        return json.loads(f.read().decode())
+
+
+def _output_key(job: Job, name: str) -> str:
+    st = job.stage(name)
+    if st.output_key is None:
+        raise ArtifactError(f"job {job.id}: input stage {name} has no output")
+    return st.output_key
+
+
+def _execute(
+    job: Job,
+    stage: Stage,
+    inputs: tuple[str, ...],
+    upstream: dict[str, str],
+    arts: ArtifactStore,
+    settings: Settings,
+    beat: Heartbeat,
+    key: str,
+) -> dict | None:
+    """Run the adapter into a temporary folder and store it as object ``key``; the summary,
+    or None when the lease was lost meanwhile (then nothing is stored)."""
+    # A probe job has no capture; its random capture key only makes its output its own.
+    has_capture = CAPTURE in inputs and not job.capture_ref.startswith("none:")
+    capture_dir = materialize_capture(job, arts, settings) if has_capture else None
+    local_inputs = {name: arts.fetch(k, settings.cache_dir) for name, k in upstream.items()}
+    rig_key = job.params.get("rig")
+    rig_path = arts.fetch(rig_key, settings.cache_dir) / "rig.json" if isinstance(rig_key, str) else None
+    work = settings.cache_dir / "work"
+    work.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{stage.name}-", dir=work))
+    try:
+        out = tmp / "out"
+        out.mkdir()
+        ctx = StageContext(
+            job_id=job.id, kind=job.kind, stage=stage.name, params=dict(job.params), capture_dir=capture_dir,
+            inputs=local_inputs, out_dir=out, progress=beat.set_progress, rig_path=rig_path,
+            index=fanout_index(stage.name),
+        )  # fmt: skip
+        summary = STAGE_FUNCS[base_name(stage.name)](ctx) or {}
+        if beat.lost.is_set():
+            # Someone else holds the stage now; their run will store the same object.
+            return None
+        (out / SUMMARY_FILE).write_text(json.dumps(summary, default=str))
+        arts.put_dir(key, out, move=True)
+        return summary
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)

@@ -1,0 +1,190 @@
+"""Stage adapters: what each stage of :data:`shared.jobs.GRAPHS` calls, in the job service.
+
+Each adapter takes a :class:`StageContext` (local folders of the capture and of the
+upstream stages' outputs, an empty output folder, the job's parameters) and calls the
+plain function in ``shared/`` that the embedded ``graylight scan`` calls too; it returns a
+small JSON-able summary. A new stage plugs in by an entry in the graph and one here.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from shared.capture import load_capture, write_json_atomic
+from shared.errors import InputError
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class StageContext:
+    """Everything a stage adapter gets. Paths are local folders; ``out_dir`` is empty and
+    becomes the stage's artifact when the adapter returns."""
+
+    job_id: str
+    kind: str
+    stage: str
+    params: dict[str, Any]
+    capture_dir: Path | None
+    inputs: dict[str, Path]
+    out_dir: Path
+    progress: Callable[[float], None] = field(default=lambda f: None)
+    rig_path: Path | None = None  # a rig uploaded beside the capture, if any
+    index: int | None = None  # which instance of a map stage this is
+
+
+def _jsonable(doc: Any) -> Any:
+    """A summary made safe for a JSON column (numpy scalars and paths become plain values)."""
+    return json.loads(json.dumps(doc, default=lambda o: o.item() if hasattr(o, "item") else str(o)))
+
+
+def _rig_for(ctx: StageContext) -> Path:
+    if ctx.rig_path is not None:
+        return ctx.rig_path
+    assert ctx.capture_dir is not None
+    capture = load_capture(ctx.capture_dir, check=False)
+    if capture.rig is None:
+        raise InputError(capture.root / "capture.json", 'no "rig" given: the capture names no rig.json and none was uploaded')
+    return capture.rig
+
+
+def run_ingest(ctx: StageContext) -> dict[str, Any]:
+    from shared.pipeline import ingest_stage
+
+    assert ctx.capture_dir is not None
+    capture = ingest_stage(ctx.capture_dir, rig=ctx.rig_path)
+    doc = capture.to_json()
+    write_json_atomic(ctx.out_dir / "capture.json", doc)
+    return {
+        "projector": [capture.projector_width, capture.projector_height],
+        "column_bits": len(capture.columns),
+        "row_bits": len(capture.rows),
+        "images": len(capture.image_paths()),
+        "rig": capture.rig is not None or ctx.rig_path is not None,
+    }
+
+
+def run_decode(ctx: StageContext) -> dict[str, Any]:
+    from shared.pipeline import decode_stage
+
+    assert ctx.capture_dir is not None
+    return _jsonable(decode_stage(ctx.capture_dir, ctx.out_dir))
+
+
+def run_triangulate(ctx: StageContext) -> dict[str, Any]:
+    from shared.pipeline import triangulate_stage
+
+    decoded = ctx.inputs["decode"] / "decoded.npz"
+    return _jsonable(triangulate_stage(decoded, _rig_for(ctx), ctx.out_dir))
+
+
+def run_tiles_plan(ctx: StageContext) -> dict[str, Any]:
+    """Tiles pass 1: bounds and chunks; the summary's ``fanout`` is the number of chunks."""
+    from shared.octree import plan_tiles
+
+    options = ctx.params.get("tiles") or {}
+    if not isinstance(options, dict) or set(options) - {"max_chunk", "max_leaf"}:
+        raise InputError("params.tiles", f"must be an object with max_chunk and/or max_leaf, got {options!r}")
+    for k, v in options.items():
+        if not isinstance(v, int) or isinstance(v, bool) or v < 100:
+            raise InputError(f"params.tiles.{k}", f"must be an integer of at least 100, got {v!r}")
+    plan = plan_tiles(ctx.inputs["triangulate"] / "cloud.ply", ctx.out_dir, **options)
+    return {"fanout": len(plan.chunks), "points": plan.points}
+
+
+def _link(src: Path, dst: Path) -> None:
+    # Links (not copies) into a scratch folder; the store skips links when it takes the folder.
+    dst.symlink_to(src)
+
+
+def run_tiles_chunk(ctx: StageContext) -> dict[str, Any]:
+    """Tiles pass 2 for chunk ``ctx.index`` (one subtree), independent of every other chunk."""
+    from shared.octree import PLAN_FILE, build_chunk
+
+    assert ctx.index is not None
+    plan_dir = ctx.inputs["tiles_plan"]
+    name = f"chunk_{ctx.index:05d}.bin"
+    _link(plan_dir / PLAN_FILE, ctx.out_dir / PLAN_FILE)
+    _link(plan_dir / name, ctx.out_dir / name)
+    build_chunk(ctx.out_dir, ctx.index)
+    return {"chunk": ctx.index}
+
+
+def run_tiles(ctx: StageContext) -> dict[str, Any]:
+    """Tiles pass 3: merge every chunk's nodes into the Potree 2.0 folder (the fan-in)."""
+    from shared.octree import PLAN_FILE, merge_tiles
+
+    work = ctx.out_dir.parent / "merge"
+    work.mkdir()
+    _link(ctx.inputs["tiles_plan"] / PLAN_FILE, work / PLAN_FILE)
+    for name, folder in ctx.inputs.items():
+        if name.startswith("tiles_chunk#"):
+            for p in folder.glob("chunk_*.nodes.*"):
+                _link(p, work / p.name)
+    return _jsonable(merge_tiles(work, ctx.out_dir))
+
+
+#: Options a job may pass to the preview stage in ``params.preview``.
+PREVIEW_OPTIONS = frozenset({"path", "size", "seconds", "fps"})
+
+
+def run_preview(ctx: StageContext) -> dict[str, Any]:
+    from shared.render_stages import preview_stage  # type: ignore[import-not-found]
+
+    options = dict(ctx.params.get("preview") or {})
+    if not isinstance(ctx.params.get("preview") or {}, dict):
+        raise InputError("params.preview", "must be an object of preview options")
+    unknown = set(options) - PREVIEW_OPTIONS
+    if unknown:
+        raise InputError("params.preview", f"unknown option(s) {sorted(unknown)} (allowed: {sorted(PREVIEW_OPTIONS)})")
+    if "size" in options:
+        size = options["size"]
+        if not (isinstance(size, list | tuple) and len(size) == 2 and all(isinstance(v, int) for v in size)):
+            raise InputError("params.preview.size", f"must be [width, height] in pixels, got {size!r}")
+        options["size"] = (int(size[0]), int(size[1]))
+    return _jsonable(preview_stage(ctx.inputs["tiles"], ctx.out_dir / "preview.mp4", **options))
+
+
+def run_calibrate(ctx: StageContext) -> dict[str, Any]:
+    from shared.calibrate import calibrate_session  # type: ignore[attr-defined]
+
+    assert ctx.capture_dir is not None
+    return _jsonable(calibrate_session(ctx.capture_dir, ctx.out_dir))
+
+
+#: Longest a probe stage may sleep, seconds.
+MAX_PROBE_SECONDS = 60.0
+
+
+def run_probe(ctx: StageContext) -> dict[str, Any]:
+    """The self-test stage: sleep ``params.seconds`` (reporting progress), write probe.json."""
+    seconds = ctx.params.get("seconds", 0.0)
+    if not isinstance(seconds, int | float) or isinstance(seconds, bool) or not 0 <= seconds <= MAX_PROBE_SECONDS:
+        raise InputError("params.seconds", f"must be a number of seconds in 0..{MAX_PROBE_SECONDS:g}, got {seconds!r}")
+    start = time.time()
+    end = start + float(seconds)
+    while (now := time.time()) < end:
+        ctx.progress((now - start) / max(float(seconds), 1e-9))
+        time.sleep(min(0.05, end - now))
+    doc = {"job": ctx.job_id, "seconds": seconds, "started": start, "finished": time.time()}
+    write_json_atomic(ctx.out_dir / "probe.json", doc)
+    return doc
+
+
+STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
+    "ingest": run_ingest,
+    "decode": run_decode,
+    "triangulate": run_triangulate,
+    "tiles_plan": run_tiles_plan,
+    "tiles_chunk": run_tiles_chunk,
+    "tiles": run_tiles,
+    "preview": run_preview,
+    "calibrate": run_calibrate,
+    "probe": run_probe,
+}
