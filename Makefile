@@ -43,12 +43,22 @@ services:
 	  command -v pg_ctlcluster >/dev/null && pg_ctlcluster --skip-systemctl-redirect $$(ls /etc/postgresql | head -1) main start || true; \
 	fi
 
+# The bunny scene needs the shared meshes (../shared/data); elsewhere the analytic spheres scene is used.
+DEMO_SCENE := $(if $(wildcard ../shared/data/meshes/stanford-bunny.obj),bunny,spheres)
+
 demo: setup
 	@rm -rf demo && mkdir -p demo
-	$(BIN)/graylight simulate --scene bunny --size 2048x1536 --out demo/capture
+	$(BIN)/graylight simulate --scene $(DEMO_SCENE) --size 2048x1536 --out demo/capture
 	$(BIN)/graylight scan demo/capture --out demo/scan
+	$(BIN)/graylight tiles demo/scan/cloud.ply --out demo/tiles
+	$(BIN)/graylight preview demo/tiles --out demo/preview.mp4 --seconds 4
 	@echo
-	@echo "Demo finished. Capture: demo/capture  Point cloud: demo/scan/cloud.ply  Report: demo/scan/report.json"
+	@echo "Demo finished ($(DEMO_SCENE) scene, embedded mode, no server):"
+	@echo "  capture (with rig.json and truth.npz)  demo/capture/"
+	@echo "  point cloud                            demo/scan/cloud.ply"
+	@echo "  range image and report                 demo/scan/range.npz, demo/scan/report.json"
+	@echo "  level-of-detail tiles (Potree 2.0)     demo/tiles/"
+	@echo "  preview flythrough and poster          demo/preview.mp4, demo/preview.png"
 
 test: setup services
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadgroup -q tests
