@@ -34,6 +34,7 @@ from typing import IO
 
 from shared.capture import CAPTURE_FILE, IMAGE_SUFFIXES
 from shared.errors import InputError
+from shared.files import atomic_file
 
 log = logging.getLogger(__name__)
 
@@ -316,15 +317,8 @@ def pack_folder(folder: Path, out: Path) -> Path:
     """Write ``folder``'s regular files (not links) into the zip ``out`` (stored, not deflated:
     captures are PNGs already), through a temporary name."""
     folder, out = Path(folder), Path(out)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    os.close(fd)
-    try:
-        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as z:
-            for p in sorted(folder.rglob("*")):
-                if p.is_file() and not p.is_symlink():
-                    z.write(p, p.relative_to(folder).as_posix())
-        os.replace(tmp, out)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(out) as tmp, zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_STORED, allowZip64=True) as z:
+        for p in sorted(folder.rglob("*")):
+            if p.is_file() and not p.is_symlink():
+                z.write(p, p.relative_to(folder).as_posix())
     return out

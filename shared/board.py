@@ -22,7 +22,6 @@ partly hidden ChArUco board still yields usable corners.
 
 from __future__ import annotations
 
-import json
 import logging
 import os
 from dataclasses import dataclass
@@ -33,6 +32,7 @@ import cv2
 import numpy as np
 
 from shared.errors import InputError
+from shared.files import read_json
 
 log = logging.getLogger(__name__)
 
@@ -219,14 +219,7 @@ def load_board(path: str | os.PathLike[str]) -> Board:
     p = Path(path)
     if p.is_dir():
         p = p / BOARD_FILE
-    if not p.is_file():
-        raise InputError(p, "board description not found (a calibration session needs a board.json)")
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as exc:
-        raise InputError(p, f"not UTF-8 text ({exc.reason})") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(p, f"malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    doc = read_json(p, "board description not found (a calibration session needs a board.json)")
     return parse_board(doc, p)
 
 

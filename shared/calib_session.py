@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -44,6 +43,7 @@ from shared.calibrate import (
 )
 from shared.capture import CAPTURE_FILE, Capture, load_capture, write_json_atomic
 from shared.errors import InputError
+from shared.files import atomic_file
 from shared.images import read_grey
 from shared.rig import Device, Rig, save_rig
 
@@ -282,21 +282,13 @@ def run_session(
 # Outputs
 
 
-def _temp_beside(path: Path, suffix: str) -> Path:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.stem}.", suffix=suffix, dir=path.parent)
-    os.close(fd)
-    return Path(tmp)
-
-
 def write_opencv_yaml(path: Path, *, rig: Rig | None = None, camera: Device | None = None, extra: dict[str, float] | None = None) -> Path:
     """Write an OpenCV FileStorage YAML: camera_matrix/camera_distortion, projector_..., R, T (atomic).
 
     Readable with ``cv2.FileStorage(path, cv2.FILE_STORAGE_READ)``.
     """
     path = Path(path)
-    tmp = _temp_beside(path, ".yaml")
-    try:
+    with atomic_file(path, suffix=".yaml") as tmp:
         fs = cv2.FileStorage(str(tmp), cv2.FILE_STORAGE_WRITE)
         dev = rig.camera if rig is not None else camera
         if dev is None:
@@ -316,10 +308,6 @@ def write_opencv_yaml(path: Path, *, rig: Rig | None = None, camera: Device | No
         for k, v in (extra or {}).items():
             fs.write(k, float(v))
         fs.release()
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 
@@ -359,13 +347,8 @@ def plot_residuals(path: Path, poses: Sequence[Any], title: str = "Reprojection 
     fig.suptitle(title)
     fig.tight_layout()
     path = Path(path)
-    tmp = _temp_beside(path, ".png")
-    try:
+    with atomic_file(path, suffix=".png") as tmp:
         fig.savefig(tmp, format="png")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
     return path
 
 

@@ -22,16 +22,17 @@ the virtual rig all read and write captures through it.
 
 from __future__ import annotations
 
-import json
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 from shared.errors import InputError
+from shared.files import read_json, write_json_atomic
+
+__all__ = ["write_json_atomic"]  # re-exported: stages import it from here
 
 FORMAT = "graycode-v1"
 CAPTURE_FILE = "capture.json"
@@ -246,35 +247,11 @@ def load_capture(path: str | os.PathLike[str], check: bool = True) -> Capture:
     p = Path(path)
     if p.is_dir():
         p = p / CAPTURE_FILE
-    if not p.is_file():
-        raise InputError(p, "capture description not found (a capture folder needs a capture.json)")
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as exc:
-        raise InputError(p, f"not UTF-8 text ({exc.reason})") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(p, f"malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    doc = read_json(p, "capture description not found (a capture folder needs a capture.json)")
     capture = parse_capture(doc, p.parent, where=p)
     if check:
         check_files(capture)
     return capture
-
-
-def write_json_atomic(path: Path, doc: Any) -> None:
-    """Write ``doc`` as JSON to ``path`` through a temporary file in the same folder, then rename."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w", encoding="utf-8") as f:
-            json.dump(doc, f, indent=2)
-            f.write("\n")
-        # mkstemp creates 0600 files; results are meant to be shared like any other output.
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def write_capture(capture: Capture, path: str | os.PathLike[str] | None = None) -> Path:

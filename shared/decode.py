@@ -31,9 +31,9 @@ images: a 15 MP capture peaks near 1.5 GB.
 
 from __future__ import annotations
 
+import json
 import logging
 import os
-import tempfile
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -47,6 +47,7 @@ import numpy as np
 
 from shared.capture import Capture, CodeImage
 from shared.errors import InputError
+from shared.files import atomic_file
 from shared.images import read_grey, read_grey_and_colour
 
 log = logging.getLogger(__name__)
@@ -686,34 +687,24 @@ _ARRAYS = ("column", "row", "confidence", "colour", "lit")
 
 def save_decoded(decoded: Decoded, path: str | os.PathLike[str]) -> Path:
     """Write a :class:`Decoded` to ``path`` (npz) through a temporary name, then rename."""
-    import json
-
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.npz", dir=path.parent)
-    os.close(fd)
-    try:
-        arrays = {k: getattr(decoded, k) for k in _ARRAYS}
-        if decoded.column_level is not None:
-            arrays["column_level"] = decoded.column_level
-        if decoded.row_level is not None:
-            arrays["row_level"] = decoded.row_level
+    arrays = {k: getattr(decoded, k) for k in _ARRAYS}
+    if decoded.column_level is not None:
+        arrays["column_level"] = decoded.column_level
+    if decoded.row_level is not None:
+        arrays["row_level"] = decoded.row_level
+    with atomic_file(path, suffix=".tmp.npz") as tmp:
         np.savez(
             tmp,
             **arrays,
             projector_size=np.asarray(decoded.projector_size, np.int64),
             stats=np.frombuffer(json.dumps(decoded.stats).encode("utf-8"), np.uint8),
         )
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 
 def load_decoded(path: str | os.PathLike[str]) -> Decoded:
     """Read a :class:`Decoded` written by :func:`save_decoded`; InputError if it is not one."""
-    import json
     import zipfile
 
     path = Path(path)

@@ -17,7 +17,6 @@ from __future__ import annotations
 
 import logging
 import os
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import replace
@@ -29,6 +28,7 @@ import numpy as np
 from shared.capture import Capture, load_capture, write_json_atomic
 from shared.decode import Decoded, decode_capture, load_decoded, save_decoded
 from shared.errors import InputError
+from shared.files import atomic_file
 from shared.images import probe_image
 from shared.ply import write_ply
 from shared.rig import Rig, check_rig_matches, load_rig
@@ -98,11 +98,8 @@ def decode_stage(capture_dir: Path, out_dir: Path) -> dict[str, Any]:
 
 
 def _save_range_atomic(path: Path, tri: Triangulated, rig: Rig) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp.npz", dir=path.parent)
-    os.close(fd)
-    try:
-        # Uncompressed: zlib on a 15 MP float image costs seconds; consumers recompress as they need.
+    # Uncompressed: zlib on a 15 MP float image costs seconds; consumers recompress as they need.
+    with atomic_file(path, suffix=".tmp.npz") as tmp:
         np.savez(
             tmp,
             z=tri.range_image,
@@ -110,10 +107,6 @@ def _save_range_atomic(path: Path, tri: Triangulated, rig: Rig) -> None:
             dist=np.asarray(rig.camera.dist, np.float64),
             units=np.array(rig.units),
         )
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 class _Staging:

@@ -15,7 +15,6 @@ is read in chunks without loading it whole.
 from __future__ import annotations
 
 import os
-import tempfile
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -23,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from shared.errors import InputError
+from shared.files import atomic_file
 
 #: Field layout of the clouds Graylight writes (31 bytes per point, packed).
 CLOUD_DTYPE = np.dtype(
@@ -107,28 +107,19 @@ def write_ply(
         if arr is not None and np.shape(arr) != shape:
             raise ValueError(f"{name} must be {shape}, got {np.shape(arr)}")
     dtype = np.dtype(fields)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(_header_text(n, dtype, comments))
-            for start in range(0, n, CHUNK):
-                sl = slice(start, min(n, start + CHUNK))
-                rec = np.empty(sl.stop - sl.start, dtype=dtype)
-                rec["x"], rec["y"], rec["z"] = xyz[sl, 0], xyz[sl, 1], xyz[sl, 2]
-                if rgb is not None:
-                    rec["red"], rec["green"], rec["blue"] = rgb[sl, 0], rgb[sl, 1], rgb[sl, 2]
-                if normals is not None:
-                    rec["nx"], rec["ny"], rec["nz"] = normals[sl, 0], normals[sl, 1], normals[sl, 2]
-                if size is not None:
-                    rec["size"] = size[sl]
-                f.write(rec.tobytes())
-        # mkstemp creates 0600 files; results are meant to be shared like any other output.
-        os.chmod(tmp, 0o644)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as tmp, open(tmp, "wb") as f:
+        f.write(_header_text(n, dtype, comments))
+        for start in range(0, n, CHUNK):
+            sl = slice(start, min(n, start + CHUNK))
+            rec = np.empty(sl.stop - sl.start, dtype=dtype)
+            rec["x"], rec["y"], rec["z"] = xyz[sl, 0], xyz[sl, 1], xyz[sl, 2]
+            if rgb is not None:
+                rec["red"], rec["green"], rec["blue"] = rgb[sl, 0], rgb[sl, 1], rgb[sl, 2]
+            if normals is not None:
+                rec["nx"], rec["ny"], rec["nz"] = normals[sl, 0], normals[sl, 1], normals[sl, 2]
+            if size is not None:
+                rec["size"] = size[sl]
+            f.write(rec.tobytes())
     return path
 
 

@@ -22,6 +22,7 @@ from typing import Any
 import numpy as np
 
 from shared.errors import InputError
+from shared.files import read_json, write_json_atomic
 
 
 @dataclass(frozen=True)
@@ -143,24 +144,13 @@ def parse_rig(doc: Any, where: Path | str = "rig.json") -> Rig:
 
 def load_rig(path: str | os.PathLike[str]) -> Rig:
     """Read and validate ``rig.json``."""
-    import json
-
     p = Path(path)
-    if not p.is_file():
-        raise InputError(p, "rig file not found")
-    try:
-        doc = json.loads(p.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as exc:
-        raise InputError(p, f"not UTF-8 text ({exc.reason})") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(p, f"malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    doc = read_json(p, "rig file not found")
     return parse_rig(doc, p)
 
 
 def save_rig(rig: Rig, path: str | os.PathLike[str]) -> Path:
     """Write ``rig.json`` atomically."""
-    from shared.capture import write_json_atomic
-
     p = Path(path)
     write_json_atomic(p, rig.to_json())
     return p

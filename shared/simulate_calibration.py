@@ -24,7 +24,7 @@ from typing import Any
 import numpy as np
 
 from shared.board import BOARD_FILE, Board
-from shared.capture import Capture, load_capture, write_capture, write_json_atomic
+from shared.capture import write_json_atomic
 from shared.rig import Rig, parse_rig
 from shared.scenes import Scene, TexturedPlane, rotation_about
 from shared.simulate import ImagingParams, make_rig, simulate_capture
@@ -198,10 +198,9 @@ def simulate_session(
     imaging = imaging or ImagingParams(interreflection=False)
     for k, pose in enumerate(poses):
         scene = Scene(name=f"board {pose.name}", surfaces=[_board_plane(board, pose)], description="calibration board")
-        if inverses:
-            simulate_capture(scene, rig, root / pose.name, seed=seed * 1000 + k, imaging=imaging, write_truth=False)
-        else:
-            simulate_capture_without_inverses(scene, rig, root / pose.name, seed * 1000 + k, imaging)
+        simulate_capture(
+            scene, rig, root / pose.name, seed=seed * 1000 + k, imaging=replace(imaging, inverses=inverses), write_truth=False
+        )
         log.info("simulated calibration pose %s (%d of %d)", pose.name, k + 1, len(poses))
     truth = {
         "rig": rig.to_json(),
@@ -209,53 +208,6 @@ def simulate_session(
     }
     write_json_atomic(root / TRUTH_FILE, truth)
     return SimulatedSession(root=root, board=board, rig=rig, poses=list(poses))
-
-
-def simulate_capture_without_inverses(
-    scene: Scene, rig: Rig, out: Path, seed: int = 0, imaging: ImagingParams | None = None
-) -> Capture:
-    """Like :func:`shared.simulate.simulate_capture` but without inverse patterns (22 images, not 42).
-
-    Written under a temporary name then renamed; no ``truth.npz`` (see :func:`shared.simulate.compute_truth`).
-    Returns the capture as :func:`shared.capture.load_capture` reads it.
-    """
-    import shutil
-    import tempfile
-
-    import cv2
-
-    from shared.graycode import capture_for_names, pattern_sequence
-    from shared.simulate import _noise_seed, _render_image, _render_setup
-
-    imaging = imaging or ImagingParams()
-    out = Path(out).absolute()
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    try:
-        r = _render_setup(scene, rig, imaging)
-        params = [cv2.IMWRITE_PNG_COMPRESSION, 1, cv2.IMWRITE_PNG_STRATEGY, cv2.IMWRITE_PNG_STRATEGY_HUFFMAN_ONLY]
-        seq = pattern_sequence(rig.projector.width, rig.projector.height, rows=imaging.rows)
-        for k, (name, axis, bit, inv, _) in enumerate(seq):
-            if inv:
-                continue
-            img = _render_image(r, axis, bit, inv, _noise_seed(seed, k))
-            if not cv2.imwrite(str(tmp / name), img, params):
-                raise OSError(f"could not write {tmp / name}")
-        capture = capture_for_names(tmp, rig.projector.width, rig.projector.height, rows=imaging.rows)
-        capture = replace(
-            capture,
-            columns=tuple(replace(e, inverse=None) for e in capture.columns),
-            rows=tuple(replace(e, inverse=None) for e in capture.rows),
-            extra={"simulated": {"scene": scene.name, "seed": seed}},
-        )
-        write_capture(capture)
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
-    return load_capture(out)
 
 
 def load_simulated_session(path: str | os.PathLike[str]) -> SimulatedSession:

@@ -11,16 +11,15 @@
 from __future__ import annotations
 
 import argparse
-import os
 import re
 import sys
-import tempfile
 from pathlib import Path
 
 import cv2
 
 from shared.capture import code_bits, numbered_frames, opencv_order_capture, write_capture
 from shared.errors import InputError
+from shared.files import atomic_file
 from shared.graycode import capture_for_names, pattern_sequence
 
 
@@ -63,15 +62,9 @@ def _cmd_scan(args: argparse.Namespace) -> int:
 
 
 def _write_png_atomic(path: Path, image) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".png", dir=path.parent)
-    os.close(fd)
-    try:
-        if not cv2.imwrite(tmp, image):
+    with atomic_file(path, suffix=".png") as tmp:
+        if not cv2.imwrite(str(tmp), image):
             raise OSError(f"could not write {path}")
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 def _cmd_patterns(args: argparse.Namespace) -> int:

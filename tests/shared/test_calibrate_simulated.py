@@ -13,6 +13,7 @@ import hashlib
 import os
 import shutil
 from collections.abc import Callable
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -26,11 +27,10 @@ from shared.capture import load_capture
 from shared.decode import decode_capture
 from shared.rig import Rig, load_rig
 from shared.scenes import build_scene
-from shared.simulate import ImagingParams, compute_truth
+from shared.simulate import ImagingParams, compute_truth, simulate_capture
 from shared.simulate_calibration import (
     SimulatedSession,
     load_simulated_session,
-    simulate_capture_without_inverses,
     simulate_session,
 )
 from shared.triangulate import triangulate
@@ -137,7 +137,7 @@ def test_scan_with_recovered_rig_matches_scan_with_true_rig(calibrated, request)
         request,
         "scan",
         "scan spheres seed=1 noise=11 rig=session-3",
-        lambda d: simulate_capture_without_inverses(scene, truth.rig, d, seed=11, imaging=imaging),
+        lambda d: simulate_capture(scene, truth.rig, d, seed=11, imaging=replace(imaging, inverses=False), write_truth=False),
     )
     capture = load_capture(folder)
     surface = compute_truth(scene, truth.rig, imaging).points
