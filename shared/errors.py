@@ -22,3 +22,7 @@ class InputError(GraylightError):
         self.where = str(where)
         self.problem = problem
         super().__init__(f"{self.where}: {problem}")
+
+    def __reduce__(self) -> tuple[type[InputError], tuple[str, str]]:
+        # Process pools pickle exceptions raised in workers; the default would call __init__ with one argument.
+        return (type(self), (self.where, self.problem))

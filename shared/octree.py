@@ -24,7 +24,8 @@ Out of core, in three passes whose memory does not grow with the cloud:
 1. :func:`plan_tiles` streams the PLY for bounds and attribute ranges (rejecting NaN or
    infinite coordinates), then again to count points per cell of a 128^3 grid, picks
    *chunks* (the largest octree nodes holding at most ``max_chunk`` points) and streams the
-   points once more into one file per chunk.
+   points once more into one file per chunk. Given a process pool, each of these passes
+   splits the cloud into contiguous ranges, one a worker; the chunk files come out the same.
 2. :func:`build_chunk` builds one chunk independently (the parallel unit: a process
    in-process, a task under the job service). Because every cell a node at level L samples
    from (level L + 7) lies inside one chunk (chunks sit at level <= 7), a chunk can also
@@ -32,11 +33,15 @@ Out of core, in three passes whose memory does not grow with the cloud:
 3. :func:`merge_tiles` concatenates the pieces into ``octree.bin``, writes
    ``hierarchy.bin`` and ``metadata.json`` and renames the finished folder into place.
 
-:func:`build_tiles` runs all three. Units are those of the PLY (millimetres for Graylight).
+:func:`build_tiles` runs all three with one pool of forked workers, and fuses 2 and 3: a
+worker samples each chunk, and once every chunk's node sizes are known, writes that chunk's
+pieces straight to their places in ``octree.bin`` (same bytes as the merge, less I/O, no
+serial copy). Units are those of the PLY (millimetres for Graylight).
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import logging
 import math
@@ -44,7 +49,7 @@ import os
 import shutil
 import tempfile
 import time
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
@@ -53,7 +58,7 @@ import numba
 import numpy as np
 
 from shared.errors import InputError
-from shared.ply import iter_ply_chunks, read_header
+from shared.ply import CLOUD_DTYPE, iter_ply_chunks, read_header
 
 log = logging.getLogger(__name__)
 
@@ -67,7 +72,8 @@ COUNT_LEVEL = 7  # level of the counting grid; chunks are never deeper than this
 HIERARCHY_STEP = 4  # levels per hierarchy chunk (PotreeConverter's stepSize)
 BYTES_PER_NODE = 22
 MAX_DEPTH = MORTON_BITS - GRID_LEVELS  # deepest level whose sampling grid the codes resolve
-READ_CHUNK = 1 << 20
+READ_CHUNK = 1 << 20  # points a slice of the passes over the cloud
+MIN_PART_POINTS = 1 << 20  # smallest range of the cloud a pass hands to a worker process
 PLAN_FILE = "plan.json"
 MAX_OPEN_FILES = 256
 
@@ -106,6 +112,21 @@ def _spread(v: np.int64) -> np.int64:
     return v
 
 
+@numba.njit(cache=True, inline="always")
+def _morton3(qx: np.int64, qy: np.int64, qz: np.int64, scale: float, top: np.int64) -> np.int64:
+    """Morton code of one integer position; ``scale`` = 2**21 / qsize, ``top`` = 2**21 - 1."""
+    mx = min(np.int64(qx * scale), top)
+    my = min(np.int64(qy * scale), top)
+    mz = min(np.int64(qz * scale), top)
+    return (_spread(mx) << 2) | (_spread(my) << 1) | _spread(mz)
+
+
+@numba.njit(cache=True, inline="always")
+def _quantise1(v: float, offset: float, inv: float, top: np.int64) -> np.int64:
+    """One coordinate to its integer step, clamped to ``[0, top]``."""
+    return min(max(np.int64(np.floor((np.float64(v) - offset) * inv + 0.5)), 0), top)
+
+
 @numba.njit(cache=True)
 def morton_codes(ipos: np.ndarray, qsize: int) -> np.ndarray:
     """Morton codes of integer positions.
@@ -122,12 +143,9 @@ def morton_codes(ipos: np.ndarray, qsize: int) -> np.ndarray:
     n = ipos.shape[0]
     out = np.empty(n, np.int64)
     scale = (1 << MORTON_BITS) / qsize
-    top = (1 << MORTON_BITS) - 1
+    top = np.int64((1 << MORTON_BITS) - 1)
     for i in range(n):
-        mx = min(np.int64(ipos[i, 0] * scale), top)
-        my = min(np.int64(ipos[i, 1] * scale), top)
-        mz = min(np.int64(ipos[i, 2] * scale), top)
-        out[i] = (_spread(mx) << 2) | (_spread(my) << 1) | _spread(mz)
+        out[i] = _morton3(np.int64(ipos[i, 0]), np.int64(ipos[i, 1]), np.int64(ipos[i, 2]), scale, top)
     return out
 
 
@@ -165,21 +183,11 @@ def _take_all(assigned: np.ndarray, lo: int, hi: int, node: int) -> int:
     return taken
 
 
-@numba.njit(cache=True)
-def _gather_rows(src: np.ndarray, order: np.ndarray) -> np.ndarray:
-    """``src[order]`` for a 2-D byte array (numpy's fancy indexing of records is far slower)."""
-    width = src.shape[1]
-    out = np.empty((order.shape[0], width), src.dtype)
-    for i in range(order.shape[0]):
-        k = order[i]
-        for j in range(width):  # an explicit byte loop: row slices cost an object each
-            out[i, j] = src[k, j]
-    return out
-
-
 def _permute(rec: np.ndarray, order: np.ndarray) -> np.ndarray:
-    raw = rec.view(np.uint8).reshape(rec.shape[0], rec.dtype.itemsize)
-    return _gather_rows(raw, order).view(rec.dtype).reshape(-1)
+    """``rec[order]``, the records moved as opaque fixed-size blobs (numpy copies each with one
+    memcpy; fancy indexing of a structured dtype goes field by field and is far slower)."""
+    blobs = rec.view(f"V{rec.dtype.itemsize}")
+    return np.take(blobs, order).view(rec.dtype)
 
 
 @numba.njit(cache=True)
@@ -222,9 +230,25 @@ class _Fields:
     def __len__(self) -> int:
         return int(self.x.shape[0])
 
+    def kernel_args(self) -> tuple:
+        """``(x, y, z, r, g, b, nx, ny, nz, size, flags)`` for the fused kernels; a missing
+        attribute is a one-element dummy and its flag (colour, normal, size) is False."""
+        dummy_u8 = np.zeros(1, np.uint8)
+        dummy_f4 = np.zeros(1, np.float32)
+        r, g, b = self.rgb if self.rgb is not None else (dummy_u8,) * 3
+        nx, ny, nz = self.normal if self.normal is not None else (dummy_f4,) * 3
+        sz = self.size if self.size is not None else dummy_f4
+        flags = np.array([self.rgb is not None, self.normal is not None, self.size is not None])
+        return self.x, self.y, self.z, r, g, b, nx, ny, nz, sz, flags
 
-def _iter_fields(path: Path, chunk: int = READ_CHUNK):
-    """Yield :class:`_Fields` of at most ``chunk`` points; no copies for little-endian binary PLY."""
+
+def _iter_fields(path: Path, chunk: int | None = None, start: int = 0, stop: int | None = None):
+    """Yield :class:`_Fields` of at most ``chunk`` points; no copies for little-endian binary PLY.
+
+    ``start``/``stop`` select a range of points (little-endian binary only; other formats are
+    read whole, so callers split only that format).
+    """
+    chunk = chunk or READ_CHUNK
     header = read_header(path)
     names = set(header.dtype.names or ())
     if header.fmt == "binary_little_endian":
@@ -236,8 +260,9 @@ def _iter_fields(path: Path, chunk: int = READ_CHUNK):
         if header.count == 0:
             return
         mm = np.memmap(path, dtype=header.dtype, mode="r", offset=header.data_offset, shape=(header.count,))
-        for start in range(0, header.count, chunk):
-            r = mm[start : start + chunk]
+        stop = header.count if stop is None else min(stop, header.count)
+        for a in range(start, stop, chunk):
+            r = mm[a : min(a + chunk, stop)]
             yield _Fields(
                 r["x"], r["y"], r["z"],
                 (r["red"], r["green"], r["blue"]) if {"red", "green", "blue"} <= names else None,
@@ -254,46 +279,58 @@ def _iter_fields(path: Path, chunk: int = READ_CHUNK):
         )  # fmt: skip
 
 
+@numba.njit(cache=True, inline="always")
+def _grow(amin, amax, k: int, v: float) -> bool:
+    """Grow ``amin[k]``/``amax[k]`` by ``v``; False (and no change) when ``v`` is not finite."""
+    if not np.isfinite(v):
+        return False
+    amin[k] = min(amin[k], v)
+    amax[k] = max(amax[k], v)
+    return True
+
+
 @numba.njit(cache=True)
-def _bounds_kernel(x, y, z, lo, hi) -> int:
-    """Grow ``lo``/``hi`` (3,) by the finite points; return how many points are not finite."""
+def _scan_kernel(x, y, z, r, g, b, nx, ny, nz, sz, flags, lo, hi, amin, amax) -> tuple[int, int]:
+    """One pass over a slice: grow the bounds ``lo``/``hi`` (3,) by the finite points and the
+    attribute ranges ``amin``/``amax`` (7,: rgb, normal, size) by the finite values.
+
+    Returns the number of points with a non-finite coordinate and of non-finite sizes.
+    """
     bad = 0
+    bad_size = 0
     for i in range(x.shape[0]):
-        a, b, c = np.float64(x[i]), np.float64(y[i]), np.float64(z[i])
-        if not (np.isfinite(a) and np.isfinite(b) and np.isfinite(c)):
+        a, bb, c = np.float64(x[i]), np.float64(y[i]), np.float64(z[i])
+        if np.isfinite(a) and np.isfinite(bb) and np.isfinite(c):
+            lo[0] = min(lo[0], a)
+            lo[1] = min(lo[1], bb)
+            lo[2] = min(lo[2], c)
+            hi[0] = max(hi[0], a)
+            hi[1] = max(hi[1], bb)
+            hi[2] = max(hi[2], c)
+        else:
             bad += 1
-            continue
-        lo[0] = min(lo[0], a)
-        lo[1] = min(lo[1], b)
-        lo[2] = min(lo[2], c)
-        hi[0] = max(hi[0], a)
-        hi[1] = max(hi[1], b)
-        hi[2] = max(hi[2], c)
-    return bad
-
-
-@numba.njit(cache=True)
-def _range_kernel(v, lo, hi, k: int) -> bool:
-    """Grow ``lo[k]``/``hi[k]`` by ``v``; False when ``v`` holds NaN or infinity."""
-    ok = True
-    for i in range(v.shape[0]):
-        a = np.float64(v[i])
-        if not np.isfinite(a):
-            ok = False
-            continue
-        lo[k] = min(lo[k], a)
-        hi[k] = max(hi[k], a)
-    return ok
+        if flags[0]:
+            _grow(amin, amax, 0, np.float64(r[i]))
+            _grow(amin, amax, 1, np.float64(g[i]))
+            _grow(amin, amax, 2, np.float64(b[i]))
+        if flags[1]:
+            _grow(amin, amax, 3, np.float64(nx[i]))
+            _grow(amin, amax, 4, np.float64(ny[i]))
+            _grow(amin, amax, 5, np.float64(nz[i]))
+        if flags[2]:
+            if not _grow(amin, amax, 6, np.float64(sz[i])):
+                bad_size += 1
+    return bad, bad_size
 
 
 @numba.njit(cache=True)
 def _quantise_kernel(x, y, z, offset, scale: float, qsize: int, out) -> None:
     inv = 1.0 / scale
-    top = qsize - 1
+    top = np.int64(qsize - 1)
     for i in range(x.shape[0]):
-        out[i, 0] = min(max(np.int64(np.floor((np.float64(x[i]) - offset[0]) * inv + 0.5)), 0), top)
-        out[i, 1] = min(max(np.int64(np.floor((np.float64(y[i]) - offset[1]) * inv + 0.5)), 0), top)
-        out[i, 2] = min(max(np.int64(np.floor((np.float64(z[i]) - offset[2]) * inv + 0.5)), 0), top)
+        out[i, 0] = _quantise1(x[i], offset[0], inv, top)
+        out[i, 1] = _quantise1(y[i], offset[1], inv, top)
+        out[i, 2] = _quantise1(z[i], offset[2], inv, top)
 
 
 def quantise(xyz: np.ndarray, offset: np.ndarray, scale: float, qsize: int) -> np.ndarray:
@@ -306,79 +343,162 @@ def quantise(xyz: np.ndarray, offset: np.ndarray, scale: float, qsize: int) -> n
     return out
 
 
-def _scan_bounds(path: Path) -> tuple[int, np.ndarray, np.ndarray, dict, dict, dict]:
-    header = read_header(path)
-    names = set(header.dtype.names or ())
-    has = {
+@numba.njit(cache=True)
+def _count_kernel(x, y, z, offset, scale: float, qsize: int, shift: int, counts) -> None:
+    """Quantise, Morton-code and count one slice into ``counts`` (cells of ``code >> shift``)."""
+    inv = 1.0 / scale
+    top = np.int64(qsize - 1)
+    mscale = (1 << MORTON_BITS) / qsize
+    mtop = np.int64((1 << MORTON_BITS) - 1)
+    for i in range(x.shape[0]):
+        qx = _quantise1(x[i], offset[0], inv, top)
+        qy = _quantise1(y[i], offset[1], inv, top)
+        qz = _quantise1(z[i], offset[2], inv, top)
+        counts[_morton3(qx, qy, qz, mscale, mtop) >> shift] += 1
+
+
+@numba.njit(cache=True)
+def _distribute_kernel(
+    x, y, z, r, g, b, nx, ny, nz, sz, flags, offset, scale, qsize, shift, cell_to_chunk, nchunks,
+    pos, rgb, nrm, size, q, cid,
+) -> np.ndarray:  # fmt: skip
+    """Quantise and pack one slice into records grouped by chunk (file order kept inside a
+    chunk); returns the (nchunks + 1,) starts of every chunk's run in the records. ``q``
+    (>= N, 3) int32 and ``cid`` (>= N,) int32 are scratch buffers."""
+    n = x.shape[0]
+    inv = 1.0 / scale
+    top = np.int64(qsize - 1)
+    mscale = (1 << MORTON_BITS) / qsize
+    mtop = np.int64((1 << MORTON_BITS) - 1)
+    starts = np.zeros(nchunks + 1, np.int64)
+    for i in range(n):
+        qx = _quantise1(x[i], offset[0], inv, top)
+        qy = _quantise1(y[i], offset[1], inv, top)
+        qz = _quantise1(z[i], offset[2], inv, top)
+        q[i, 0], q[i, 1], q[i, 2] = qx, qy, qz
+        c = cell_to_chunk[_morton3(qx, qy, qz, mscale, mtop) >> shift]
+        cid[i] = c
+        starts[c + 1] += 1
+    for k in range(nchunks):
+        starts[k + 1] += starts[k]
+    fill = starts[:-1].copy()
+    for i in range(n):
+        j = fill[cid[i]]
+        fill[cid[i]] += 1
+        pos[j, 0], pos[j, 1], pos[j, 2] = q[i, 0], q[i, 1], q[i, 2]
+        if flags[0]:
+            rgb[j, 0] = np.uint16(r[i]) * 257  # 8-bit colour to Potree's 16-bit range
+            rgb[j, 1] = np.uint16(g[i]) * 257
+            rgb[j, 2] = np.uint16(b[i]) * 257
+        else:
+            rgb[j, 0] = rgb[j, 1] = rgb[j, 2] = 65535
+        if flags[1]:
+            nrm[j, 0] = nx[i]
+            nrm[j, 1] = ny[i]
+            nrm[j, 2] = nz[i]
+        else:
+            nrm[j, 0] = nrm[j, 1] = nrm[j, 2] = 0.0
+        size[j] = sz[i] if flags[2] else 0.0
+    return starts
+
+
+def _attribute_names(path: Path) -> dict[str, bool]:
+    names = set(read_header(path).dtype.names or ())
+    return {
         "rgb": {"red", "green", "blue"} <= names,
         "normal": {"nx", "ny", "nz"} <= names,
         "size": "size" in names,
     }
+
+
+def _scan_part(
+    path: str, start: int, stop: int | None
+) -> tuple[int, np.ndarray, np.ndarray, np.ndarray, np.ndarray, int, int]:
+    """Bounds pass over points [start, stop): count, lo, hi, attribute min / max (7,), bad counts."""
     lo = np.full(3, np.inf)
     hi = np.full(3, -np.inf)
-    amin = {"rgb": np.full(3, np.inf), "normal": np.full(3, np.inf), "size": np.full(1, np.inf)}
-    amax = {k: -v for k, v in amin.items()}
-    n = 0
-    bad = 0
-    size_ok = True
-    for f in _iter_fields(path):
+    amin = np.full(7, np.inf)
+    amax = np.full(7, -np.inf)
+    n = bad = bad_size = 0
+    for f in _iter_fields(Path(path), start=start, stop=stop):
         n += len(f)
-        bad += _bounds_kernel(f.x, f.y, f.z, lo, hi)
-        for key, arrs in (
-            ("rgb", f.rgb),
-            ("normal", f.normal),
-            ("size", (f.size,) if f.size is not None else None),
-        ):
-            if arrs is not None:
-                for k, v in enumerate(arrs):
-                    ok = _range_kernel(v, amin[key], amax[key], k)
-                    size_ok &= ok or key != "size"
-    if n == 0:
-        raise InputError(path, "the point cloud is empty (0 points)")
-    if bad:
-        raise InputError(path, f"{bad} of {n} points have NaN or infinite coordinates")
-    if not size_ok:
-        raise InputError(path, "the 'size' property holds NaN or infinite values")
-    return n, lo, hi, amin, amax, has
+        nb, ns = _scan_kernel(*f.kernel_args(), lo, hi, amin, amax)
+        bad += nb
+        bad_size += ns
+    return n, lo, hi, amin, amax, bad, bad_size
 
 
-@numba.njit(cache=True)
-def _encode_kernel(
-    x, y, z, r, g, b, nx, ny, nz, sz, flags, offset, scale, qsize, pos, rgb, nrm, size
-) -> None:
-    """Quantise and pack one slice; ``flags`` says which of colour, normal, size exist."""
-    inv = 1.0 / scale
-    top = qsize - 1
-    for i in range(x.shape[0]):
-        pos[i, 0] = min(max(np.int64(np.floor((np.float64(x[i]) - offset[0]) * inv + 0.5)), 0), top)
-        pos[i, 1] = min(max(np.int64(np.floor((np.float64(y[i]) - offset[1]) * inv + 0.5)), 0), top)
-        pos[i, 2] = min(max(np.int64(np.floor((np.float64(z[i]) - offset[2]) * inv + 0.5)), 0), top)
-        if flags[0]:
-            rgb[i, 0] = np.uint16(r[i]) * 257  # 8-bit colour to Potree's 16-bit range
-            rgb[i, 1] = np.uint16(g[i]) * 257
-            rgb[i, 2] = np.uint16(b[i]) * 257
-        else:
-            rgb[i, 0] = rgb[i, 1] = rgb[i, 2] = 65535
-        if flags[1]:
-            nrm[i, 0] = nx[i]
-            nrm[i, 1] = ny[i]
-            nrm[i, 2] = nz[i]
-        else:
-            nrm[i, 0] = nrm[i, 1] = nrm[i, 2] = 0.0
-        size[i] = sz[i] if flags[2] else 0.0
+def _count_part(
+    path: str, start: int, stop: int | None, offset: np.ndarray, scale: float, qsize: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Counting pass over points [start, stop): the occupied cells and their counts."""
+    counts = np.zeros(8**COUNT_LEVEL, np.int64)
+    shift = 3 * (MORTON_BITS - COUNT_LEVEL)
+    for f in _iter_fields(Path(path), start=start, stop=stop):
+        _count_kernel(f.x, f.y, f.z, offset, scale, qsize, shift, counts)
+    cells = np.flatnonzero(counts)  # a scan fills few of the 2M cells: send only those
+    return cells, counts[cells]
 
 
-def _encode(f: _Fields, offset: np.ndarray, scale: float, qsize: int) -> np.ndarray:
-    rec = np.empty(len(f), POINT_DTYPE)
-    dummy_u8 = np.zeros(1, np.uint8)
-    dummy_f4 = np.zeros(1, np.float32)
-    r, g, b = f.rgb if f.rgb is not None else (dummy_u8,) * 3
-    nx, ny, nz = f.normal if f.normal is not None else (dummy_f4,) * 3
-    sz = f.size if f.size is not None else dummy_f4
-    flags = np.array([f.rgb is not None, f.normal is not None, f.size is not None])
-    _encode_kernel(f.x, f.y, f.z, r, g, b, nx, ny, nz, sz, flags, offset, scale, qsize,
-                   rec["position"], rec["rgb"], rec["normal"], rec["size"])  # fmt: skip
-    return rec
+def _cell_to_chunk(chunks: list[tuple[int, int, int]]) -> np.ndarray:
+    table = np.full(8**COUNT_LEVEL, -1, np.int32)
+    for i, (level, prefix, _c) in enumerate(chunks):
+        span = 3 * (COUNT_LEVEL - level)
+        table[prefix << span : (prefix + 1) << span] = i
+    return table
+
+
+def _pwrite_all(fd: int, data: memoryview, offset: int) -> None:
+    done = 0
+    while done < len(data):
+        done += os.pwrite(fd, data[done:], offset + done)
+
+
+def _distribute_part(
+    path: str, start: int, stop: int | None, work_dir: str, chunks: list[tuple[int, int, int]],
+    offset: np.ndarray, scale: float, qsize: int, file_offsets: np.ndarray,
+) -> int:  # fmt: skip
+    """Distribution pass over points [start, stop): each chunk's points, in file order, are
+    written into its chunk file from ``file_offsets[chunk]`` (bytes) on; several parts of the
+    cloud write into the same files at disjoint offsets. Returns the points written."""
+    cell_to_chunk = _cell_to_chunk(chunks)
+    shift = 3 * (MORTON_BITS - COUNT_LEVEL)
+    paths = [Path(work_dir) / f"chunk_{i:05d}.bin" for i in range(len(chunks))]
+    pos = np.array(file_offsets, np.int64)
+    # Keep the chunk files open unless there are too many for the descriptor limit.
+    keep_open = len(chunks) <= MAX_OPEN_FILES
+    fds = [os.open(p, os.O_WRONLY) for p in paths] if keep_open else []
+    written = 0
+    # Buffers reused slice after slice: fresh ones would cost a page fault every 4 KiB.
+    buf = np.empty(READ_CHUNK, POINT_DTYPE)
+    q = np.empty((READ_CHUNK, 3), np.int32)
+    cid = np.empty(READ_CHUNK, np.int32)
+    try:
+        for f in _iter_fields(Path(path), start=start, stop=stop):
+            if len(f) > buf.shape[0]:
+                buf = np.empty(len(f), POINT_DTYPE)
+                q = np.empty((len(f), 3), np.int32)
+                cid = np.empty(len(f), np.int32)
+            rec = buf[: len(f)]
+            bounds = _distribute_kernel(*f.kernel_args(), offset, scale, qsize, shift, cell_to_chunk,
+                                        len(chunks), rec["position"], rec["rgb"], rec["normal"],
+                                        rec["size"], q, cid)  # fmt: skip
+            for i in np.flatnonzero(np.diff(bounds)):
+                data = memoryview(rec[bounds[i] : bounds[i + 1]]).cast("B")  # no copy
+                if keep_open:
+                    _pwrite_all(fds[i], data, int(pos[i]))
+                else:
+                    fd = os.open(paths[i], os.O_WRONLY)
+                    try:
+                        _pwrite_all(fd, data, int(pos[i]))
+                    finally:
+                        os.close(fd)
+                pos[i] += len(data)
+            written += len(f)
+    finally:
+        for fd in fds:
+            os.close(fd)
+    return written
 
 
 def _choose_chunks(counts: np.ndarray, max_chunk: int) -> list[tuple[int, int, int]]:
@@ -402,12 +522,38 @@ def _choose_chunks(counts: np.ndarray, max_chunk: int) -> list[tuple[int, int, i
     return chunks
 
 
+def _parts(path: Path, pool: Executor | None, workers: int) -> list[tuple[int, int | None]]:
+    """Contiguous point ranges the passes split over (one unless the PLY can be memory-mapped)."""
+    header = read_header(path)
+    parts = min(workers, header.count // MIN_PART_POINTS)
+    if pool is None or parts <= 1 or header.fmt != "binary_little_endian":
+        return [(0, None)]
+    step = -(-header.count // parts)
+    return [(a, min(a + step, header.count)) for a in range(0, header.count, step)]
+
+
+def _run_parts(pool: Executor | None, fn, calls: list[tuple]) -> list:
+    """``[fn(*args) for args in calls]``, in ``pool`` when there is one and more than one call."""
+    if pool is None or len(calls) == 1:
+        return [fn(*args) for args in calls]
+    futures = [pool.submit(fn, *args) for args in calls]
+    return [f.result() for f in futures]
+
+
 def plan_tiles(
-    cloud_ply: Path, work_dir: Path, *, max_chunk: int = 2_000_000, max_leaf: int = 10_000
+    cloud_ply: Path,
+    work_dir: Path,
+    *,
+    max_chunk: int = 2_000_000,
+    max_leaf: int = 10_000,
+    pool: Executor | None = None,
+    workers: int = 1,
 ) -> TilePlan:
     """Pass 1: bounds, counts, chunk choice and distribution of points into chunk files.
 
     Writes ``work_dir/chunk_*.bin`` (raw :data:`POINT_DTYPE` records) and ``work_dir/plan.json``.
+    With a process ``pool`` of ``workers`` processes, each pass over a little-endian binary
+    PLY splits into that many contiguous ranges run in the pool (same files, byte for byte).
     Raises :class:`InputError` for an empty cloud or NaN / infinite coordinates.
     """
     cloud_ply = Path(cloud_ply)
@@ -415,7 +561,26 @@ def plan_tiles(
     work_dir.mkdir(parents=True, exist_ok=True)
     for old in work_dir.glob("chunk_*"):  # a re-run starts clean: no stale chunk results
         old.unlink()
-    n, lo, hi, amin, amax, has = _scan_bounds(cloud_ply)
+    has = _attribute_names(cloud_ply)
+    parts = _parts(cloud_ply, pool, workers)
+    src = str(cloud_ply)
+
+    scans = _run_parts(pool, _scan_part, [(src, a, b) for a, b in parts])
+    n = sum(s[0] for s in scans)
+    lo = np.min([s[1] for s in scans], axis=0)
+    hi = np.max([s[2] for s in scans], axis=0)
+    amin7 = np.min([s[3] for s in scans], axis=0)
+    amax7 = np.max([s[4] for s in scans], axis=0)
+    bad = sum(s[5] for s in scans)
+    if n == 0:
+        raise InputError(cloud_ply, "the point cloud is empty (0 points)")
+    if bad:
+        raise InputError(cloud_ply, f"{bad} of {n} points have NaN or infinite coordinates")
+    if sum(s[6] for s in scans):
+        raise InputError(cloud_ply, "the 'size' property holds NaN or infinite values")
+    amin = {"rgb": amin7[0:3], "normal": amin7[3:6], "size": amin7[6:7]}
+    amax = {"rgb": amax7[0:3], "normal": amax7[3:6], "size": amax7[6:7]}
+
     extent = float((hi - lo).max())
     cube = max(extent * (1 + 1e-6), 1e-6 * max(1.0, float(np.abs(np.concatenate([lo, hi])).max())))
     # A power-of-ten step that keeps cube / scale well inside int32.
@@ -423,42 +588,36 @@ def plan_tiles(
     qsize = int(math.ceil(cube / scale)) + 1
     cube = qsize * scale
     offset = lo.astype(np.float64)
-    shift = 3 * (MORTON_BITS - COUNT_LEVEL)
 
-    counts = np.zeros(8**COUNT_LEVEL, np.int64)
-    for f in _iter_fields(cloud_ply):
-        pos = np.empty((len(f), 3), np.int32)
-        _quantise_kernel(f.x, f.y, f.z, offset, scale, qsize, pos)
-        codes = morton_codes(pos, qsize)
-        counts += np.bincount(codes >> shift, minlength=counts.size)
-    chunks = _choose_chunks(counts, max(max_chunk, max_leaf))
-    cell_to_chunk = np.full(counts.size, -1, np.int32)
-    for i, (level, prefix, _c) in enumerate(chunks):
-        span = 3 * (COUNT_LEVEL - level)
-        cell_to_chunk[prefix << span : (prefix + 1) << span] = i
+    if n <= max(max_chunk, max_leaf):
+        # The root alone is the chunk (what the counts would choose): no counting pass.
+        chunks = [(0, 0, n)]
+        part_counts = np.array([[scan[0]] for scan in scans], np.int64)
+    else:
+        counted = _run_parts(pool, _count_part, [(src, a, b, offset, scale, qsize) for a, b in parts])
+        counts = np.zeros(8**COUNT_LEVEL, np.int64)
+        for cells, c in counted:
+            counts[cells] += c
+        chunks = _choose_chunks(counts, max(max_chunk, max_leaf))
+        cell_to_chunk = _cell_to_chunk(chunks)
+        # Where every part's points start in each chunk file: parts write disjoint byte ranges,
+        # in part order, so a chunk file holds its points in file order whatever the split.
+        part_counts = np.zeros((len(parts), len(chunks)), np.int64)
+        for k, (cells, c) in enumerate(counted):
+            np.add.at(part_counts[k], cell_to_chunk[cells], c)
+    starts = (np.cumsum(part_counts, axis=0) - part_counts) * POINT_DTYPE.itemsize
 
-    paths = [work_dir / f"chunk_{i:05d}.bin" for i in range(len(chunks))]
-    for p in paths:
-        p.write_bytes(b"")
-    # Keep the chunk files open unless there are too many for the descriptor limit.
-    keep_open = len(chunks) <= MAX_OPEN_FILES
-    files = [open(p, "ab") for p in paths] if keep_open else []
-    try:
-        for f in _iter_fields(cloud_ply):
-            rec = _encode(f, offset, scale, qsize)
-            cid = cell_to_chunk[morton_codes(rec["position"], qsize) >> shift]
-            order, bounds = _counting_order(cid, len(chunks))
-            rec = _permute(rec, order)
-            for i in np.flatnonzero(np.diff(bounds)):
-                data = memoryview(rec[bounds[i] : bounds[i + 1]]).cast("B")  # no copy
-                if keep_open:
-                    files[i].write(data)
-                else:
-                    with open(paths[i], "ab") as out:
-                        out.write(data)
-    finally:
-        for fh in files:
-            fh.close()
+    for i, (_lv, _p, c) in enumerate(chunks):
+        with open(work_dir / f"chunk_{i:05d}.bin", "wb") as fh:
+            fh.truncate(c * POINT_DTYPE.itemsize)
+    _run_parts(
+        pool,
+        _distribute_part,
+        [
+            (src, a, b, str(work_dir), chunks, offset, scale, qsize, starts[k])
+            for k, (a, b) in enumerate(parts)
+        ],
+    )
 
     plan = TilePlan(
         source=str(cloud_ply),
@@ -482,7 +641,7 @@ def plan_tiles(
     tmp = work_dir / f"{PLAN_FILE}.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(asdict(plan)))
     os.replace(tmp, work_dir / PLAN_FILE)
-    log.info("planned %d points into %d chunks", n, len(chunks))
+    log.info("planned %d points into %d chunks over %d parts", n, len(chunks), len(parts))
     return plan
 
 
@@ -503,21 +662,25 @@ def _pack_keys(codes: np.ndarray, base: int, drop: int, idx_bits: int) -> np.nda
 
 
 @numba.njit(cache=True)
-def _unpack_index(keys: np.ndarray, idx_bits: int) -> np.ndarray:
+def _unpack_keys(keys: np.ndarray, base: int, drop: int, idx_bits: int) -> tuple[np.ndarray, np.ndarray]:
+    """Point index and Morton code (its dropped bits zero) of every sorted key."""
     mask = np.uint64((1 << idx_bits) - 1)
-    out = np.empty(keys.shape[0], np.int64)
+    index = np.empty(keys.shape[0], np.int64)
+    codes = np.empty(keys.shape[0], np.int64)
     for i in range(keys.shape[0]):
-        out[i] = np.int64(keys[i] & mask)
-    return out
+        index[i] = np.int64(keys[i] & mask)
+        codes[i] = (np.int64(keys[i] >> np.uint64(idx_bits)) << drop) + base
+    return index, codes
 
 
-def _morton_order(codes: np.ndarray, level_c: int, prefix_c: int) -> tuple[np.ndarray, int]:
-    """Order of a chunk's points by Morton code, and the deepest level it resolves.
+def _morton_order(codes: np.ndarray, level_c: int, prefix_c: int) -> tuple[np.ndarray, np.ndarray, int]:
+    """Order of a chunk's points by Morton code, the sorted codes, and the deepest level it resolves.
 
     numpy's value sort is several times faster than its argsort, so the point index is packed
     under the code (relative to the chunk) in one uint64 key. When code and index do not fit
-    in 64 bits, the code's finest levels are dropped; the chunk then stops splitting where
-    those levels would be needed (leaves there keep all their points).
+    in 64 bits, the code's finest levels are dropped (zero in the sorted codes returned); the
+    chunk then stops splitting where those levels would be needed (leaves there keep all their
+    points), so no comparison ever looks at a dropped bit.
     """
     n = codes.shape[0]
     idx_bits = max(1, (n - 1).bit_length())
@@ -528,7 +691,127 @@ def _morton_order(codes: np.ndarray, level_c: int, prefix_c: int) -> tuple[np.nd
     base = (prefix_c << rel_bits) if level_c else 0
     key = _pack_keys(codes, base, drop, idx_bits)
     key.sort()
-    return _unpack_index(key, idx_bits), max_depth
+    order, sorted_codes = _unpack_keys(key, base, drop, idx_bits)
+    return order, sorted_codes, max_depth
+
+
+@numba.njit(cache=True)
+def _push(arr: np.ndarray, count: int, value: int) -> np.ndarray:
+    if count == arr.shape[0]:
+        grown = np.empty(2 * arr.shape[0], arr.dtype)
+        grown[:count] = arr
+        arr = grown
+    arr[count] = value
+    return arr
+
+
+@numba.njit(cache=True)
+def _sample_split(
+    codes: np.ndarray, assigned: np.ndarray, lo: int, hi: int, shift: int, cshift: int, node: int,
+    child_left: np.ndarray,
+) -> None:  # fmt: skip
+    """:func:`_sample` into ``node``, counting in the same pass the points each child
+    (``(code >> cshift) & 7``) is left with in ``child_left`` (8,)."""
+    child_left[:] = 0
+    last = np.int64(-1)
+    for i in range(lo, hi):
+        if assigned[i] < 0:
+            key = codes[i] >> shift
+            if key != last:
+                assigned[i] = node
+                last = key
+            else:
+                child_left[(codes[i] >> cshift) & 7] += 1
+
+
+@numba.njit(cache=True)
+def _build_nodes(
+    codes: np.ndarray, level_c: int, prefix_c: int, max_leaf: int, max_depth: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Assign every point of a chunk (Morton-sorted ``codes``) to one node.
+
+    Returns ``assigned`` (N,) node numbers and per node its level, prefix and whether it lies
+    inside the chunk (nodes above it are shared with other chunks), in creation order: the
+    chunk's ancestors root first, then its subtree depth first, child 0 first.
+    """
+    n = codes.shape[0]
+    assigned = np.full(n, -1, np.int32)
+    levels = np.empty(64, np.int64)
+    prefixes = np.empty(64, np.int64)
+    own = np.empty(64, np.int64)
+    nodes = 0
+    # Upper nodes: this chunk's share of every ancestor's grid sample.
+    for level in range(level_c):
+        levels = _push(levels, nodes, level)
+        prefixes = _push(prefixes, nodes, prefix_c >> (3 * (level_c - level)))
+        own = _push(own, nodes, 0)
+        _sample(codes, assigned, 0, n, 3 * (MORTON_BITS - level - GRID_LEVELS), nodes)
+        nodes += 1
+
+    # Depth first, child 0 first; an entry is level, prefix, lo, hi and the points left there.
+    stack = np.empty((64, 5), np.int64)
+    stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = level_c, prefix_c, 0, n
+    stack[0, 4] = _count_unassigned(assigned, 0, n)
+    top = 1
+    edges = np.empty(9, np.int64)
+    child_left = np.zeros(8, np.int64)
+    while top > 0:
+        top -= 1
+        level, prefix, lo, hi, remaining = (
+            stack[top, 0],
+            stack[top, 1],
+            stack[top, 2],
+            stack[top, 3],
+            stack[top, 4],
+        )
+        if remaining == 0:  # a small chunk whose points all went to the nodes above it
+            continue
+        node = nodes
+        levels = _push(levels, nodes, level)
+        prefixes = _push(prefixes, nodes, prefix)
+        own = _push(own, nodes, 1)
+        nodes += 1
+        if remaining <= max_leaf or level >= max_depth:
+            _take_all(assigned, lo, hi, node)
+            continue
+        cshift = 3 * (MORTON_BITS - level - 1)
+        _sample_split(
+            codes, assigned, lo, hi, 3 * (MORTON_BITS - level - GRID_LEVELS), cshift, node, child_left
+        )
+        for k in range(8):
+            edges[k] = lo + np.searchsorted(codes[lo:hi], (prefix * 8 + k) << cshift)
+        edges[8] = hi
+        for k in range(7, -1, -1):
+            if child_left[k] > 0:
+                if top == stack.shape[0]:
+                    grown = np.empty((2 * top, 5), np.int64)
+                    grown[:top] = stack
+                    stack = grown
+                stack[top, 0], stack[top, 1], stack[top, 2] = level + 1, prefix * 8 + k, edges[k]
+                stack[top, 3], stack[top, 4] = edges[k + 1], child_left[k]
+                top += 1
+    return assigned, levels[:nodes].copy(), prefixes[:nodes].copy(), own[:nodes].copy()
+
+
+def _chunk_nodes(work_dir: Path, index: int) -> tuple[np.ndarray, np.ndarray, list[list]]:
+    """Sample chunk ``index``: its records as read, the order grouping them by node, and the
+    node table ``[name, numPoints, byteOffset, own]`` (offsets into the grouped records)."""
+    plan = load_plan(work_dir)
+    spec = plan.chunks[index]
+    rec = np.fromfile(work_dir / spec["file"], dtype=POINT_DTYPE)
+    level_c, prefix_c = spec["level"], spec["prefix"]
+    order, codes, max_depth = _morton_order(morton_codes(rec["position"], plan.qsize), level_c, prefix_c)
+    assigned, levels, prefixes, own = _build_nodes(codes, level_c, prefix_c, plan.max_leaf, max_depth)
+    by_node, bounds = _counting_order(assigned, levels.shape[0])
+    counts = np.diff(bounds)
+    table = [
+        [node_name(int(levels[i]), int(prefixes[i])), int(counts[i]), int(bounds[i]) * POINT_DTYPE.itemsize,
+         bool(own[i])]
+        for i in range(levels.shape[0])
+        if counts[i] > 0 or own[i]
+    ]  # fmt: skip
+    # Morton order, then grouped by node: one gather of the records does both.
+    return rec, order[by_node], table
 
 
 def build_chunk(work_dir: Path, index: int) -> Path:
@@ -546,59 +829,10 @@ def build_chunk(work_dir: Path, index: int) -> Path:
     out_json = work_dir / f"chunk_{index:05d}.nodes.json"
     if out_json.is_file() and out_bin.is_file():
         return out_json
-    plan = load_plan(work_dir)
-    spec = plan.chunks[index]
-    src = work_dir / spec["file"]
-    rec = np.fromfile(src, dtype=POINT_DTYPE)
-    codes = morton_codes(rec["position"], plan.qsize)
-    n = rec.shape[0]
-    level_c, prefix_c = spec["level"], spec["prefix"]
-    order, max_depth = _morton_order(codes, level_c, prefix_c)
-    codes = codes[order]
-    assigned = np.full(n, -1, np.int32)
-    names: list[str] = []
-    own: list[bool] = []  # node lies inside this chunk (not an upper node shared with others)
-
-    # Upper nodes: this chunk's share of every ancestor's grid sample.
-    for level in range(level_c):
-        names.append(node_name(level, prefix_c >> (3 * (level_c - level))))
-        own.append(False)
-        _sample(codes, assigned, 0, n, 3 * (MORTON_BITS - level - GRID_LEVELS), len(names) - 1)
-
-    stack = [(level_c, prefix_c, 0, n)]
-    while stack:
-        level, prefix, lo, hi = stack.pop()
-        remaining = _count_unassigned(assigned, lo, hi)
-        if remaining == 0:  # a small chunk whose points all went to the nodes above it
-            continue
-        node = len(names)
-        names.append(node_name(level, prefix))
-        own.append(True)
-        if remaining <= plan.max_leaf or level >= max_depth:
-            _take_all(assigned, lo, hi, node)
-            continue
-        _sample(codes, assigned, lo, hi, 3 * (MORTON_BITS - level - GRID_LEVELS), node)
-        cshift = 3 * (MORTON_BITS - level - 1)
-        keys = prefix * 8 + np.arange(9, dtype=np.int64)
-        edges = np.searchsorted(codes[lo:hi], keys << cshift) + lo
-        edges[-1] = hi
-        for k in range(7, -1, -1):
-            a, b = int(edges[k]), int(edges[k + 1])
-            if b > a and _count_unassigned(assigned, a, b) > 0:
-                stack.append((level + 1, prefix * 8 + k, a, b))
-
-    by_node, bounds = _counting_order(assigned, len(names))
-    counts = np.diff(bounds)
-    starts = bounds[:-1]
-    # One gather of the records: Morton order, then grouped by node.
+    rec, by_node, table = _chunk_nodes(work_dir, index)
     tmp_bin = out_bin.with_name(out_bin.name + f".{os.getpid()}.tmp")
-    _permute(rec, order[by_node]).tofile(tmp_bin)
+    _permute(rec, by_node).tofile(tmp_bin)
     os.replace(tmp_bin, out_bin)
-    table = [
-        [names[i], int(counts[i]), int(starts[i]) * POINT_DTYPE.itemsize, own[i]]
-        for i in range(len(names))
-        if counts[i] > 0 or own[i]
-    ]
     tmp_json = out_json.with_name(out_json.name + f".{os.getpid()}.tmp")
     tmp_json.write_text(json.dumps(table))
     os.replace(tmp_json, out_json)  # last: its presence marks the chunk done
@@ -708,58 +942,44 @@ def _copy_range(src, dst, src_off: int, dst_off: int, nbytes: int) -> None:
         dst.flush()
 
 
-def merge_tiles(work_dir: Path, out_dir: Path) -> dict:
-    """Pass 3: gather every chunk's node pieces into ``octree.bin``, write the hierarchy and
-    metadata, and rename the finished folder to ``out_dir`` (replacing an older one).
-    ``work_dir`` is left in place for the caller to remove.
-
-    Returns a report: points, nodes, depth, bytes.
-    """
-    work_dir = Path(work_dir)
-    out_dir = Path(out_dir)
-    plan = load_plan(work_dir)
+def _layout(tables: list[list[list]]) -> tuple[dict[str, dict], list[list[tuple[int, int, int]]], int]:
+    """Where every chunk's node pieces go in ``octree.bin``: nodes breadth first, a node's
+    pieces in chunk order. Returns the nodes (name -> points, offset, size), per chunk its
+    copies ``(source byte offset, octree.bin byte offset, bytes)``, and the file size."""
     pieces: dict[str, list[tuple[int, int, int]]] = {}  # name -> [(chunk, byte offset, points)]
-    for i in range(len(plan.chunks)):
-        table = json.loads((work_dir / f"chunk_{i:05d}.nodes.json").read_text())
+    for i, table in enumerate(tables):
         for name, npts, off, _own in table:
             pieces.setdefault(name, []).append((i, off, npts))
     for name in list(pieces):  # every node needs its ancestors, even one left empty
         for k in range(1, len(name)):
             pieces.setdefault(name[:k], [])
-    names = sorted(pieces, key=lambda s: (len(s), s))
+    nodes: dict[str, dict] = {}
+    copies: list[list[tuple[int, int, int]]] = [[] for _ in tables]
+    pos = 0
+    for nm in sorted(pieces, key=lambda s: (len(s), s)):
+        npts = 0
+        for ci, off, cnt in pieces[nm]:
+            if cnt:
+                copies[ci].append((off, pos + npts * POINT_DTYPE.itemsize, cnt * POINT_DTYPE.itemsize))
+                npts += cnt
+        size = npts * POINT_DTYPE.itemsize
+        nodes[nm] = {"points": npts, "offset": pos, "size": size}
+        pos += size
+    return nodes, copies, pos
+
+
+def _write_tiles(plan: TilePlan, nodes: dict[str, dict], nbytes: int, out_dir: Path, fill) -> dict:
+    """Write the tiles folder in a staging folder and rename it to ``out_dir`` (replacing an
+    older one); ``fill(octree_bin)`` writes the points into the pre-sized ``octree.bin``."""
+    total = sum(info["points"] for info in nodes.values())
+    if total != plan.points:
+        raise RuntimeError(f"tiles hold {total} points, the cloud has {plan.points}")
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.", suffix=".tmp", dir=out_dir.parent))
     try:
-        nodes: dict[str, dict] = {}
-        sources = [
-            open(work_dir / f"chunk_{i:05d}.nodes.bin", "rb", buffering=0) for i in range(len(plan.chunks))
-        ]
-        total = 0
-        try:
-            with open(stage / "octree.bin", "wb", buffering=0) as out:
-                pos = 0
-                for nm in names:
-                    npts = 0
-                    for ci, off, cnt in pieces[nm]:
-                        if cnt == 0:
-                            continue
-                        _copy_range(
-                            sources[ci],
-                            out,
-                            off,
-                            pos + npts * POINT_DTYPE.itemsize,
-                            cnt * POINT_DTYPE.itemsize,
-                        )
-                        npts += cnt
-                    size = npts * POINT_DTYPE.itemsize
-                    nodes[nm] = {"points": npts, "offset": pos, "size": size}
-                    pos += size
-                    total += npts
-        finally:
-            for f in sources:
-                f.close()
-        if total != plan.points:
-            raise RuntimeError(f"tiles hold {total} points, the cloud has {plan.points}")
+        with open(stage / "octree.bin", "wb") as f:
+            f.truncate(nbytes)
+        fill(stage / "octree.bin")
         hierarchy, first_chunk, depth = _hierarchy(nodes)
         (stage / "hierarchy.bin").write_bytes(hierarchy)
         lo = plan.offset
@@ -789,24 +1009,85 @@ def merge_tiles(work_dir: Path, out_dir: Path) -> dict:
     except BaseException:
         shutil.rmtree(stage, ignore_errors=True)
         raise
-    return {"points": plan.points, "nodes": len(nodes), "depth": depth, "bytes": int(pos)}
+    return {"points": plan.points, "nodes": len(nodes), "depth": depth, "bytes": int(nbytes)}
+
+
+def merge_tiles(work_dir: Path, out_dir: Path) -> dict:
+    """Pass 3: gather every chunk's node pieces into ``octree.bin``, write the hierarchy and
+    metadata, and rename the finished folder to ``out_dir`` (replacing an older one).
+    ``work_dir`` is left in place for the caller to remove.
+
+    Returns a report: points, nodes, depth, bytes.
+    """
+    work_dir = Path(work_dir)
+    plan = load_plan(work_dir)
+    tables = [
+        json.loads((work_dir / f"chunk_{i:05d}.nodes.json").read_text()) for i in range(len(plan.chunks))
+    ]
+    nodes, copies, nbytes = _layout(tables)
+
+    def fill(octree_bin: Path) -> None:
+        with open(octree_bin, "r+b", buffering=0) as out:
+            for i, chunk_copies in enumerate(copies):
+                with open(work_dir / f"chunk_{i:05d}.nodes.bin", "rb", buffering=0) as src:
+                    for src_off, dst_off, n in chunk_copies:
+                        _copy_range(src, out, src_off, dst_off, n)
+
+    return _write_tiles(plan, nodes, nbytes, Path(out_dir), fill)
+
+
+# --------------------------------------------------------------------------- in-process build
+
+
+def _chunk_table_job(work: str, index: int) -> list[list]:
+    """In-process pass 2, first half: sample chunk ``index``, keep the grouping order beside
+    it (``chunk_*.order``, 4 bytes a point) and return the node table."""
+    rec, by_node, table = _chunk_nodes(Path(work), index)
+    dtype = np.uint32 if rec.shape[0] <= np.iinfo(np.uint32).max else np.int64
+    by_node.astype(dtype).tofile(Path(work) / f"chunk_{index:05d}.order.{np.dtype(dtype).str[1:]}")
+    return table
+
+
+def _chunk_write_job(work: str, index: int, octree_bin: str, copies: list[tuple[int, int, int]]) -> None:
+    """In-process pass 2, second half: write chunk ``index``'s node pieces straight to their
+    places in ``octree.bin`` (no intermediate pieces file, no serial concatenation)."""
+    work_dir = Path(work)
+    rec = np.fromfile(work_dir / f"chunk_{index:05d}.bin", dtype=POINT_DTYPE)
+    (order_file,) = work_dir.glob(f"chunk_{index:05d}.order.*")
+    by_node = np.fromfile(order_file, dtype=order_file.suffix[1:])
+    data = memoryview(_permute(rec, by_node)).cast("B")
+    del rec, by_node
+    fd = os.open(octree_bin, os.O_WRONLY)
+    try:
+        for src_off, dst_off, n in copies:
+            _pwrite_all(fd, data[src_off : src_off + n], dst_off)
+    finally:
+        os.close(fd)
+    # Done with this chunk's files: drop them now (in parallel) rather than at the end.
+    (work_dir / f"chunk_{index:05d}.bin").unlink()
+    order_file.unlink()
 
 
 def _warm_kernels() -> None:
-    """Load every kernel once (from numba's cache) so forked chunk workers inherit them."""
-    pos = np.zeros((2, 3), np.int32)
-    codes = morton_codes(pos, 8)
-    assigned = np.full(2, -1, np.int32)
-    _count_unassigned(assigned, 0, 2)
-    _sample(codes, assigned, 0, 2, 3, 0)
-    _take_all(assigned, 0, 2, 1)
-    _counting_order(assigned, 2)
-    _permute(np.zeros(2, POINT_DTYPE), np.arange(2))
-    _morton_order(codes, 0, 0)
-
-
-def _build_chunk_job(args: tuple[str, int]) -> str:
-    return str(build_chunk(Path(args[0]), args[1]))
+    """Load every kernel once (from numba's cache) so forked workers inherit them; the fields
+    mimic a memory-mapped cloud PLY (read-only strided views of its records), so the kernels
+    loaded are the ones the passes call."""
+    cloud = np.frombuffer(bytes(2 * CLOUD_DTYPE.itemsize), CLOUD_DTYPE)
+    f = _Fields(cloud["x"], cloud["y"], cloud["z"], (cloud["red"], cloud["green"], cloud["blue"]),
+                (cloud["nx"], cloud["ny"], cloud["nz"]), cloud["size"])  # fmt: skip
+    lo, hi, amin, amax = np.zeros(3), np.ones(3), np.zeros(7), np.ones(7)
+    _scan_kernel(*f.kernel_args(), lo, hi, amin, amax)
+    _count_kernel(f.x, f.y, f.z, lo, 1.0, 8, 60, np.zeros(8, np.int64))
+    rec = np.empty(2, POINT_DTYPE)
+    _distribute_kernel(*f.kernel_args(), lo, 1.0, 8, 60, np.zeros(8, np.int32), 1, rec["position"],
+                       rec["rgb"], rec["normal"], rec["size"], np.empty((2, 3), np.int32),
+                       np.empty(2, np.int32))  # fmt: skip
+    rec = np.zeros(2, POINT_DTYPE)
+    codes = morton_codes(rec["position"], 8)
+    _, sorted_codes, _ = _morton_order(codes, 0, 0)
+    assigned, levels, _, _ = _build_nodes(sorted_codes, 0, 0, 1, MAX_DEPTH)
+    _counting_order(assigned, levels.shape[0])
+    _permute(rec, np.arange(2))
 
 
 def build_tiles(
@@ -819,29 +1100,44 @@ def build_tiles(
 ) -> dict:
     """Build Potree 2.0 tiles from ``cloud_ply`` into ``out_dir`` (all passes, in-process).
 
-    ``workers`` processes build chunks in parallel (default: the CPU count; 1 runs in this
-    process). Temporary chunk files live beside ``out_dir`` and are removed. Returns a report
-    with points, nodes, depth, bytes, chunks, seconds and points_per_second.
+    ``workers`` processes run the passes over the cloud and build chunks in parallel (default:
+    the CPU count; 1 runs in this process). Temporary chunk files live beside ``out_dir`` and
+    are removed. Returns a report with points, nodes, depth, bytes, chunks, seconds and
+    points_per_second.
     """
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
+    workers = max(1, workers or os.cpu_count() or 1)
     work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.work.", dir=out_dir.parent))
     try:
-        plan = plan_tiles(Path(cloud_ply), work, max_chunk=max_chunk, max_leaf=max_leaf)
         _warm_kernels()
-        nchunks = len(plan.chunks)
-        workers = max(1, min(workers or os.cpu_count() or 1, nchunks))
-        # Largest chunks first keeps the pool busy to the end. Fork: the chunk builder starts
-        # no threads, and forked workers inherit the compiled kernels (spawn would re-import).
-        order = sorted(range(nchunks), key=lambda i: -plan.chunks[i]["points"])
-        if workers == 1:
-            for i in order:
-                build_chunk(work, i)
-        else:
-            with ProcessPoolExecutor(workers, mp_context=get_context("fork")) as pool:
-                list(pool.map(_build_chunk_job, [(str(work), i) for i in order]))
-        report = merge_tiles(work, out_dir)
+        # One pool for every pass. Fork: the builder starts no threads, and forked workers
+        # inherit the loaded kernels (spawn would re-import and reload them in every process).
+        with contextlib.ExitStack() as stack:
+            pool = (
+                stack.enter_context(ProcessPoolExecutor(workers, mp_context=get_context("fork")))
+                if workers > 1
+                else None
+            )
+            plan = plan_tiles(
+                Path(cloud_ply), work, max_chunk=max_chunk, max_leaf=max_leaf, pool=pool, workers=workers
+            )
+            nchunks = len(plan.chunks)
+            # Largest chunks first keeps the pool busy to the end.
+            order = sorted(range(nchunks), key=lambda i: -plan.chunks[i]["points"])
+            chunk_pool = pool if nchunks > 1 else None
+            tables: list[list[list]] = [[] for _ in range(nchunks)]
+            done = _run_parts(chunk_pool, _chunk_table_job, [(str(work), i) for i in order])
+            for i, table in zip(order, done, strict=True):
+                tables[i] = table
+            nodes, copies, nbytes = _layout(tables)
+
+            def fill(octree_bin: Path) -> None:
+                calls = [(str(work), i, str(octree_bin), copies[i]) for i in order]
+                _run_parts(chunk_pool, _chunk_write_job, calls)
+
+            report = _write_tiles(plan, nodes, nbytes, out_dir, fill)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     dt = time.perf_counter() - t0

@@ -15,12 +15,10 @@ import re
 import sys
 from pathlib import Path
 
-import cv2
-
-from shared.capture import code_bits, numbered_frames, opencv_order_capture, write_capture
 from shared.errors import InputError
-from shared.files import atomic_file
-from shared.graycode import capture_for_names, pattern_sequence
+
+# OpenCV and the capture modules load inside the commands that use them, so other commands
+# (``graylight tiles`` ...) start without them.
 
 
 def parse_size(text: str, where: str = "--projector") -> tuple[int, int]:
@@ -62,12 +60,19 @@ def _cmd_scan(args: argparse.Namespace) -> int:
 
 
 def _write_png_atomic(path: Path, image) -> None:
+    import cv2
+
+    from shared.files import atomic_file
+
     with atomic_file(path, suffix=".png") as tmp:
         if not cv2.imwrite(str(tmp), image):
             raise OSError(f"could not write {path}")
 
 
 def _cmd_patterns(args: argparse.Namespace) -> int:
+    from shared.capture import write_capture
+    from shared.graycode import capture_for_names, pattern_sequence
+
     w, h = parse_size(args.projector)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -82,6 +87,8 @@ def _cmd_patterns(args: argparse.Namespace) -> int:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
+    from shared.capture import code_bits, numbered_frames, opencv_order_capture, write_capture
+
     w, h = parse_size(args.projector)
     folder = Path(args.dir)
     frames = numbered_frames(folder)

@@ -145,8 +145,11 @@ def test_nodes_hold_their_points_and_sample_evenly(tiles: Path) -> None:
 
 
 def test_parallel_build_gives_the_same_bytes(scan: Path, tiles: Path, tmp_path: Path, monkeypatch) -> None:
-    """Two worker processes, and chunk files reopened for every write, change no byte."""
+    """Two worker processes (each pass over the cloud split in two ranges read in several
+    slices), and chunk files reopened for every write, change no byte."""
     monkeypatch.setattr(octree, "MAX_OPEN_FILES", 2)
+    monkeypatch.setattr(octree, "MIN_PART_POINTS", 1_000)
+    monkeypatch.setattr(octree, "READ_CHUNK", 7_000)
     out = tmp_path / "par"
     build_tiles(scan, out, workers=2, max_chunk=6_000, max_leaf=300)
     for name in ("octree.bin", "hierarchy.bin", "metadata.json"):
