@@ -23,10 +23,14 @@ How (see FIELD-NOTES, "Decoding Gray codes"):
   interpolated linearly), and pixels between two edges get a column interpolated between the
   edges' projector columns. Pixels without two consistent edges keep the centre of their code.
 
-Images are streamed in small batches of pattern/inverse pairs (about 160 MB of images at a
-time), read ahead by a small thread pool (PNG decoding releases the GIL); the per-pixel work
-runs in numba kernels. Working memory is about 60 bytes per camera pixel plus one batch of
-images: a 15 MP capture peaks near 1.5 GB.
+Each axis whose images fit in memory (up to 480 MB: any 8-bit capture up to 15 MP) is decoded
+in one pass by a numba kernel working through bands of camera rows: every bit plane of a row is
+classified into row buffers that stay in cache, then the same row's codes are resolved and its
+sub-pixel edges placed, so each image is read once and only the outputs go back to memory.
+Larger axes stream in batches of pattern/inverse pairs (about 160 MB of images at a time) into
+whole-frame code planes. A small thread pool reads images ahead (PNG decoding releases the
+GIL): the row patterns load while the columns are decoded. Working memory is about 25 bytes
+per camera pixel plus one axis's images: a 15 MP 8-bit capture peaks near 1.1 GB.
 """
 
 from __future__ import annotations
@@ -36,7 +40,7 @@ import logging
 import os
 import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -101,7 +105,7 @@ class Decoded:
 # --------------------------------------------------------------------------- numba kernels
 
 
-@numba.njit(parallel=True, cache=True)
+@numba.njit(parallel=True, cache=True, error_model="numpy")
 def _bit_planes(pats, refs, bits, thr, kq, signs, weak, q, store_q, m1, m2):  # pragma: no cover
     """Classify a batch (tuple) of k flat bit planes: sign of ``pats[j] - refs[j]`` into ``signs``, and
     ``|pats[j] - refs[j]| < thr`` into ``weak``, at bit ``bits[j]``.
@@ -147,7 +151,7 @@ def _bit_planes(pats, refs, bits, thr, kq, signs, weak, q, store_q, m1, m2):  # 
                     a1[i] = min(b1, aq)
 
 
-@numba.njit(inline="always")
+@numba.njit(inline="always", error_model="numpy")
 def _gray_to_binary(g):  # pragma: no cover
     # Prefix XOR from the top bit down (codes have at most 16 bits).
     g ^= g >> 1
@@ -157,144 +161,325 @@ def _gray_to_binary(g):  # pragma: no cover
     return g
 
 
-@numba.njit(parallel=True, cache=True)
-def _resolve(signs, weak, lit, nbits, lowest, max_level, n_proj, m2, has_q, block, level, conf, centre):  # pragma: no cover
-    n = signs.size
-    full = (1 << nbits) - 1
-    chunk = 1 << 14
-    for ch in numba.prange((n + chunk - 1) // chunk):
-        lo = ch * chunk
-        hi_i = min(n, lo + chunk)
-        for ii in range(hi_i - lo):
-            _resolve_one(lo + ii, signs, weak, lit, full, lowest, max_level, n_proj, m2, has_q,
-                         block, level, conf, centre)
-
-
-@numba.njit(inline="always")
-def _resolve_one(i, signs, weak, lit, full, lowest, max_level, n_proj, m2, has_q, block, level, conf, centre):  # pragma: no cover
-    block[i] = -1
-    level[i] = -1
-    conf[i] = 0.0
-    centre[i] = np.nan
-    if lit[i]:
-        g = np.int64(signs[i])
-        w = np.int64(weak[i])
-        if (w & full) == 0:
-            # Fast path, most pixels: no weak bit.
-            b = _gray_to_binary(g >> lowest)
-            if (b << lowest) < n_proj:
-                block[i] = b
-                level[i] = lowest
-                c = np.float32(b << lowest) + np.float32(((1 << lowest) - 1) * 0.5)
-                centre[i] = min(c, np.float32(n_proj - 1))
-                conf[i] = min(np.float32(m2[i]) / np.float32(127.0), np.float32(1.0)) if has_q else np.float32(1.0)
-            return
-        for L in range(lowest, max_level + 1):
-            hi = full & ~((1 << L) - 1)
-            wm = w & hi
-            ok = False
-            if wm == 0:
-                ok = True
-            elif (wm & (wm - 1)) == 0:
-                k = 0
-                while (wm >> k) != 1:
-                    k += 1
-                if k > L:
-                    # On the edge of bit k the finer bits read: bit k-1 on, the rest off.
-                    fine = ((1 << k) - 1) & hi
-                    if (g & fine) == (1 << (k - 1)):
-                        ok = True
-                elif L == lowest:
-                    # The finest captured bit is weak on every one of its own edges (half of
-                    # all stripe edges) and nowhere can it err by more than one column: keep
-                    # it, so that the sub-pixel step sees these edges.
+@numba.njit(inline="always", error_model="numpy")
+def _resolve_code(g, w, full, lowest, max_level, n_proj):  # pragma: no cover
+    """``(block, level)`` of one pixel's Gray code ``g`` with weak bits ``w``; ``(-1, -1)`` if none."""
+    if (w & full) == 0:
+        # Fast path, most pixels: no weak bit.
+        b = _gray_to_binary(g >> lowest)
+        if (b << lowest) < n_proj:
+            return b, lowest
+        return -1, -1
+    for L in range(lowest, max_level + 1):
+        hi = full & ~((1 << L) - 1)
+        wm = w & hi
+        ok = False
+        if wm == 0:
+            ok = True
+        elif (wm & (wm - 1)) == 0:
+            k = 0
+            while (wm >> k) != 1:
+                k += 1
+            if k > L:
+                # On the edge of bit k the finer bits read: bit k-1 on, the rest off.
+                fine = ((1 << k) - 1) & hi
+                if (g & fine) == (1 << (k - 1)):
                     ok = True
-            if not ok:
-                continue
-            b = _gray_to_binary((g & hi) >> L)
-            if (b << L) >= n_proj:
-                break
-            block[i] = b
-            level[i] = L
+            elif L == lowest:
+                # The finest captured bit is weak on every one of its own edges (half of
+                # all stripe edges) and nowhere can it err by more than one column: keep
+                # it, so that the sub-pixel step sees these edges.
+                ok = True
+        if not ok:
+            continue
+        b = _gray_to_binary((g & hi) >> L)
+        if (b << L) >= n_proj:
+            return -1, -1
+        return b, L
+    return -1, -1
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _resolve_row(sg, wk, lit, m2, has_q, full, lowest, max_level, n_proj, blk, lvl, val, conf, write_conf,
+                 hist):  # pragma: no cover
+    """Resolve one camera row of codes: ``blk`` (int32 code block), ``lvl`` (int8 level), ``val``
+    (float32 centre of the code's span, NaN where invalid), ``conf`` and a level histogram."""
+    for x in range(sg.size):
+        b = -1
+        L = -1
+        if lit[x]:
+            b, L = _resolve_code(np.int64(sg[x]), np.int64(wk[x]), full, lowest, max_level, n_proj)
+        blk[x] = b
+        lvl[x] = L
+        if b >= 0:
             # Centre of the code's span b*2^L .. (b+1)*2^L - 1, inside the projector.
             c = np.float32(b << L) + np.float32(((1 << L) - 1) * 0.5)
-            centre[i] = min(c, np.float32(n_proj - 1))
-            if has_q:
-                conf[i] = min(np.float32(m2[i]) / np.float32(127.0), np.float32(1.0))
-            else:
-                conf[i] = 1.0
-            break
+            val[x] = min(c, np.float32(n_proj - 1))
+            if write_conf:
+                if has_q:
+                    conf[x] = min(np.float32(m2[x]) / np.float32(127.0), np.float32(1.0))
+                else:
+                    conf[x] = np.float32(1.0)
+            hist[L - lowest] += 1
+        else:
+            val[x] = np.nan
+            if write_conf:
+                conf[x] = np.float32(0.0)
 
 
-@numba.njit(parallel=True, cache=True)
-def _subpixel_rows(block, level, lowest, nbits, q, out, flags):  # pragma: no cover
-    """Interpolate projector columns between stripe edges along each camera row.
+@numba.njit(inline="always", error_model="numpy")
+def _bit_index(nbits):  # pragma: no cover
+    """(2**nbits,) int64 table: the index of a power of two's one bit (0 elsewhere)."""
+    tz = np.zeros(1 << nbits, np.int64)
+    for i in range(nbits):
+        tz[1 << i] = i
+    return tz
 
-    block, level: (H, W) code block and level; out: (H, W) float32 pre-filled with the
-    integer decode; flags: (H, W) uint8 set to 1 where a pixel was interpolated.
+
+@numba.njit(cache=True, error_model="numpy")
+def _subpixel_row(blk, lvl, q, lowest, nbits, tz, pos, val, jx, frac, out):  # pragma: no cover
+    """Interpolate projector columns between stripe edges along one camera row.
+
+    blk, lvl: (W,) code block and level; q: (planes, W) int8 scaled ``pattern - inverse``;
+    tz: (2**nbits,) int64 with ``tz[2**i] = i``; pos, val, frac: (W,) float64 and jx: (W,) int64
+    scratch; out: (W,) float32 holding the integer decode, overwritten where interpolated.
+    Returns the number of interpolated pixels. Divisions follow numpy's error model: two edges
+    at one position give an infinite slope, clamped to the stripe, or NaN, left uninterpolated
+    (Python's model raised ZeroDivisionError there).
     """
-    H, W = block.shape
+    W = blk.size
     step = 1 << lowest
-    for y in numba.prange(H):
+    top = q.shape[0] - 1
+    mask = tz.size - 1
+    # Two passes: the edge fractions first (independent per pair, so the divisions overlap),
+    # then the compaction of edges into pos/val, which is a dependency chain through ne.
+    for x in range(W - 1):
+        a = np.int64(blk[x])
+        b = np.int64(blk[x + 1])
+        # The one Gray bit that differs between adjacent blocks, as a plane index.
+        k = tz[((a ^ (a >> 1)) ^ (b ^ (b >> 1))) & mask]
+        e = min(max(nbits - 1 - (k + lowest), 0), top)
+        qa = np.float64(q[e, x])
+        qb = np.float64(q[e, x + 1])
+        den = qa - qb
+        t = qa / den if den != 0.0 else 0.5
+        frac[x] = min(max(t, 0.0), 1.0)
+    ne = 0
+    for x in range(W - 1):
+        a = np.int64(blk[x])
+        b = np.int64(blk[x + 1])
+        edge = (a >= 0) & (b >= 0) & (lvl[x] == lowest) & (lvl[x + 1] == lowest) & (abs(a - b) == 1)
+        t = frac[x]
+        pos[ne] = x + t
+        val[ne] = (min(a, b) + 1) * step - 0.5
+        # Edges at or left of pixel x: those of earlier pairs, and this one when t is 0.
+        jx[x] = ne + (edge & (t == 0.0))
+        ne += edge
+    jx[W - 1] = ne
+    n_sub = 0
+    for x in range(W):
+        B = blk[x]
+        if B < 0 or lvl[x] != lowest:
+            continue
+        j = jx[x]
+        lo = B * step - 0.5
+        hi = (B + 1) * step - 0.5
+        v = np.nan
+        left_ok = j > 0 and (val[j - 1] == lo or val[j - 1] == hi)
+        right_ok = j < ne and (val[j] == lo or val[j] == hi)
+        if left_ok and right_ok and val[j - 1] != val[j]:
+            v = val[j - 1] + (x - pos[j - 1]) * (val[j] - val[j - 1]) / (pos[j] - pos[j - 1])
+        elif left_ok and j > 1 and abs(val[j - 1] - val[j - 2]) == step:
+            # Only the left edge bounds this stripe: carry on the slope of the stripe before.
+            s = (val[j - 1] - val[j - 2]) / (pos[j - 1] - pos[j - 2])
+            v = val[j - 1] + (x - pos[j - 1]) * s
+        elif right_ok and j + 1 < ne and abs(val[j + 1] - val[j]) == step:
+            s = (val[j + 1] - val[j]) / (pos[j + 1] - pos[j])
+            v = val[j] + (x - pos[j]) * s
+        if v == v:
+            if v < lo:
+                v = lo
+            elif v > hi:
+                v = hi
+            out[x] = v
+            n_sub += 1
+    return n_sub
+
+
+#: Camera rows per parallel work item: few enough items to keep launches cheap, enough to
+#: balance two threads; row buffers are allocated once per item.
+_BAND = 16
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, ratio, nbits, lowest, max_level,
+                 n_proj, want_q, subpixel, lit, value, level, conf, counts):  # pragma: no cover
+    """Decode one axis from all of its bit planes in one pass, a band of camera rows at a time.
+
+    Per row: references (white/black contrast, weak thresholds, q scales, midpoint), every bit
+    plane's sign, weakness and scaled difference into row buffers that stay in cache, then
+    the code resolution and the sub-pixel step. Each image is read once; nothing per pixel but
+    the outputs goes back to memory.
+
+    pats, refs: tuples of (H, W) pattern and inverse images (``refs`` is ignored without
+    inverses: the white/black midpoint is the reference); bits: bit of each plane, most
+    significant first. Outputs (H, W): lit (bool), value (float32), level (int8), conf
+    (float32, written when ``want_q``); counts (H, 2 + levels) int64: lit pixels, interpolated
+    pixels, decoded pixels per level.
+    """
+    H, W = white.shape
+    k = len(pats)
+    full = (1 << nbits) - 1
+    zero = np.uint16(0)
+    nq = k if want_q else 1
+    for band in numba.prange((H + _BAND - 1) // _BAND):
+        sg = np.empty(W, np.uint16)
+        wk = np.empty(W, np.uint16)
+        thr = np.empty(W, np.float32)
+        ithr = np.empty(W, np.int32)
+        nthr = np.empty(W, np.int32)
+        kq = np.empty(W, np.float32)
+        mid = np.empty(W, np.float32)
+        d = np.empty(W, np.float32)
+        q = np.empty((nq, W), np.int8)
+        a1 = np.empty(W, np.int32)
+        a2 = np.empty(W, np.int32)
+        blk = np.empty(W, np.int32)
         pos = np.empty(W, np.float64)
         val = np.empty(W, np.float64)
-        ne = 0
-        for x in range(W - 1):
-            a = block[y, x]
-            b = block[y, x + 1]
-            if a < 0 or b < 0 or level[y, x] != lowest or level[y, x + 1] != lowest:
-                continue
-            if abs(a - b) != 1:
-                continue
-            diff = (a ^ (a >> 1)) ^ (b ^ (b >> 1))
-            k = 0
-            while (diff >> k) != 1:
-                k += 1
-            e = nbits - 1 - (k + lowest)
-            qa = np.float64(q[e, y, x])
-            qb = np.float64(q[e, y, x + 1])
-            den = qa - qb
-            t = 0.5
-            if den != 0.0:
-                t = qa / den
-                if t < 0.0:
-                    t = 0.0
-                elif t > 1.0:
-                    t = 1.0
-            pos[ne] = x + t
-            val[ne] = (min(a, b) + 1) * step - 0.5
-            ne += 1
-        j = 0
+        jx = np.empty(W, np.int64)
+        frac = np.empty(W, np.float64)
+        tz = _bit_index(nbits)
+        hist = np.zeros(max_level - lowest + 1, np.int64)
+        for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
+            wr = white[y]
+            br = black[y]
+            lr = lit[y]
+            n_lit = 0
+            for x in range(W):
+                fw = np.float32(wr[x])
+                fb = np.float32(br[x])
+                c = fw - fb
+                lr[x] = c > lit_thr
+                n_lit += c > lit_thr
+                s = c if with_inverse else c * np.float32(0.5)
+                thr[x] = max(noise, ratio * s)
+                sg[x] = 0
+                wk[x] = 0
+            if want_q:
+                for x in range(W):
+                    c = np.float32(wr[x]) - np.float32(br[x])
+                    s = c if with_inverse else c * np.float32(0.5)
+                    kq[x] = np.float32(127.0) / s if s > 0 else np.float32(0.0)
+                    a1[x] = 255
+                    a2[x] = 255
+            if not with_inverse:
+                for x in range(W):
+                    mid[x] = (np.float32(wr[x]) + np.float32(br[x])) * np.float32(0.5)
+            if with_inverse:
+                # pattern - inverse is an integer: |d| < thr exactly when |d| < ceil(thr), so
+                # the per-bit tests run in integers, without int-to-float conversions.
+                for x in range(W):
+                    ithr[x] = np.int32(np.ceil(thr[x]))
+                    nthr[x] = -ithr[x]
+            # Bit plane outer, pixel inner: these loops vectorise.
+            for j in range(k):
+                one = np.uint16(1) << bits[j]
+                p = pats[j][y]
+                if with_inverse:
+                    r = refs[j][y]
+                    for x in range(W):
+                        di = np.int32(p[x]) - np.int32(r[x])
+                        sg[x] |= one if di > 0 else zero
+                        wk[x] |= one if (di < ithr[x]) & (di > nthr[x]) else zero
+                    if want_q:
+                        for x in range(W):
+                            d[x] = np.float32(np.int32(p[x]) - np.int32(r[x]))
+                else:
+                    for x in range(W):
+                        d[x] = np.float32(p[x]) - mid[x]
+                    for x in range(W):
+                        sg[x] |= one if d[x] > 0 else zero
+                        wk[x] |= one if abs(d[x]) < thr[x] else zero
+                if want_q:
+                    qq = q[j]
+                    for x in range(W):
+                        v = min(max(d[x] * kq[x], np.float32(-127.0)), np.float32(127.0))
+                        v += np.float32(0.5) if v >= 0 else np.float32(-0.5)
+                        # 32-bit lanes throughout (the int8 store last): this loop vectorises.
+                        qi = np.int32(v)
+                        qq[x] = np.int8(qi)
+                        aq = abs(qi)
+                        b1 = a1[x]
+                        a2[x] = min(a2[x], max(b1, aq))
+                        a1[x] = min(b1, aq)
+            hist[:] = 0
+            _resolve_row(sg, wk, lr, a2, want_q, full, lowest, max_level, n_proj, blk, level[y], value[y],
+                         conf[y if want_q else 0], want_q, hist)
+            n_sub = 0
+            if subpixel and want_q:
+                n_sub = _subpixel_row(blk, level[y], q, lowest, nbits, tz, pos, val, jx, frac, value[y])
+            counts[y, 0] = n_lit
+            counts[y, 1] = n_sub
+            for L in range(hist.size):
+                counts[y, 2 + L] = hist[L]
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_proj, subpixel, value, level, conf,
+                 counts):  # pragma: no cover
+    """Resolve codes classified batch by batch (:func:`_bit_planes`) and run the sub-pixel step,
+    a band of camera rows at a time. signs, weak, lit, m2: (H, W); q: (planes, H, W) int8 when
+    ``has_q``; outputs as in :func:`_decode_rows` (``counts[:, 0]`` is left alone)."""
+    H, W = lit.shape
+    full = (1 << nbits) - 1
+    for band in numba.prange((H + _BAND - 1) // _BAND):
+        blk = np.empty(W, np.int32)
+        pos = np.empty(W, np.float64)
+        val = np.empty(W, np.float64)
+        jx = np.empty(W, np.int64)
+        frac = np.empty(W, np.float64)
+        tz = _bit_index(nbits)
+        hist = np.zeros(max_level - lowest + 1, np.int64)
+        for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
+            hist[:] = 0
+            yq = y if has_q else 0
+            _resolve_row(signs[y], weak[y], lit[y], m2[yq], has_q, full, lowest, max_level, n_proj, blk, level[y],
+                         value[y], conf[yq], has_q, hist)
+            n_sub = 0
+            if subpixel and has_q:
+                n_sub = _subpixel_row(blk, level[y], q[:, y, :], lowest, nbits, tz, pos, val, jx, frac, value[y])
+            counts[y, 1] = n_sub
+            for L in range(hist.size):
+                counts[y, 2 + L] = hist[L]
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _grey_rgb(grey, shift, out):  # pragma: no cover
+    """(H, W) uint8/uint16 grey -> (H, W, 3) uint8 grey RGB in ``out`` (top 8 bits); several times
+    faster than ``np.repeat`` on a new axis, which was a tenth of a whole in-memory decode."""
+    H, W = grey.shape
+    for y in numba.prange(H):
+        g = grey[y]
+        o = out[y]
         for x in range(W):
-            B = block[y, x]
-            if B < 0 or level[y, x] != lowest:
-                continue
-            while j < ne and pos[j] <= x:
-                j += 1
-            lo = B * step - 0.5
-            hi = (B + 1) * step - 0.5
-            v = np.nan
-            left_ok = j > 0 and (val[j - 1] == lo or val[j - 1] == hi)
-            right_ok = j < ne and (val[j] == lo or val[j] == hi)
-            if left_ok and right_ok and val[j - 1] != val[j]:
-                v = val[j - 1] + (x - pos[j - 1]) * (val[j] - val[j - 1]) / (pos[j] - pos[j - 1])
-            elif left_ok and j > 1 and abs(val[j - 1] - val[j - 2]) == step:
-                # Only the left edge bounds this stripe: carry on the slope of the stripe before.
-                s = (val[j - 1] - val[j - 2]) / (pos[j - 1] - pos[j - 2])
-                v = val[j - 1] + (x - pos[j - 1]) * s
-            elif right_ok and j + 1 < ne and abs(val[j + 1] - val[j]) == step:
-                s = (val[j + 1] - val[j]) / (pos[j + 1] - pos[j])
-                v = val[j] + (x - pos[j]) * s
-            if v == v:
-                if v < lo:
-                    v = lo
-                elif v > hi:
-                    v = hi
-                out[y, x] = v
-                flags[y, x] = 1
+            v = np.uint8(g[x] >> shift)
+            o[x, 0] = v
+            o[x, 1] = v
+            o[x, 2] = v
 
 
 # --------------------------------------------------------------------------- threads
+
+
+def _others_running() -> int:
+    """Runnable threads on the machine right now besides the caller (from /proc/loadavg); the
+    core count when unknown, so that the load average alone decides."""
+    try:
+        running = int(Path("/proc/loadavg").read_text().split()[3].split("/")[0])
+    except (OSError, ValueError, IndexError):
+        return os.cpu_count() or 1
+    return running - 1
 
 
 def kernel_threads() -> int:
@@ -302,11 +487,16 @@ def kernel_threads() -> int:
 
     A parallel kernel waits for its slowest worker; on an oversubscribed machine (1-minute load
     average at or above the core count) a descheduled worker stalls every launch, and one
-    thread measured faster than two (here: 115 ms against 184 ms for a 1.3 MP decode).
+    thread measured faster than two (here: 115 ms against 184 ms for a 1.3 MP decode; with the
+    one-pass decoder, 47 ms against 53 ms at a load of 3.5 on 2 cores). The load average lags
+    by a minute, though: when nothing else is runnable at this moment, the machine has come
+    free and two threads measured twice as fast (26 ms against 53 ms).
     """
     try:
         busy = os.getloadavg()[0] >= (os.cpu_count() or 1)
     except OSError:
+        busy = False
+    if busy and _others_running() < 1:
         busy = False
     return 1 if busy else numba.config.NUMBA_NUM_THREADS
 
@@ -354,46 +544,55 @@ def _load(image: Path | np.ndarray, size: tuple[int, int], name: str) -> np.ndar
     return read_grey(image, size)
 
 
-def _pairs(planes: Sequence[_Plane], size: tuple[int, int], pool: ThreadPoolExecutor | None) -> Iterator[
-    tuple[_Plane, np.ndarray, np.ndarray | None]
-]:
-    """Yield (plane, pattern, inverse) while the pool already reads the next pairs."""
-    if pool is None or all(not isinstance(x, Path) for e in planes for x in (e.pattern, e.inverse)):
-        # In memory: nothing to overlap.
-        for e in planes:
-            yield e, _load(e.pattern, size, e.pattern_name), (
-                _load(e.inverse, size, e.inverse_name) if e.inverse is not None else None
-            )
-        return
+class _Reader:
+    """Reads one axis's (plane, pattern, inverse) through the thread pool, ``ahead`` planes in
+    advance. Reading starts at construction: the next axis's images load while this one is
+    decoded. In-memory planes (or no pool) are handed over as they are."""
 
-    def submit(e: _Plane):
-        fp = pool.submit(_load, e.pattern, size, e.pattern_name)
-        fi = pool.submit(_load, e.inverse, size, e.inverse_name) if e.inverse is not None else None
+    def __init__(self, planes: Sequence[_Plane], size: tuple[int, int], pool: ThreadPoolExecutor | None,
+                 ahead: int) -> None:
+        self.planes = list(planes)
+        self.size = size
+        files = any(isinstance(x, Path) for e in self.planes for x in (e.pattern, e.inverse))
+        self.pool = pool if files else None
+        self.ahead = max(1, ahead)
+        self.pending = [self._submit(e) for e in self.planes[: self.ahead]] if self.pool is not None else []
+
+    def _submit(self, e: _Plane) -> tuple[Future[np.ndarray], Future[np.ndarray] | None]:
+        assert self.pool is not None
+        fp = self.pool.submit(_load, e.pattern, self.size, e.pattern_name)
+        fi = self.pool.submit(_load, e.inverse, self.size, e.inverse_name) if e.inverse is not None else None
         return fp, fi
 
-    ahead = _batch_size(size, 1) + 2
-    pending = [submit(e) for e in planes[:ahead]]
-    for k, e in enumerate(planes):
-        fp, fi = pending.pop(0)
-        if k + ahead < len(planes):
-            pending.append(submit(planes[k + ahead]))
-        yield e, fp.result(), (fi.result() if fi is not None else None)
+    def __iter__(self) -> Iterator[tuple[_Plane, np.ndarray, np.ndarray | None]]:
+        if self.pool is None:
+            for e in self.planes:
+                yield e, _load(e.pattern, self.size, e.pattern_name), (
+                    _load(e.inverse, self.size, e.inverse_name) if e.inverse is not None else None
+                )
+            return
+        for k, e in enumerate(self.planes):
+            fp, fi = self.pending.pop(0)
+            if k + self.ahead < len(self.planes):
+                self.pending.append(self._submit(self.planes[k + self.ahead]))
+            yield e, fp.result(), (fi.result() if fi is not None else None)
 
-
-@dataclass
-class _Axis:
-    signs: np.ndarray
-    weak: np.ndarray
-    q: np.ndarray | None
-    m2: np.ndarray | None
+    def cancel(self) -> None:
+        """Drop reads not started yet (after a failure elsewhere)."""
+        for fp, fi in self.pending:
+            fp.cancel()
+            if fi is not None:
+                fi.cancel()
+        self.pending.clear()
 
 
 class _References:
-    """Per-pixel references shared by every bit plane: midpoint, weak-bit thresholds, q scales."""
+    """Per-pixel references of the streaming path, shared by every batch: midpoint, weak-bit
+    thresholds, q scales (the one-pass kernel computes the same values row by row)."""
 
-    def __init__(self, contrast: np.ndarray, mid: np.ndarray, params: DecodeParams, scale: float) -> None:
-        self.contrast = contrast
-        self.mid = mid
+    def __init__(self, white: np.ndarray, black: np.ndarray, params: DecodeParams, scale: float) -> None:
+        self.contrast = white.astype(np.float32).ravel() - black.astype(np.float32).ravel()
+        self.mid = (white.astype(np.float32).ravel() + black.astype(np.float32).ravel()) * np.float32(0.5)
         self.noise = np.float32(params.noise * scale)
         self.ratio = np.float32(params.weak_ratio)
         self._cache: dict[bool, tuple[np.ndarray, np.ndarray]] = {}
@@ -409,27 +608,116 @@ class _References:
             self._cache[with_inverse] = (thr, kq)
         return self._cache[with_inverse]
 
+    def release(self) -> None:
+        """Drop the per-pixel arrays (they are not needed once every batch is classified)."""
+        self.contrast = self.mid = np.empty(0, np.float32)
+        self._cache.clear()
+
 
 #: Bytes of pattern images classified per kernel launch (a batch is held in memory together):
-#: few launches matter on a busy machine, memory matters at 15 MP.
+#: few launches matter on a busy machine, memory matters at 15 MP. An axis whose images all
+#: fit in one batch is decoded by the one-pass kernel.
 _BATCH_BYTES = 160_000_000
 _MAX_BATCH = 12
+
+
+#: An axis whose images total at most this is decoded in one pass from memory (a 15 MP 8-bit
+#: capture's 20 images of an axis take 300 MB); larger ones stream in batches.
+_ONE_PASS_BYTES = 480_000_000
 
 
 def _batch_size(size: tuple[int, int], itemsize: int) -> int:
     return int(max(1, min(_MAX_BATCH, _BATCH_BYTES // (2 * size[0] * size[1] * itemsize))))
 
 
+def _one_pass(entries: Sequence[_Plane], size: tuple[int, int], itemsize: int) -> bool:
+    """Whether an axis is decoded by the one-pass kernel: its images fit the one-pass budget and
+    either every plane has an inverse or none has."""
+    n_images = sum(1 + (p.inverse is not None) for p in entries)
+    return (
+        n_images * size[0] * size[1] * itemsize <= _ONE_PASS_BYTES
+        and len({p.inverse is None for p in entries}) == 1
+    )
+
+
+def _reader(entries: Sequence[_Plane], size: tuple[int, int], itemsize: int,
+            pool: ThreadPoolExecutor | None) -> _Reader:
+    ahead = len(entries) if _one_pass(entries, size, itemsize) else _batch_size(size, itemsize) + 2
+    return _Reader(entries, size, pool, ahead)
+
+
+@dataclass
+class _AxisOut:
+    """Outputs of one axis, (H, W): value (float32), level (int8), conf (float32 or a (1, W)
+    dummy when the axis keeps no confidence), lit (bool, filled by the first axis)."""
+
+    value: np.ndarray
+    level: np.ndarray
+    conf: np.ndarray
+    lit: np.ndarray
+
+
 def _decode_axis(
     entries: Sequence[_Plane],
-    size: tuple[int, int],
-    refs: _References,
+    white: np.ndarray,
+    black: np.ndarray,
+    params: DecodeParams,
     scale: float,
+    nbits: int,
+    n_proj: int,
     store_q: bool,
-    pool: ThreadPoolExecutor | None,
+    subpixel: bool,
+    lit_known: bool,
+    out: _AxisOut,
+    reader: _Reader,
     tick: Callable[[int], None],
-) -> _Axis:
-    n = refs.contrast.size
+) -> np.ndarray:
+    """Decode one axis into ``out``; returns per-row counts (H, 2 + levels) int64: lit pixels
+    (0 when ``lit_known``: ``out.lit`` is then read, not written), interpolated pixels,
+    decoded pixels per level."""
+    h, w = white.shape
+    size = (w, h)
+    lowest = min(p.bit for p in entries)
+    max_level = min(nbits - 1, lowest + params.max_drop)
+    counts = np.zeros((h, 2 + max_level - lowest + 1), np.int64)
+    itemsize = 2 if scale > 1 else 1
+    batch_size = _batch_size(size, itemsize)
+    one_pass = _one_pass(entries, size, itemsize)
+
+    def checked(entry: _Plane, pat: np.ndarray, inv: np.ndarray | None) -> None:
+        if pat.dtype.itemsize * 8 != (16 if scale > 1 else 8):
+            raise InputError(entry.pattern_name, f"image is {pat.dtype.itemsize * 8}-bit but the white frame is not")
+        if inv is not None and inv.dtype != pat.dtype:
+            raise InputError(entry.inverse_name, "inverse image has a different bit depth from its pattern")
+
+    if one_pass:
+        pats: list[np.ndarray] = []
+        invs: list[np.ndarray] = []
+        for entry, pat, inv in reader:
+            checked(entry, pat, inv)
+            pats.append(pat)
+            if inv is not None:
+                invs.append(inv)
+            tick(1 + (inv is not None))
+        with_inverse = bool(invs)
+        bits = np.array([e.bit for e in entries], np.uint16)
+        _decode_rows(
+            tuple(pats), tuple(invs) if with_inverse else tuple(pats), with_inverse, bits, white, black,
+            np.float32(params.lit_threshold * scale), np.float32(params.noise * scale), np.float32(params.weak_ratio),
+            nbits, lowest, max_level, n_proj, store_q, subpixel, out.lit, out.value, out.level, out.conf, counts,
+        )
+        if lit_known:
+            counts[:, 0] = 0
+        return counts
+
+    # Streaming: more images than one batch holds; classify batch by batch into whole-frame
+    # code planes, then resolve.
+    refs = _References(white, black, params, scale)
+    lit = out.lit.ravel()
+    if not lit_known:
+        lit[:] = refs.contrast > np.float32(params.lit_threshold * scale)
+        counts[:, 0] = np.count_nonzero(out.lit, axis=1)
+    n = h * w
     signs = np.zeros(n, np.uint16)
     weak = np.zeros(n, np.uint16)
     q = np.zeros((len(entries), n), np.int8) if store_q else np.zeros((1, 1), np.int8)
@@ -437,7 +725,6 @@ def _decode_axis(
     m2 = np.full(n, 255, np.uint8)
     batch: list[tuple[_Plane, np.ndarray, np.ndarray | None]] = []
     first = 0  # index of the batch's first entry
-    batch_size = _batch_size(size, 2 if scale > 1 else 1)
 
     def flush() -> None:
         nonlocal first
@@ -458,18 +745,21 @@ def _decode_axis(
         tick(sum(1 + (i is not None) for _, _, i in batch))
         batch.clear()
 
-    for entry, pat, inv in _pairs(entries, size, pool):
-        if pat.dtype.itemsize * 8 != (16 if scale > 1 else 8):
-            raise InputError(entry.pattern_name, f"image is {pat.dtype.itemsize * 8}-bit but the white frame is not")
-        if inv is not None and inv.dtype != pat.dtype:
-            raise InputError(entry.inverse_name, "inverse image has a different bit depth from its pattern")
+    for entry, pat, inv in reader:
+        checked(entry, pat, inv)
         if batch and (batch[0][2] is None) != (inv is None):
             flush()
         batch.append((entry, pat, inv))
         if len(batch) == batch_size:
             flush()
     flush()
-    return _Axis(signs, weak, q if store_q else None, m2 if store_q else None)
+    refs.release()
+    q3 = q.reshape(len(entries), h, w) if store_q else np.zeros((1, 1, 1), np.int8)
+    _finish_rows(
+        signs.reshape(h, w), weak.reshape(h, w), out.lit, m2.reshape(h, w) if store_q else np.zeros((1, w), np.uint8),
+        store_q, q3, nbits, lowest, max_level, n_proj, subpixel, out.value, out.level, out.conf, counts,
+    )
+    return counts
 
 
 def decode_capture(
@@ -536,8 +826,9 @@ def decode_stack(
     colour : (H, W, 3) uint8 RGB for the points; grey white frame when None.
     """
     if colour is None:
-        w8 = white if white.dtype == np.uint8 else (white >> 8).astype(np.uint8)
-        colour = np.repeat(w8[..., None], 3, axis=2)
+        colour = np.empty((*white.shape, 3), np.uint8)
+        with kernel_thread_scope():
+            _grey_rgb(white, 8 if white.dtype == np.uint16 else 0, colour)
     # In memory there is no reading to overlap: no thread pool.
     return _decode(
         white, black, colour, [_Plane(*c) for c in columns], [_Plane(*r) for r in rows],
@@ -579,71 +870,51 @@ def _decode_inner(
             progress(min(1.0, done[0] / n_images))
 
     h, w = white.shape
-    size = (w, h)
     if black.dtype != white.dtype:
         raise InputError(black_name, "black frame has a different bit depth from the white frame")
     tick(2)
     scale = _scale_for(white.dtype)
-    contrast = white.astype(np.float32).ravel() - black.astype(np.float32).ravel()
-    lit = contrast > params.lit_threshold * scale
-    n_lit = int(np.count_nonzero(lit))
+    lit = np.empty((h, w), np.bool_)
+    itemsize = 2 if scale > 1 else 1
+    col_reader = _reader(col_planes, (w, h), itemsize, pool)
+    # The rows' images start loading now, while the columns are decoded.
+    row_reader = _reader(row_planes, (w, h), itemsize, pool)
+    try:
+        cols = _AxisOut(np.empty((h, w), np.float32), np.empty((h, w), np.int8), np.empty((h, w), np.float32), lit)
+        col_counts = _decode_axis(col_planes, white, black, params, scale, col_bits, pw, True, subpixel, False, cols,
+                                  col_reader, tick)
+    except BaseException:
+        col_reader.cancel()
+        row_reader.cancel()
+        raise
+    n_lit = int(col_counts[:, 0].sum())
     if n_lit == 0:
+        row_reader.cancel()
+        contrast = white.astype(np.float32) - black.astype(np.float32)
         peak = float(contrast.max()) if contrast.size else 0.0
         raise InputError(
             white_name,
             f"nothing is lit by the projector: white and black frames differ by at most {peak:.0f} grey "
             f"levels (all-dark capture?)",
         )
-    mid = (white.astype(np.float32).ravel() + black.astype(np.float32).ravel()) * np.float32(0.5)
-    t_ref = time.perf_counter()
-    refs = _References(contrast, mid, params, scale)
-    cols = _decode_axis(col_planes, size, refs, scale, True, pool, tick)
-    rows = None
-    if row_planes:
-        rows = _decode_axis(row_planes, size, refs, scale, False, pool, tick)
-    del mid, refs
-    t_read = time.perf_counter()
-
-    n = h * w
-    col_block = np.empty(n, np.int32)
-    col_level = np.empty(n, np.int8)
-    conf = np.empty(n, np.float32)
-    column = np.empty(n, np.float32)
-    lowest = min(p.bit for p in col_planes)
-    max_level = min(col_bits - 1, lowest + params.max_drop)
-    assert cols.q is not None
-    _resolve(cols.signs, cols.weak, lit, col_bits, lowest, max_level, pw, cols.m2, True, col_block, col_level, conf,
-             column)
-    del cols.signs, cols.weak
-    n_sub = 0
     t_col = time.perf_counter()
-    if subpixel:
-        flags = np.zeros((h, w), np.uint8)
-        column2d = column.reshape(h, w)
-        _subpixel_rows(col_block.reshape(h, w), col_level.reshape(h, w), lowest, col_bits,
-                       cols.q.reshape(len(col_planes), h, w), column2d, flags)
-        n_sub = int(np.count_nonzero(flags))
-        del flags
-    del cols
-    t_sub = time.perf_counter()
-
-    row = np.full(n, np.nan, np.float32)
-    row_level = None
     n_row = 0
-    if rows is not None:
-        row_block = np.empty(n, np.int32)
-        row_level = np.empty(n, np.int8)
-        row_conf = np.empty(n, np.float32)
-        r_lowest = min(p.bit for p in row_planes)
-        r_max = min(row_bits - 1, r_lowest + params.max_drop)
-        _resolve(rows.signs, rows.weak, lit, row_bits, r_lowest, r_max, ph,
-                 np.zeros(1, np.uint8), False, row_block, row_level, row_conf, row)
-        n_row = int(np.count_nonzero(row_block >= 0))
-        del row_block, row_conf
+    if row_planes:
+        rows = _AxisOut(np.empty((h, w), np.float32), np.empty((h, w), np.int8), np.empty((1, w), np.float32), lit)
+        try:
+            row_counts = _decode_axis(row_planes, white, black, params, scale, row_bits, ph, False, False, True, rows,
+                                      row_reader, tick)
+        except BaseException:
+            row_reader.cancel()
+            raise
+        n_row = int(row_counts[:, 2:].sum())
+        row, row_level = rows.value, rows.level
+    else:
+        row, row_level = np.full((h, w), np.nan, np.float32), None
     t_end = time.perf_counter()
 
-    n_col = int(np.count_nonzero(col_block >= 0))
-    levels = np.bincount(col_level[col_level >= 0].astype(np.int64) - lowest, minlength=params.max_drop + 1)
+    levels = col_counts[:, 2:].sum(axis=0)
+    n_col = int(levels.sum())
     stats: dict[str, Any] = {
         "camera_width": w,
         "camera_height": h,
@@ -657,26 +928,23 @@ def _decode_inner(
         "column_decoded_share_of_lit": n_col / n_lit,
         "row_decoded": n_row,
         "subpixel": subpixel,
-        "subpixel_interpolated": n_sub,
+        "subpixel_interpolated": int(col_counts[:, 1].sum()),
         "column_bits_dropped_histogram": [int(v) for v in levels],
-        "seconds_references": round(t_ref - t0, 4),
-        "seconds_read_and_classify": round(t_read - t_ref, 4),
-        "seconds_resolve_columns": round(t_col - t_read, 4),
-        "seconds_subpixel": round(t_sub - t_col, 4),
-        "seconds_resolve_rows": round(t_end - t_sub, 4),
+        "seconds_columns": round(t_col - t0, 4),
+        "seconds_rows": round(t_end - t_col, 4),
         "seconds_total": round(t_end - t0, 4),
     }
     log.info("decoded %d of %d lit pixels (%.1f %%) in %.2f s", n_col, n_lit, 100 * n_col / n_lit, t_end - t0)
     return Decoded(
-        column=column.reshape(h, w),
-        row=row.reshape(h, w),
-        confidence=conf.reshape(h, w),
+        column=cols.value,
+        row=row,
+        confidence=cols.conf,
         colour=colour,
-        lit=lit.reshape(h, w),
+        lit=lit,
         stats=stats,
         projector_size=(pw, ph),
-        column_level=col_level.reshape(h, w),
-        row_level=row_level.reshape(h, w) if row_level is not None else None,
+        column_level=cols.level,
+        row_level=row_level,
     )
 
 
