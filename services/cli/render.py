@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-import json
 import re
 from pathlib import Path
 
@@ -23,7 +22,11 @@ def _tiles(args: argparse.Namespace) -> int:
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", f"must be at least 1, got {args.workers}")
     report = tiles_stage(Path(args.cloud), Path(args.out), workers=args.workers)
-    print(json.dumps(report, indent=2))
+    print(
+        f"{report['points']} points in {report['nodes']} nodes, {report['depth']} levels deep, "
+        f"{report['bytes'] / 1e6:.1f} MB, in {report['seconds']:.1f} s ({report['points_per_second'] / 1e6:.2f} M points/s)"
+    )
+    print(f"tiles: {report['tiles']}")
     return 0
 
 
@@ -39,7 +42,12 @@ def _preview(args: argparse.Namespace) -> int:
         fps=args.fps,
         renderer=args.renderer,
     )
-    print(json.dumps(report, indent=2))
+    print(
+        f"{report['frames']} frames {report['width']}x{report['height']} at {report['fps']} fps "
+        f"({report['renderer']} renderer, {report['render_fps']:.1f} frames/s) in {report['elapsed_seconds']:.1f} s"
+    )
+    print(f"video:  {report['video']}")
+    print(f"poster: {report['poster']}")
     return 0
 
 
