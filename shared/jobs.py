@@ -4,9 +4,8 @@ This is the one module the API, the workers and the reconciler share for what a 
 A job of a given ``kind`` runs the stages of :func:`graph_for` ``(kind)``; each
 :class:`StageSpec` names its inputs (``"capture"`` — the submitted capture — or an
 upstream stage), the queue it runs on, its time limit, and the files of its output that
-the API publishes under short names (``cloud.ply``). A stage whose ``requires`` function
-cannot be imported yet is left out of new jobs, so later stages (tiles, preview video)
-plug in by appearing here and in ``workers.stages`` without touching the runner.
+the API publishes under short names (``cloud.ply``). Later stages (multi-view merge,
+compression) plug in by appearing here and in ``workers.stages`` without touching the runner.
 
 A *map* stage (``fanout_from``) has no row when the job is created: when the stage it fans
 out from succeeds, its summary's ``fanout`` count gives the number of instances
@@ -20,7 +19,6 @@ its parameters and the keys of its inputs, so identical work is found, not redon
 from __future__ import annotations
 
 import hashlib
-import importlib
 import json
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field
@@ -93,8 +91,7 @@ class StageSpec:
 
     ``inputs`` are ``"capture"`` and/or names of earlier stages; ``queue`` is the logical
     queue (``cpu`` or ``render``); ``time_limit`` is seconds (hard; the soft limit is 90 %);
-    ``publish`` are output files the API also serves under their bare name; ``requires``
-    is ``"module:function"`` that must be importable for the stage to join new jobs;
+    ``publish`` are output files the API also serves under their bare name;
     ``version`` enters the output key, so bumping it makes retries re-run the stage.
     """
 
@@ -103,7 +100,6 @@ class StageSpec:
     inputs: tuple[str, ...]
     time_limit: int
     publish: tuple[str, ...] = ()
-    requires: str | None = None
     version: int = 1
     params: tuple[str, ...] = ()  # job parameters that enter this stage's key
     switch: str | None = None  # a job parameter that, when false, leaves this stage out
@@ -118,42 +114,23 @@ class StageSpec:
         """Upstream stages (inputs other than the capture)."""
         return tuple(i for i in self.inputs if i != CAPTURE)
 
-    def available(self) -> bool:
-        """Whether the function this stage needs can be imported in this installation."""
-        if self.requires is None:
-            return True
-        module, _, attr = self.requires.partition(":")
-        try:
-            mod = importlib.import_module(module)
-        except ImportError:
-            return False
-        return not attr or hasattr(mod, attr)
-
 
 GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     "scan": (
-        StageSpec("ingest", "cpu", (CAPTURE,), 600, publish=("capture.json",), params=("rig",),
-                  requires="shared.pipeline:ingest_stage"),
-        StageSpec("decode", "cpu", (CAPTURE, "ingest"), 3600, publish=("decoded.npz",),
-                  requires="shared.pipeline:decode_stage"),
+        StageSpec("ingest", "cpu", (CAPTURE,), 600, publish=("capture.json",), params=("rig",)),
+        StageSpec("decode", "cpu", (CAPTURE, "ingest"), 3600, publish=("decoded.npz",)),
         StageSpec("triangulate", "cpu", (CAPTURE, "ingest", "decode"), 3600,
-                  publish=("cloud.ply", "range.npz", "triangulate.json"), params=("rig",),
-                  requires="shared.pipeline:triangulate_stage"),
+                  publish=("cloud.ply", "range.npz", "triangulate.json"), params=("rig",)),
         # Tiles fan out: a plan, one task per chunk (subtree), a merge (fan-in counted in the
         # database). The merge keeps the name "tiles": its folder is what viewers load.
-        StageSpec("tiles_plan", "render", ("triangulate",), 7200, requires="shared.octree:plan_tiles",
-                  switch="render", params=("tiles",)),
-        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, requires="shared.octree:build_chunk",
-                  switch="render", fanout_from="tiles_plan"),
-        StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, requires="shared.octree:merge_tiles",
-                  switch="render"),
+        StageSpec("tiles_plan", "render", ("triangulate",), 7200, switch="render", params=("tiles",)),
+        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan"),
+        StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
         StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
-                  params=("preview", "preview_epoch"), requires="shared.render_stages:preview_stage",
-                  switch="render"),
+                  params=("preview", "preview_epoch"), switch="render"),
     ),
     "calibrate": (
-        StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json"),
-                  requires="shared.calibrate:calibrate_session"),
+        StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json")),
     ),
     # A service self-test: one trivial stage that sleeps params["seconds"] (at most 60) and
     # writes probe.json. It measures queue overhead and proves the workers are alive.
@@ -171,8 +148,7 @@ def root_file(kind: str) -> str | None:
 
 
 def graph_for(kind: str, params: Mapping[str, Any] | None = None) -> tuple[StageSpec, ...]:
-    """The stages a new job of ``kind`` runs, in topological order: unavailable ones, and
-    those switched off by the job's parameters (``{"render": false}`` skips tiles and
+    """The stages a new job of ``kind`` runs, in topological order: those switched off by the job's parameters (``{"render": false}`` skips tiles and
     preview), are left out together with everything downstream of them."""
     if kind not in GRAPHS:
         raise KeyError(kind)
@@ -182,7 +158,7 @@ def graph_for(kind: str, params: Mapping[str, Any] | None = None) -> tuple[Stage
     for spec in GRAPHS[kind]:
         if spec.switch is not None and params.get(spec.switch, True) is False:
             continue
-        if spec.available() and all(d in names for d in spec.depends_on):
+        if all(d in names for d in spec.depends_on):
             kept.append(spec)
             names.add(spec.name)
     return tuple(kept)

@@ -158,7 +158,7 @@ def test_opengl_renderer_makes_the_same_video(tiles: Path, tmp_path: Path) -> No
     try:
         GLRasterizer(16, 16).release()
     except Exception as exc:
-        pytest.skip(f"no OpenGL context: {exc!r}")
+        pytest.fail(f"no OpenGL context ({exc!r}): make setup installs libegl1 and libgl1-mesa-dri")
     kw = {"size": (128, 96), "seconds": 0.4, "fps": 10, "path": "dolly"}
     rep_gl = render_preview(tiles, tmp_path / "gl.mp4", renderer="gl", **kw)
     rep_cpu = render_preview(tiles, tmp_path / "cpu.mp4", renderer="cpu", **kw)

@@ -7,7 +7,6 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-import pytest
 import redis
 
 from shared.jobs import StageSpec, fanout_index, graph_for, stage_key, stage_spec
@@ -65,7 +64,6 @@ def test_stage_that_keeps_killing_workers_fails(svc_env: ServiceEnv) -> None:
     assert j.state == "failed" and "worker lost 2 times" in j.error
 
 
-@pytest.mark.skipif(not any(s.name == "preview" for s in graph_for("scan")), reason="render stages not installed")
 def test_nightly_rerender_resets_only_previews(svc_env: ServiceEnv, tmp_path: Path) -> None:
     settings = svc_env.settings
     store = JobStore(settings.database_url)

@@ -109,7 +109,6 @@ def test_runner_on_s3_store(tmp_path: Path, small_capture: Path, moto_endpoint: 
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(not any(s.is_map for s in graph_for("scan")), reason="tile stages not installed")
 def test_tiles_fan_out_into_chunk_stages_and_merge(tmp_path: Path, small_capture: Path) -> None:
     import json
 
