@@ -252,10 +252,15 @@ def _subpixel_row(blk, lvl, q, lowest, nbits, tz, pos, val, jx, frac, out):  # p
     top = q.shape[0] - 1
     mask = tz.size - 1
     # Two passes: the edge fractions first (independent per pair, so the divisions overlap),
-    # then the compaction of edges into pos/val, which is a dependency chain through ne.
+    # then the compaction of edges into pos/val, which is a dependency chain through ne. The
+    # first pass marks pairs that are no edge with a fraction of -1: the second reads the mark
+    # instead of testing blocks and levels again, and no gather or division is spent on them.
     for x in range(W - 1):
         a = np.int64(blk[x])
         b = np.int64(blk[x + 1])
+        if not ((a >= 0) & (b >= 0) & (lvl[x] == lowest) & (lvl[x + 1] == lowest) & (abs(a - b) == 1)):
+            frac[x] = -1.0
+            continue
         # The one Gray bit that differs between adjacent blocks, as a plane index.
         k = tz[((a ^ (a >> 1)) ^ (b ^ (b >> 1))) & mask]
         e = min(max(nbits - 1 - (k + lowest), 0), top)
@@ -268,8 +273,10 @@ def _subpixel_row(blk, lvl, q, lowest, nbits, tz, pos, val, jx, frac, out):  # p
     for x in range(W - 1):
         a = np.int64(blk[x])
         b = np.int64(blk[x + 1])
-        edge = (a >= 0) & (b >= 0) & (lvl[x] == lowest) & (lvl[x + 1] == lowest) & (abs(a - b) == 1)
         t = frac[x]
+        # Edges keep fractions in [0, 1]; pos/val of a non-edge are overwritten by the next edge
+        # or lie at index ne, which is never read.
+        edge = t >= 0.0
         pos[ne] = x + t
         val[ne] = (min(a, b) + 1) * step - 0.5
         # Edges at or left of pixel x: those of earlier pairs, and this one when t is 0.
