@@ -3,17 +3,10 @@
 from __future__ import annotations
 
 import argparse
-import re
 from pathlib import Path
 
+from services.cli.args import parse_size
 from shared.errors import InputError
-
-
-def _size(text: str) -> tuple[int, int]:
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
-    if not m:
-        raise InputError("--size", f"expected WIDTHxHEIGHT such as 1280x720, got {text!r}")
-    return int(m.group(1)), int(m.group(2))
 
 
 def _tiles(args: argparse.Namespace) -> int:
@@ -37,7 +30,7 @@ def _preview(args: argparse.Namespace) -> int:
         Path(args.tiles),
         Path(args.out),
         path=args.path,
-        size=_size(args.size),
+        size=parse_size(args.size, "--size"),
         seconds=args.seconds,
         fps=args.fps,
         renderer=args.renderer,

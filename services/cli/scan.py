@@ -11,25 +11,20 @@
 from __future__ import annotations
 
 import argparse
-import re
 import sys
 from pathlib import Path
 
+from services.cli.args import parse_size
 from shared.errors import InputError
 
 # OpenCV and the capture modules load inside the commands that use them, so other commands
 # (``graylight tiles`` ...) start without them.
 
 
-def parse_size(text: str, where: str = "--projector") -> tuple[int, int]:
-    """``"1024x768"`` -> ``(1024, 768)``; InputError naming ``where`` otherwise."""
-    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text or "")
-    if not m:
-        raise InputError(where, f"expected WIDTHxHEIGHT such as 1024x768, got {text!r}")
-    w, h = int(m.group(1)), int(m.group(2))
-    if not (2 <= w <= 16384 and 2 <= h <= 16384):
-        raise InputError(where, f"size {w}x{h} is out of range (2..16384 per side)")
-    return w, h
+def _projector_size(text: str) -> tuple[int, int]:
+    from shared.capture import MAX_PROJECTOR_SIDE
+
+    return parse_size(text, "--projector", lo=2, hi=MAX_PROJECTOR_SIDE)
 
 
 def _cmd_scan(args: argparse.Namespace) -> int:
@@ -73,7 +68,7 @@ def _cmd_patterns(args: argparse.Namespace) -> int:
     from shared.capture import write_capture
     from shared.graycode import capture_for_names, pattern_sequence
 
-    w, h = parse_size(args.projector)
+    w, h = _projector_size(args.projector)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     seq = pattern_sequence(w, h, rows=not args.no_rows)
@@ -89,7 +84,7 @@ def _cmd_patterns(args: argparse.Namespace) -> int:
 def _cmd_import(args: argparse.Namespace) -> int:
     from shared.capture import code_bits, numbered_frames, opencv_order_capture, write_capture
 
-    w, h = parse_size(args.projector)
+    w, h = _projector_size(args.projector)
     folder = Path(args.dir)
     frames = numbered_frames(folder)
     needed = 2 * (code_bits(w) + code_bits(h)) + 2
@@ -131,7 +126,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.set_defaults(func=_cmd_import)
 
 
-__all__ = ["register", "parse_size"]
+__all__ = ["register"]
 
 if __name__ == "__main__":  # pragma: no cover
     from services.cli.main import main

@@ -12,20 +12,9 @@ import logging
 import time
 from pathlib import Path
 
-from shared.errors import InputError
+from services.cli.args import parse_size
 
 log = logging.getLogger(__name__)
-
-
-def parse_size(text: str, field: str) -> tuple[int, int]:
-    """``"2048x1536"`` -> (2048, 1536); anything else is an :class:`InputError` naming ``field``."""
-    parts = text.lower().split("x")
-    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
-        raise InputError(field, f"expected WIDTHxHEIGHT such as 2048x1536, got {text!r}")
-    w, h = int(parts[0]), int(parts[1])
-    if w < 2 or h < 2:
-        raise InputError(field, f"size must be at least 2x2, got {text!r}")
-    return w, h
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
@@ -52,8 +41,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from shared.simulate import ImagingParams, simulate_named
 
-    size = parse_size(args.size, "--size")
-    projector = parse_size(args.projector, "--projector")
+    size = parse_size(args.size, "--size", lo=2)
+    projector = parse_size(args.projector, "--projector", lo=2)
     imaging = ImagingParams(colour=args.colour, bits=args.bits, rows=not args.no_rows, inverses=not args.no_inverses)
     t0 = time.perf_counter()
     capture = simulate_named(args.scene, args.out, size=size, projector=projector, seed=args.seed,
