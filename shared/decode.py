@@ -199,32 +199,48 @@ def _resolve_code(g, w, full, lowest, max_level, n_proj):  # pragma: no cover
     return -1, -1
 
 
+@numba.njit(inline="always", error_model="numpy")
+def _quantise(d, kq):  # pragma: no cover
+    """A pattern difference ``d`` scaled by ``kq`` (127 / full swing), rounded half away from zero
+    into [-127, 127]: the int8 ``q`` of the streaming path, computed only where it is needed."""
+    v = min(max(np.float32(d) * kq, np.float32(-127.0)), np.float32(127.0))
+    v += np.float32(0.5) if v >= 0 else np.float32(-0.5)
+    return np.int32(v)
+
+
 @numba.njit(cache=True, error_model="numpy")
-def _resolve_row(sg, wk, lit, m2, has_q, full, lowest, max_level, n_proj, blk, lvl, val, conf, write_conf,
-                 hist):  # pragma: no cover
-    """Resolve one camera row of codes: ``blk`` (int32 code block), ``lvl`` (int8 level), ``val``
-    (float32 centre of the code's span, NaN where invalid), ``conf`` and a level histogram."""
-    for x in range(sg.size):
-        b = -1
-        L = -1
-        if lit[x]:
-            b, L = _resolve_code(np.int64(sg[x]), np.int64(wk[x]), full, lowest, max_level, n_proj)
-        blk[x] = b
-        lvl[x] = L
+def _resolve_row(sg, wk, lit, full, lowest, max_level, n_proj, blk, lvl, val, slow, hist):  # pragma: no cover
+    """Resolve one camera row of codes: ``blk`` (int32 code block, -1 invalid), ``lvl`` (int8 level,
+    -1 invalid), ``val`` (float32 centre of the code's span, NaN invalid) and a level histogram.
+
+    Pixels without a weak bit (most) take a branch-free pass that vectorises; the indices of lit
+    pixels with weak bits are gathered into ``slow`` (int32 scratch) and resolved one by one.
+    """
+    W = sg.size
+    top = np.float32(n_proj - 1)
+    centre = np.float32(((1 << lowest) - 1) * 0.5)
+    nan = np.float32(np.nan)
+    n_fast = 0
+    for x in range(W):
+        b = _gray_to_binary(np.int32(sg[x]) >> lowest)
+        ok = lit[x] & ((np.int32(wk[x]) & full) == 0) & ((b << lowest) < n_proj)
+        blk[x] = b if ok else -1
+        lvl[x] = lowest if ok else -1
+        val[x] = min(np.float32(b << lowest) + centre, top) if ok else nan
+        n_fast += ok
+    ns = 0
+    for x in range(W):
+        slow[ns] = x
+        ns += lit[x] & ((np.int32(wk[x]) & full) != 0)
+    for i in range(ns):
+        x = slow[i]
+        b, L = _resolve_code(np.int64(sg[x]), np.int64(wk[x]), full, lowest, max_level, n_proj)
         if b >= 0:
-            # Centre of the code's span b*2^L .. (b+1)*2^L - 1, inside the projector.
-            c = np.float32(b << L) + np.float32(((1 << L) - 1) * 0.5)
-            val[x] = min(c, np.float32(n_proj - 1))
-            if write_conf:
-                if has_q:
-                    conf[x] = min(np.float32(m2[x]) / np.float32(127.0), np.float32(1.0))
-                else:
-                    conf[x] = np.float32(1.0)
+            blk[x] = b
+            lvl[x] = L
+            val[x] = min(np.float32(b << L) + np.float32(((1 << L) - 1) * 0.5), top)
             hist[L - lowest] += 1
-        else:
-            val[x] = np.nan
-            if write_conf:
-                conf[x] = np.float32(0.0)
+    hist[0] += n_fast
 
 
 @numba.njit(inline="always", error_model="numpy")
@@ -237,10 +253,11 @@ def _bit_index(nbits):  # pragma: no cover
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _subpixel_row(blk, lvl, q, lowest, nbits, tz, pos, val, jx, frac, out):  # pragma: no cover
+def _subpixel_row(blk, lvl, q, kq, quantise, lowest, nbits, tz, pos, val, jx, frac, out):  # pragma: no cover
     """Interpolate projector columns between stripe edges along one camera row.
 
-    blk, lvl: (W,) code block and level; q: (planes, W) int8 scaled ``pattern - inverse``;
+    blk, lvl: (W,) code block and level; q: (planes, W) pattern differences, already scaled to
+    int8 (streaming) or raw, then scaled by ``kq`` (W,) float32 at the edges (``quantise``);
     tz: (2**nbits,) int64 with ``tz[2**i] = i``; pos, val, frac: (W,) float64 and jx: (W,) int64
     scratch; out: (W,) float32 holding the integer decode, overwritten where interpolated.
     Returns the number of interpolated pixels. Divisions follow numpy's error model: two edges
@@ -264,8 +281,12 @@ def _subpixel_row(blk, lvl, q, lowest, nbits, tz, pos, val, jx, frac, out):  # p
         # The one Gray bit that differs between adjacent blocks, as a plane index.
         k = tz[((a ^ (a >> 1)) ^ (b ^ (b >> 1))) & mask]
         e = min(max(nbits - 1 - (k + lowest), 0), top)
-        qa = np.float64(q[e, x])
-        qb = np.float64(q[e, x + 1])
+        if quantise:
+            qa = np.float64(_quantise(q[e, x], kq[x]))
+            qb = np.float64(_quantise(q[e, x + 1], kq[x + 1]))
+        else:
+            qa = np.float64(q[e, x])
+            qb = np.float64(q[e, x + 1])
         den = qa - qb
         t = qa / den if den != 0.0 else 0.5
         frac[x] = min(max(t, 0.0), 1.0)
@@ -320,38 +341,45 @@ _BAND = 16
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, ratio, nbits, lowest, max_level,
-                 n_proj, want_q, subpixel, lit, value, level, conf, counts):  # pragma: no cover
+                 n_proj, want_q, subpixel, diff, lit, value, level, conf, counts):  # pragma: no cover
     """Decode one axis from all of its bit planes in one pass, a band of camera rows at a time.
 
-    Per row: references (white/black contrast, weak thresholds, q scales, midpoint), every bit
-    plane's sign, weakness and scaled difference into row buffers that stay in cache, then
-    the code resolution and the sub-pixel step. Each image is read once; nothing per pixel but
-    the outputs goes back to memory.
+    Per row: references (white/black contrast, integer weak bounds, q scales), every bit plane's
+    sign, weakness and raw difference into row buffers that stay in cache, then the code
+    resolution, the confidence and the sub-pixel step. Each image is read once; nothing per
+    pixel but the outputs goes back to memory.
+
+    The per-plane loop runs in narrow integers: ``d = pattern - inverse`` (or ``2 * pattern -
+    white - black`` without inverses, an integer too) in the dtype of ``diff`` (a (0,) array:
+    int16 for 8-bit images, int32 for 16-bit), so that a vector register holds as many pixels
+    as it can. The scaled, rounded ``q`` that the confidence and the sub-pixel step read is a
+    monotone function of ``d``: the confidence takes it of the second-smallest ``|d|`` and the
+    sub-pixel step of the two differences at an edge, with the same result as scaling every
+    difference.
 
     pats, refs: tuples of (H, W) pattern and inverse images (``refs`` is ignored without
-    inverses: the white/black midpoint is the reference); bits: bit of each plane, most
-    significant first. Outputs (H, W): lit (bool), value (float32), level (int8), conf
-    (float32, written when ``want_q``); counts (H, 2 + levels) int64: lit pixels, interpolated
-    pixels, decoded pixels per level.
+    inverses); bits: bit of each plane, most significant first. Outputs (H, W): lit (bool),
+    value (float32), level (int8), conf (float32, written when ``want_q``); counts (H, 2 +
+    levels) int64: lit pixels, interpolated pixels, decoded pixels per level.
     """
     H, W = white.shape
     k = len(pats)
     full = (1 << nbits) - 1
     zero = np.uint16(0)
     nq = k if want_q else 1
+    dmax = np.iinfo(diff.dtype).max
     for band in numba.prange((H + _BAND - 1) // _BAND):
         sg = np.empty(W, np.uint16)
         wk = np.empty(W, np.uint16)
-        thr = np.empty(W, np.float32)
-        ithr = np.empty(W, np.int32)
-        nthr = np.empty(W, np.int32)
+        ithr = np.empty(W, diff.dtype)
+        nthr = np.empty(W, diff.dtype)
+        wb = np.empty(W, diff.dtype)
         kq = np.empty(W, np.float32)
-        mid = np.empty(W, np.float32)
-        d = np.empty(W, np.float32)
-        q = np.empty((nq, W), np.int8)
-        a1 = np.empty(W, np.int32)
-        a2 = np.empty(W, np.int32)
+        q = np.empty((nq, W), diff.dtype)
+        a1 = np.empty(W, diff.dtype)
+        a2 = np.empty(W, diff.dtype)
         blk = np.empty(W, np.int32)
+        slow = np.empty(W, np.int32)
         pos = np.empty(W, np.float64)
         val = np.empty(W, np.float64)
         jx = np.empty(W, np.int64)
@@ -364,68 +392,59 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
             lr = lit[y]
             n_lit = 0
             for x in range(W):
-                fw = np.float32(wr[x])
-                fb = np.float32(br[x])
-                c = fw - fb
+                c = np.float32(wr[x]) - np.float32(br[x])
                 lr[x] = c > lit_thr
                 n_lit += c > lit_thr
+                # The swing of a bit's difference: the contrast against an inverse, half of it
+                # against the white/black midpoint (the stored difference is then doubled).
                 s = c if with_inverse else c * np.float32(0.5)
-                thr[x] = max(noise, ratio * s)
+                thr = max(noise, ratio * s)
+                # d is an integer: |d| < thr exactly when |d| < ceil(thr).
+                t = min(np.ceil(thr if with_inverse else thr * np.float32(2.0)), np.float32(dmax // 2))
+                ithr[x] = t
+                nthr[x] = -t
+                g = np.float32(127.0) / s if s > 0 else np.float32(0.0)
+                kq[x] = g if with_inverse else g * np.float32(0.5)
+                wb[x] = np.int32(wr[x]) + np.int32(br[x])
                 sg[x] = 0
                 wk[x] = 0
-            if want_q:
-                for x in range(W):
-                    c = np.float32(wr[x]) - np.float32(br[x])
-                    s = c if with_inverse else c * np.float32(0.5)
-                    kq[x] = np.float32(127.0) / s if s > 0 else np.float32(0.0)
-                    a1[x] = 255
-                    a2[x] = 255
-            if not with_inverse:
-                for x in range(W):
-                    mid[x] = (np.float32(wr[x]) + np.float32(br[x])) * np.float32(0.5)
-            if with_inverse:
-                # pattern - inverse is an integer: |d| < thr exactly when |d| < ceil(thr), so
-                # the per-bit tests run in integers, without int-to-float conversions.
-                for x in range(W):
-                    ithr[x] = np.int32(np.ceil(thr[x]))
-                    nthr[x] = -ithr[x]
+                a1[x] = dmax
+                a2[x] = dmax
             # Bit plane outer, pixel inner: these loops vectorise.
             for j in range(k):
                 one = np.uint16(1) << bits[j]
                 p = pats[j][y]
+                dd = q[j] if want_q else q[0]
                 if with_inverse:
                     r = refs[j][y]
                     for x in range(W):
-                        di = np.int32(p[x]) - np.int32(r[x])
-                        sg[x] |= one if di > 0 else zero
-                        wk[x] |= one if (di < ithr[x]) & (di > nthr[x]) else zero
-                    if want_q:
-                        for x in range(W):
-                            d[x] = np.float32(np.int32(p[x]) - np.int32(r[x]))
+                        dd[x] = np.int32(p[x]) - np.int32(r[x])
                 else:
                     for x in range(W):
-                        d[x] = np.float32(p[x]) - mid[x]
-                    for x in range(W):
-                        sg[x] |= one if d[x] > 0 else zero
-                        wk[x] |= one if abs(d[x]) < thr[x] else zero
+                        dd[x] = 2 * np.int32(p[x]) - wb[x]
+                for x in range(W):
+                    di = dd[x]
+                    sg[x] |= one if di > 0 else zero
+                    wk[x] |= one if (di < ithr[x]) & (di > nthr[x]) else zero
                 if want_q:
-                    qq = q[j]
                     for x in range(W):
-                        v = min(max(d[x] * kq[x], np.float32(-127.0)), np.float32(127.0))
-                        v += np.float32(0.5) if v >= 0 else np.float32(-0.5)
-                        # 32-bit lanes throughout (the int8 store last): this loop vectorises.
-                        qi = np.int32(v)
-                        qq[x] = np.int8(qi)
-                        aq = abs(qi)
+                        aq = abs(dd[x])
                         b1 = a1[x]
                         a2[x] = min(a2[x], max(b1, aq))
                         a1[x] = min(b1, aq)
             hist[:] = 0
-            _resolve_row(sg, wk, lr, a2, want_q, full, lowest, max_level, n_proj, blk, level[y], value[y],
-                         conf[y if want_q else 0], want_q, hist)
+            lv = level[y]
+            _resolve_row(sg, wk, lr, full, lowest, max_level, n_proj, blk, lv, value[y], slow, hist)
             n_sub = 0
-            if subpixel and want_q:
-                n_sub = _subpixel_row(blk, level[y], q, lowest, nbits, tz, pos, val, jx, frac, value[y])
+            if want_q:
+                cr = conf[y]
+                for x in range(W):
+                    m = a2[x]
+                    # A single plane has no second-smallest difference: full confidence.
+                    qm = np.int32(127) if m == dmax else _quantise(m, kq[x])
+                    cr[x] = min(np.float32(qm) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0 else np.float32(0.0)
+                if subpixel:
+                    n_sub = _subpixel_row(blk, lv, q, kq, True, lowest, nbits, tz, pos, val, jx, frac, value[y])
             counts[y, 0] = n_lit
             counts[y, 1] = n_sub
             for L in range(hist.size):
@@ -440,8 +459,10 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
     ``has_q``; outputs as in :func:`_decode_rows` (``counts[:, 0]`` is left alone)."""
     H, W = lit.shape
     full = (1 << nbits) - 1
+    kq = np.zeros(1, np.float32)
     for band in numba.prange((H + _BAND - 1) // _BAND):
         blk = np.empty(W, np.int32)
+        slow = np.empty(W, np.int32)
         pos = np.empty(W, np.float64)
         val = np.empty(W, np.float64)
         jx = np.empty(W, np.int64)
@@ -450,12 +471,18 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
         hist = np.zeros(max_level - lowest + 1, np.int64)
         for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
             hist[:] = 0
-            yq = y if has_q else 0
-            _resolve_row(signs[y], weak[y], lit[y], m2[yq], has_q, full, lowest, max_level, n_proj, blk, level[y],
-                         value[y], conf[yq], has_q, hist)
+            _resolve_row(signs[y], weak[y], lit[y], full, lowest, max_level, n_proj, blk, level[y], value[y], slow,
+                         hist)
             n_sub = 0
-            if subpixel and has_q:
-                n_sub = _subpixel_row(blk, level[y], q[:, y, :], lowest, nbits, tz, pos, val, jx, frac, value[y])
+            if has_q:
+                cr = conf[y]
+                mr = m2[y]
+                for x in range(W):
+                    cr[x] = (min(np.float32(mr[x]) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0
+                             else np.float32(0.0))
+                if subpixel:
+                    n_sub = _subpixel_row(blk, level[y], q[:, y, :], kq, False, lowest, nbits, tz, pos, val, jx,
+                                          frac, value[y])
             counts[y, 1] = n_sub
             for L in range(hist.size):
                 counts[y, 2 + L] = hist[L]
@@ -711,7 +738,8 @@ def _decode_axis(
         _decode_rows(
             tuple(pats), tuple(invs) if with_inverse else tuple(pats), with_inverse, bits, white, black,
             np.float32(params.lit_threshold * scale), np.float32(params.noise * scale), np.float32(params.weak_ratio),
-            nbits, lowest, max_level, n_proj, store_q, subpixel, out.lit, out.value, out.level, out.conf, counts,
+            nbits, lowest, max_level, n_proj, store_q, subpixel, np.zeros(0, np.int16 if itemsize == 1 else np.int32),
+            out.lit, out.value, out.level, out.conf, counts,
         )
         if lit_known:
             counts[:, 0] = 0

@@ -132,6 +132,29 @@ def test_save_and_load_round_trip(tmp_path: Path, plane) -> None:
         load_decoded(bad)
 
 
+@pytest.mark.parametrize(
+    "kw",
+    [{}, {"inverses": False}, {"bits": 16, "colour": True}],
+    ids=["inverses", "midpoint", "16-bit"],
+)
+def test_streaming_path_equals_one_pass(sim_capture_factory, monkeypatch, kw) -> None:
+    """Axes too large for one pass stream through whole-frame code planes with the int8 ``q``;
+    the one-pass kernel keeps raw differences and scales them only where they are read. Both
+    must give the same decode, bit for bit."""
+    import shared.decode as decode
+
+    cap = load_capture(sim_capture_factory("corner", size=(400, 300), projector=(256, 192), seed=3, **kw))
+    one = decode_capture(cap)
+    monkeypatch.setattr(decode, "_ONE_PASS_BYTES", 0)
+    streamed = decode_capture(cap)
+    assert one.stats["subpixel_interpolated"] > 0.5 * one.stats["column_decoded"] > 0
+    for name in ("column", "row", "confidence", "lit", "column_level", "row_level"):
+        np.testing.assert_array_equal(getattr(streamed, name), getattr(one, name), err_msg=name)
+    assert {k: v for k, v in streamed.stats.items() if not k.startswith("seconds")} == {
+        k: v for k, v in one.stats.items() if not k.startswith("seconds")
+    }
+
+
 def test_patterns_equal_opencv_generate() -> None:
     for w, h in ((1024, 768), (1000, 700), (37, 23)):
         ok, cv_patterns = cv2.structured_light.GrayCodePattern.create(w, h).generate()
