@@ -162,44 +162,6 @@ def _gray_to_binary(g):  # pragma: no cover
 
 
 @numba.njit(inline="always", error_model="numpy")
-def _resolve_code(g, w, full, lowest, max_level, n_proj):  # pragma: no cover
-    """``(block, level)`` of one pixel's Gray code ``g`` with weak bits ``w``; ``(-1, -1)`` if none."""
-    if (w & full) == 0:
-        # Fast path, most pixels: no weak bit.
-        b = _gray_to_binary(g >> lowest)
-        if (b << lowest) < n_proj:
-            return b, lowest
-        return -1, -1
-    for L in range(lowest, max_level + 1):
-        hi = full & ~((1 << L) - 1)
-        wm = w & hi
-        ok = False
-        if wm == 0:
-            ok = True
-        elif (wm & (wm - 1)) == 0:
-            k = 0
-            while (wm >> k) != 1:
-                k += 1
-            if k > L:
-                # On the edge of bit k the finer bits read: bit k-1 on, the rest off.
-                fine = ((1 << k) - 1) & hi
-                if (g & fine) == (1 << (k - 1)):
-                    ok = True
-            elif L == lowest:
-                # The finest captured bit is weak on every one of its own edges (half of
-                # all stripe edges) and nowhere can it err by more than one column: keep
-                # it, so that the sub-pixel step sees these edges.
-                ok = True
-        if not ok:
-            continue
-        b = _gray_to_binary((g & hi) >> L)
-        if (b << L) >= n_proj:
-            return -1, -1
-        return b, L
-    return -1, -1
-
-
-@numba.njit(inline="always", error_model="numpy")
 def _quantise(d, kq):  # pragma: no cover
     """A pattern difference ``d`` scaled by ``kq`` (127 / full swing), rounded half away from zero
     into [-127, 127]: the int8 ``q`` of the streaming path, computed only where it is needed."""
@@ -209,87 +171,103 @@ def _quantise(d, kq):  # pragma: no cover
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _resolve_row(sg, wk, lit, full, lowest, max_level, n_proj, blk, lvl, val, slow, hist):  # pragma: no cover
+def _resolve_row(sg, wk, lit, full, lowest, max_level, n_proj, blk, lvl, val, sel, hist):  # pragma: no cover
     """Resolve one camera row of codes: ``blk`` (int32 code block, -1 invalid), ``lvl`` (int8 level,
-    -1 invalid), ``val`` (float32 centre of the code's span, NaN invalid) and a level histogram.
+    -1 invalid), ``val`` (float32 centre of the code's span, NaN invalid); the decoded pixels per
+    level are added to ``hist``. ``sel`` is (W,) int32 scratch.
 
-    Pixels without a weak bit (most) take a branch-free pass that vectorises; the indices of lit
-    pixels with weak bits are gathered into ``slow`` (int32 scratch) and resolved one by one.
+    A Gray code changes one bit between neighbouring columns, so a single weak bit whose finer
+    bits read the pattern of that bit's stripe edge (bit k-1 on, the rest off: ``g & (w - 1) ==
+    w >> 1``) means the pixel lies on that edge: either value gives an adjacent column. Level L
+    (the finest L bits dropped) is acceptable when the weak bits at or above L are none or such
+    an edge bit above L; at the finest captured level the finest bit itself may be weak too (it
+    is weak on every one of its own edges, half of all stripe edges, and nowhere errs by more
+    than one column: kept so that the sub-pixel step sees these edges). The finest acceptable
+    level wins. Each level is tried on the whole row in a loop without branches, so that it
+    vectorises: a real capture has a weak bit in up to half of its pixels.
     """
     W = sg.size
     top = np.float32(n_proj - 1)
-    centre = np.float32(((1 << lowest) - 1) * 0.5)
     nan = np.float32(np.nan)
-    n_fast = 0
+    low_bit = np.int32(1 << lowest)
     for x in range(W):
-        b = _gray_to_binary(np.int32(sg[x]) >> lowest)
-        ok = lit[x] & ((np.int32(wk[x]) & full) == 0) & ((b << lowest) < n_proj)
-        blk[x] = b if ok else -1
-        lvl[x] = lowest if ok else -1
-        val[x] = min(np.float32(b << lowest) + centre, top) if ok else nan
-        n_fast += ok
-    ns = 0
+        w = np.int32(wk[x]) & full
+        ok = ((w & (w - 1)) == 0) & ((w <= low_bit) | ((np.int32(sg[x]) & (w - 1)) == (w >> 1)))
+        sel[x] = lowest if ok else -1
+    for L in range(lowest + 1, max_level + 1):
+        hi = np.int32(full & ~((1 << L) - 1))
+        bit = np.int32(1 << L)
+        for x in range(W):
+            wm = np.int32(wk[x]) & hi
+            ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bit) & ((np.int32(sg[x]) & (wm - 1) & hi) == (wm >> 1))))
+            s = sel[x]
+            sel[x] = L if (s < 0) & ok else s
     for x in range(W):
-        slow[ns] = x
-        ns += lit[x] & ((np.int32(wk[x]) & full) != 0)
-    for i in range(ns):
-        x = slow[i]
-        b, L = _resolve_code(np.int64(sg[x]), np.int64(wk[x]), full, lowest, max_level, n_proj)
-        if b >= 0:
-            blk[x] = b
-            lvl[x] = L
-            val[x] = min(np.float32(b << L) + np.float32(((1 << L) - 1) * 0.5), top)
-            hist[L - lowest] += 1
-    hist[0] += n_fast
-
-
-@numba.njit(inline="always", error_model="numpy")
-def _bit_index(nbits):  # pragma: no cover
-    """(2**nbits,) int64 table: the index of a power of two's one bit (0 elsewhere)."""
-    tz = np.zeros(1 << nbits, np.int64)
-    for i in range(nbits):
-        tz[1 << i] = i
-    return tz
+        L = max(sel[x], np.int32(0))
+        b = _gray_to_binary((np.int32(sg[x]) & full) >> L)
+        good = lit[x] & (sel[x] >= 0) & ((b << L) < n_proj)
+        blk[x] = b if good else -1
+        lvl[x] = L if good else -1
+        c = np.float32(b << L) + np.float32(((1 << L) - 1) * 0.5)
+        val[x] = min(c, top) if good else nan
+    for L in range(lowest, max_level + 1):
+        n = 0
+        for x in range(W):
+            n += lvl[x] == L
+        hist[L - lowest] += n
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _subpixel_row(blk, lvl, q, kq, quantise, lowest, nbits, tz, pos, val, jx, frac, out):  # pragma: no cover
+def _edge_differences(sg, q, nbits, qa, qb):  # pragma: no cover
+    """For each pair of neighbouring pixels (x, x + 1) of a camera row, the pattern differences of
+    the bit plane whose sign flips between them: ``qa[x] = q[j, x]``, ``qb[x] = q[j, x + 1]``.
+
+    sg: (W,) uint16 sign bits; q: (planes, W) differences of bits nbits-1, nbits-2, ... (the
+    finest may be missing); qa, qb: (W,) of q's dtype. Across a stripe edge exactly one bit
+    flips (neighbouring Gray codes), so the sub-pixel step needs no per-pair search of the
+    plane; elsewhere the values are left as they come (the sub-pixel step does not read them).
+    A pass per plane over the row, without branches: it vectorises.
+    """
+    W = sg.size
+    for j in range(q.shape[0]):
+        shift = nbits - 1 - j
+        row = q[j]
+        for x in range(W - 1):
+            flip = (((np.int32(sg[x]) ^ np.int32(sg[x + 1])) >> shift) & 1) != 0
+            # Loads before the choice: a load inside a conditional expression becomes a
+            # branch that keeps the loop from vectorising.
+            a, b, oa, ob = row[x], row[x + 1], qa[x], qb[x]
+            qa[x] = a if flip else oa
+            qb[x] = b if flip else ob
+
+
+@numba.njit(cache=True, error_model="numpy")
+def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, out):  # pragma: no cover
     """Interpolate projector columns between stripe edges along one camera row.
 
-    blk, lvl: (W,) code block and level; q: (planes, W) pattern differences, already scaled to
-    int8 (streaming) or raw, then scaled by ``kq`` (W,) float32 at the edges (``quantise``);
-    tz: (2**nbits,) int64 with ``tz[2**i] = i``; pos, val, frac: (W,) float64 and jx: (W,) int64
-    scratch; out: (W,) float32 holding the integer decode, overwritten where interpolated.
-    Returns the number of interpolated pixels. Divisions follow numpy's error model: two edges
-    at one position give an infinite slope, clamped to the stripe, or NaN, left uninterpolated
-    (Python's model raised ZeroDivisionError there).
+    blk, lvl: (W,) code block and level; qa, qb: (W,) the differences of the flipping bit plane
+    at each pair's two pixels (:func:`_edge_differences`), already scaled to int8 (streaming) or
+    raw, then scaled by ``kq`` (W,) float32 here (``quantise``); pos, val, frac: (W,) float64
+    and jx: (W,) int64 scratch; out: (W,) float32 holding the integer decode, overwritten where
+    interpolated. Returns the number of interpolated pixels. Divisions follow numpy's error
+    model: two edges at one position give an infinite slope, clamped to the stripe, or NaN,
+    left uninterpolated (Python's model raised ZeroDivisionError there).
     """
     W = blk.size
     step = 1 << lowest
-    top = q.shape[0] - 1
-    mask = tz.size - 1
-    # Two passes: the edge fractions first (independent per pair, so the divisions overlap),
-    # then the compaction of edges into pos/val, which is a dependency chain through ne. The
-    # first pass marks pairs that are no edge with a fraction of -1: the second reads the mark
-    # instead of testing blocks and levels again, and no gather or division is spent on them.
+    # Three passes: the edge fractions first (independent per pair and without branches, so it
+    # vectorises), then the compaction of edges into pos/val, which is a dependency chain
+    # through ne, then the interpolation. Pairs that are no edge get a fraction of -1.
     for x in range(W - 1):
-        a = np.int64(blk[x])
-        b = np.int64(blk[x + 1])
-        if not ((a >= 0) & (b >= 0) & (lvl[x] == lowest) & (lvl[x + 1] == lowest) & (abs(a - b) == 1)):
-            frac[x] = -1.0
-            continue
-        # The one Gray bit that differs between adjacent blocks, as a plane index.
-        k = tz[((a ^ (a >> 1)) ^ (b ^ (b >> 1))) & mask]
-        e = min(max(nbits - 1 - (k + lowest), 0), top)
-        if quantise:
-            qa = np.float64(_quantise(q[e, x], kq[x]))
-            qb = np.float64(_quantise(q[e, x + 1], kq[x + 1]))
-        else:
-            qa = np.float64(q[e, x])
-            qb = np.float64(q[e, x + 1])
-        den = qa - qb
-        t = qa / den if den != 0.0 else 0.5
-        frac[x] = min(max(t, 0.0), 1.0)
+        a = np.int32(blk[x])
+        b = np.int32(blk[x + 1])
+        edge = (a >= 0) & (b >= 0) & (lvl[x] == lowest) & (lvl[x + 1] == lowest) & (abs(a - b) == 1)
+        da, db, ka, kb = qa[x], qb[x], kq[x], kq[x + 1]
+        fa = np.float64(_quantise(da, ka)) if quantise else np.float64(da)
+        fb = np.float64(_quantise(db, kb)) if quantise else np.float64(db)
+        den = fa - fb
+        t = fa / den if den != 0.0 else 0.5
+        frac[x] = min(max(t, 0.0), 1.0) if edge else -1.0
     ne = 0
     for x in range(W - 1):
         a = np.int64(blk[x])
@@ -379,12 +357,13 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
         a1 = np.empty(W, diff.dtype)
         a2 = np.empty(W, diff.dtype)
         blk = np.empty(W, np.int32)
-        slow = np.empty(W, np.int32)
+        sel = np.empty(W, np.int32)
+        qa = np.empty(W, diff.dtype)
+        qb = np.empty(W, diff.dtype)
         pos = np.empty(W, np.float64)
         val = np.empty(W, np.float64)
         jx = np.empty(W, np.int64)
         frac = np.empty(W, np.float64)
-        tz = _bit_index(nbits)
         hist = np.zeros(max_level - lowest + 1, np.int64)
         for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
             wr = white[y]
@@ -434,7 +413,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                         a1[x] = min(b1, aq)
             hist[:] = 0
             lv = level[y]
-            _resolve_row(sg, wk, lr, full, lowest, max_level, n_proj, blk, lv, value[y], slow, hist)
+            _resolve_row(sg, wk, lr, full, lowest, max_level, n_proj, blk, lv, value[y], sel, hist)
             n_sub = 0
             if want_q:
                 cr = conf[y]
@@ -444,7 +423,8 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                     qm = np.int32(127) if m == dmax else _quantise(m, kq[x])
                     cr[x] = min(np.float32(qm) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0 else np.float32(0.0)
                 if subpixel:
-                    n_sub = _subpixel_row(blk, lv, q, kq, True, lowest, nbits, tz, pos, val, jx, frac, value[y])
+                    _edge_differences(sg, q, nbits, qa, qb)
+                    n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, pos, val, jx, frac, value[y])
             counts[y, 0] = n_lit
             counts[y, 1] = n_sub
             for L in range(hist.size):
@@ -459,19 +439,20 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
     ``has_q``; outputs as in :func:`_decode_rows` (``counts[:, 0]`` is left alone)."""
     H, W = lit.shape
     full = (1 << nbits) - 1
-    kq = np.zeros(1, np.float32)
+    kq = np.zeros(W, np.float32)  # unread: q is already scaled
     for band in numba.prange((H + _BAND - 1) // _BAND):
         blk = np.empty(W, np.int32)
-        slow = np.empty(W, np.int32)
+        sel = np.empty(W, np.int32)
+        qa = np.empty(W, q.dtype)
+        qb = np.empty(W, q.dtype)
         pos = np.empty(W, np.float64)
         val = np.empty(W, np.float64)
         jx = np.empty(W, np.int64)
         frac = np.empty(W, np.float64)
-        tz = _bit_index(nbits)
         hist = np.zeros(max_level - lowest + 1, np.int64)
         for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
             hist[:] = 0
-            _resolve_row(signs[y], weak[y], lit[y], full, lowest, max_level, n_proj, blk, level[y], value[y], slow,
+            _resolve_row(signs[y], weak[y], lit[y], full, lowest, max_level, n_proj, blk, level[y], value[y], sel,
                          hist)
             n_sub = 0
             if has_q:
@@ -481,8 +462,8 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
                     cr[x] = (min(np.float32(mr[x]) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0
                              else np.float32(0.0))
                 if subpixel:
-                    n_sub = _subpixel_row(blk, level[y], q[:, y, :], kq, False, lowest, nbits, tz, pos, val, jx,
-                                          frac, value[y])
+                    _edge_differences(signs[y], q[:, y, :], nbits, qa, qb)
+                    n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, pos, val, jx, frac, value[y])
             counts[y, 1] = n_sub
             for L in range(hist.size):
                 counts[y, 2 + L] = hist[L]
