@@ -502,10 +502,10 @@ def kernel_threads() -> int:
 
     A parallel kernel waits for its slowest worker; on an oversubscribed machine (1-minute load
     average at or above the core count) a descheduled worker stalls every launch, and one
-    thread measured faster than two (here: 115 ms against 184 ms for a 1.3 MP decode; with the
-    one-pass decoder, 47 ms against 53 ms at a load of 3.5 on 2 cores). The load average lags
-    by a minute, though: when nothing else is runnable at this moment, the machine has come
-    free and two threads measured twice as fast (26 ms against 53 ms).
+    thread measured faster than two (here, for the 1.3 MP 42-frame decode of the bench beside
+    two busy loops on 2 cores: 68 ms against 74 ms). The load average lags by a minute, though:
+    when nothing else is runnable at this moment, the machine has come free and two threads
+    measured twice as fast (35 ms against 67 ms).
     """
     try:
         busy = os.getloadavg()[0] >= (os.cpu_count() or 1)
