@@ -18,6 +18,7 @@ Every variable has a working default, so ``graylight serve``, ``graylight worker
 ``GRAYLIGHT_RECONCILE_SECONDS``           period of the reconciler beat task (10)
 ``GRAYLIGHT_MAX_ATTEMPTS``                claims of one stage before it is failed (5)
 ``GRAYLIGHT_MAX_UPLOAD_BYTES``            largest accepted upload (8 GiB)
+``GRAYLIGHT_UPLOAD_TTL_HOURS``            an upload session not used for a job by then is deleted (24)
 ``GRAYLIGHT_MAX_ARCHIVE_FILES``           most members in a capture archive (4096)
 ``GRAYLIGHT_MAX_UNPACKED_BYTES``          largest total unpacked size of an archive (32 GiB)
 ``GRAYLIGHT_MAX_COMPRESSION_RATIO``       largest unpacked/packed ratio of a member (250)
@@ -92,6 +93,7 @@ class Settings:
     reconcile_seconds: float = 10.0
     max_attempts: int = 5
     max_upload_bytes: int = 8 << 30
+    upload_ttl_hours: float = 24.0
     max_archive_files: int = 4096
     max_unpacked_bytes: int = 32 << 30
     max_compression_ratio: int = 250
@@ -157,6 +159,7 @@ def get_settings(env: dict[str, str] | None = None) -> Settings:
         reconcile_seconds=_float(env, "GRAYLIGHT_RECONCILE_SECONDS", 10.0, 0.1),
         max_attempts=_int(env, "GRAYLIGHT_MAX_ATTEMPTS", 5, 1),
         max_upload_bytes=_int(env, "GRAYLIGHT_MAX_UPLOAD_BYTES", 8 << 30, 1),
+        upload_ttl_hours=_float(env, "GRAYLIGHT_UPLOAD_TTL_HOURS", 24.0, 0.001),
         max_archive_files=_int(env, "GRAYLIGHT_MAX_ARCHIVE_FILES", 4096, 1),
         max_unpacked_bytes=_int(env, "GRAYLIGHT_MAX_UNPACKED_BYTES", 32 << 30, 1),
         max_compression_ratio=_int(env, "GRAYLIGHT_MAX_COMPRESSION_RATIO", 250, 1),

@@ -33,6 +33,7 @@ from sqlalchemy import (
     Text,
     UniqueConstraint,
     create_engine,
+    delete,
     event,
     func,
     select,
@@ -841,6 +842,19 @@ class JobStore:
                 update(UploadRow).where(UploadRow.id == upload_id, UploadRow.finished.is_(False)).values(finished=True)
             )
             return res.rowcount > 0
+
+    def uploads_created_before(self, before: float, limit: int = 500) -> list[str]:
+        """Ids of upload sessions opened before ``before`` (epoch seconds), oldest first."""
+        with self.session() as s:
+            rows = s.execute(
+                select(UploadRow.id).where(UploadRow.created_at < before).order_by(UploadRow.created_at).limit(limit)
+            )
+            return [r[0] for r in rows]
+
+    def delete_upload(self, upload_id: str) -> bool:
+        """Forget an upload session (its chunks in storage are the caller's to remove first)."""
+        with self.session() as s, s.begin():
+            return s.execute(delete(UploadRow).where(UploadRow.id == upload_id)).rowcount > 0
 
 
 def open_store(url: str | None = None) -> JobStore:

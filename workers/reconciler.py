@@ -10,7 +10,10 @@ Run by beat every ``GRAYLIGHT_RECONCILE_SECONDS`` (on the ``control`` queue). It
    and any queued for ten leases regardless (a duplicate message is harmless: the claim is
    a compare-and-set, so the second copy finds the stage running or done and does nothing);
 3. re-derives the state of jobs that have no queued or running stage (a crash between
-   two transactions).
+   two transactions);
+4. deletes upload sessions opened more than ``GRAYLIGHT_UPLOAD_TTL_HOURS`` ago, with their
+   chunks: abandoned uploads would otherwise fill the storage (a finished one has already
+   become a capture object and lost its chunks).
 
 :func:`enqueue_preview_rerender` is what the nightly beat entry calls.
 """
@@ -22,6 +25,7 @@ import logging
 import time
 from dataclasses import asdict, dataclass
 
+from shared.artifacts import ArtifactError, ArtifactStore
 from shared.config import Settings
 from shared.jobs import JobState, StageState, stage_key, stage_spec
 from shared.jobstore import JobStore, Stage
@@ -36,6 +40,7 @@ class ReconcileReport:
     republished: int = 0
     failed: int = 0
     settled: int = 0
+    uploads_deleted: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -58,7 +63,8 @@ def _queue_lengths(settings: Settings, queues: set[str]) -> dict[str, int] | Non
         return None
 
 
-def reconcile_once(settings: Settings, store: JobStore | None = None, now: float | None = None) -> ReconcileReport:
+def reconcile_once(settings: Settings, store: JobStore | None = None, now: float | None = None,
+                   arts: ArtifactStore | None = None) -> ReconcileReport:  # fmt: skip
     """One pass of the reconciler (see the module docstring)."""
     store = store or JobStore(settings.database_url)
     now = time.time() if now is None else now
@@ -102,7 +108,27 @@ def reconcile_once(settings: Settings, store: JobStore | None = None, now: float
 
     if to_publish:
         report.republished = publish_stages(to_publish, settings)
+    report.uploads_deleted = _delete_expired_uploads(settings, store, now, arts)
     return report
+
+
+def _delete_expired_uploads(settings: Settings, store: JobStore, now: float, arts: ArtifactStore | None) -> int:
+    """Step 4: chunks first, then the row, so that a pass cut short is finished by the next."""
+    expired = store.uploads_created_before(now - settings.upload_ttl_hours * 3600.0)
+    if not expired:
+        return 0
+    arts = arts or ArtifactStore(settings.storage_url, settings.s3_endpoint)
+    count = 0
+    for upload_id in expired:
+        try:
+            arts.drop_upload(upload_id)
+        except (OSError, ArtifactError) as exc:
+            log.warning("reconciler: cannot delete the chunks of upload %s: %s", upload_id, exc)
+            continue
+        count += store.delete_upload(upload_id)
+    if count:
+        log.info("reconciler: deleted %d upload sessions older than %g h", count, settings.upload_ttl_hours)
+    return count
 
 
 def enqueue_preview_rerender(settings: Settings, mode: str = "changed", store: JobStore | None = None) -> int:

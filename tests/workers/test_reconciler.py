@@ -93,3 +93,29 @@ def test_nightly_rerender_resets_only_previews(svc_env: ServiceEnv, tmp_path: Pa
     assert all(s.state == "succeeded" for s in j.stages if s.name != "preview")
     assert queue_len(svc_env, "render") == 1 and queue_len(svc_env, "cpu") == 0
     assert isinstance(stage_spec("scan", "preview"), StageSpec)
+
+
+def test_abandoned_upload_sessions_are_deleted_with_their_chunks(svc_env: ServiceEnv, tmp_path: Path) -> None:
+    from shared.artifacts import ArtifactStore
+
+    settings = svc_env.settings
+    store = JobStore(settings.database_url)
+    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
+    owner, _ = store.create_key("u")
+    chunk = tmp_path / "chunk"
+    chunk.write_bytes(b"x" * 1000)
+    old = store.create_upload(owner.id, "old.zip")
+    time.sleep(0.05)
+    new = store.create_upload(owner.id, "new.zip")
+    for up in (old, new):
+        arts.put_chunk(up.id, 0, chunk)
+        assert store.advance_upload(up.id, 0, 1000)
+    ttl = settings.upload_ttl_hours * 3600
+    assert reconcile_once(settings, store, arts=arts).uploads_deleted == 0  # both are fresh
+    # The moment the older session passes its lifetime and the newer has not.
+    report = reconcile_once(settings, store, now=new.created_at - 0.01 + ttl, arts=arts)
+    assert report.uploads_deleted == 1
+    assert store.get_upload(old.id) is None
+    assert not arts.fs.exists(arts._upload_dir(old.id))
+    kept = store.get_upload(new.id)
+    assert kept is not None and kept.offset == 1000 and arts.fs.exists(arts._upload_dir(new.id))
