@@ -17,47 +17,38 @@ Routes: ``POST/GET /v1/jobs``, ``GET /v1/jobs/{id}``, ``POST /v1/jobs/{id}/cance
 from __future__ import annotations
 
 import importlib
-import json
 import logging
 import mimetypes
-import os
 import re
 import tempfile
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any
+from typing import Annotated, Any, TypeVar
 
 from fastapi import Depends, FastAPI, Header, HTTPException, Query, Request
 from fastapi.concurrency import run_in_threadpool
 from fastapi.responses import FileResponse, JSONResponse, Response, StreamingResponse
 from pydantic import BaseModel, Field
-from starlette.datastructures import UploadFile
+from starlette.datastructures import FormData
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from shared.archive import ArchiveLimits, inspect_archive
-from shared.artifacts import ArtifactError, ArtifactStore, sha256_file
+from services.api.intake import ID, BatchCreate, Intake, JobCreate, check_params
+from shared.artifacts import ArtifactStore
 from shared.config import Settings, get_settings
 from shared.errors import InputError
 from shared.jobs import (
-    GRAPHS,
     JobState,
     StageState,
     fanout_index,
-    graph_for,
-    root_file,
     stage_key,
     stage_spec,
 )
-from shared.jobstore import ApiKey, Batch, Job, JobStore, NewJob, Stage
-from shared.rig import parse_rig
+from shared.jobstore import ApiKey, Batch, Job, JobStore, Stage
 
 log = logging.getLogger(__name__)
 
-_ID = re.compile(r"^[0-9a-f-]{36}$")
-_NAME = re.compile(r"^[\w .,:+@()\[\]-]{1,200}$")
-#: Internal prefixes of the store that a storage reference may not point into.
-_PRIVATE_PREFIXES = ("objects/", "uploads/")
+_Body = TypeVar("_Body", bound=BaseModel)
 
 
 # ---- response models (they make the OpenAPI schema) ---------------------------------------
@@ -138,27 +129,8 @@ class UploadCreate(BaseModel):
     filename: str = Field("capture.zip", max_length=300)
 
 
-class JobCreate(BaseModel):
-    """A job from an upload session or from a reference into storage (JSON instead of multipart)."""
-
-    kind: str = Field("scan", description="scan, calibrate or probe")
-    name: str | None = Field(None, max_length=200)
-    batch: str | None = Field(None, max_length=200)
-    upload_id: str | None = Field(None, description="a finished upload session")
-    capture_ref: str | None = Field(None, description="path of an archive or capture folder, relative to the storage root")
-    params: dict[str, Any] = Field(default_factory=dict)
-
-
 class RetryIn(BaseModel):
     params: dict[str, Any] | None = Field(None, description="new job parameters (stages they affect re-run)")
-
-
-class BatchCreate(BaseModel):
-    name: str = Field(..., max_length=200)
-    kind: str = "scan"
-    captures: list[str] = Field(default_factory=list, description="storage references, one capture each")
-    manifest: str | None = Field(None, description="storage reference of a text file listing one reference per line")
-    params: dict[str, Any] = Field(default_factory=dict)
 
 
 # ---- the request-size limit ------------------------------------------------------------------
@@ -210,10 +182,6 @@ class Service:
     store: JobStore
     arts: ArtifactStore
 
-    @property
-    def limits(self) -> ArchiveLimits:
-        return ArchiveLimits.from_settings(self.settings)
-
 
 def _stage_out(s: Stage) -> StageOut:
     seconds = (s.finished_at - s.started_at) if s.finished_at and s.started_at else None
@@ -243,32 +211,6 @@ def _batch_out(b: Batch, jobs: list[str] | None = None, rejected: list[dict[str,
 
 def _bad(exc: Exception, status: int = 422) -> HTTPException:
     return HTTPException(status, " ".join(str(exc).split())[:1000])
-
-
-def _check_kind(kind: str) -> str:
-    if kind not in GRAPHS:
-        raise HTTPException(422, f"kind: unknown job kind {kind!r} (one of {', '.join(sorted(GRAPHS))})")
-    if not graph_for(kind):
-        raise HTTPException(422, f"kind: {kind} jobs cannot run in this installation (their stages are not installed)")
-    return kind
-
-
-def _check_name(value: str | None, field: str) -> str | None:
-    if value is None or value == "":
-        return None
-    if not _NAME.match(value):
-        raise HTTPException(422, f"{field}: must be 1-200 letters, digits, spaces or .,:+@()[]-_")
-    return value
-
-
-def _check_params(params: Any) -> dict[str, Any]:
-    if not isinstance(params, dict):
-        raise HTTPException(422, "params: must be a JSON object")
-    if len(json.dumps(params, default=str)) > 16384:
-        raise HTTPException(422, "params: larger than 16 KiB")
-    if "rig" in params:
-        raise HTTPException(422, "params.rig: upload a rig in the multipart field 'rig' instead")
-    return params
 
 
 async def current_key(request: Request, authorization: Annotated[str | None, Header()] = None) -> ApiKey:
@@ -301,67 +243,20 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return JSONResponse({"detail": str(exc)}, 422)
 
     def owned_job(job_id: str, key: ApiKey) -> Job:
-        job = svc.store.get_job(job_id, key.id) if _ID.match(job_id) else None
+        job = svc.store.get_job(job_id, key.id) if ID.match(job_id) else None
         if job is None:
             raise HTTPException(404, f"job {job_id} not found")
         return job
 
-    # ---- intake ----------------------------------------------------------------------------
-    def store_archive(path: Path, label: str, kind: str) -> tuple[str, str]:
-        """Inspect an archive, then store it as a capture object: (capture_ref, capture_key)."""
-        require = root_file(kind)
-        report = inspect_archive(path, svc.limits, label=label, require=require)
-        key = sha256_file(path)
-        suffix = ".zip" if report.kind == "zip" else ".tar"
-        svc.arts.put_files(key, {f"capture{suffix}": path})
-        return f"object:{key}", key
+    intake = Intake(settings, svc.store, svc.arts)
 
-    def store_rig(data: bytes, label: str) -> str:
+    async def read_form(request: Request, max_files: int) -> FormData:
         try:
-            doc = json.loads(data.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputError(label, f"not a JSON rig file ({exc})") from None
-        parse_rig(doc, label)
-        with tempfile.TemporaryDirectory() as tmp:
-            p = Path(tmp) / "rig.json"
-            p.write_bytes(data)
-            key = sha256_file(p)
-            svc.arts.put_files(key, {"rig.json": p})
-        return key
-
-    def resolve_ref(ref: str, kind: str) -> tuple[str, str]:
-        clean = ref.strip().strip("/")
-        if not clean or any(clean.startswith(p) for p in _PRIVATE_PREFIXES) or clean in ("objects", "uploads"):
-            raise InputError("capture_ref", f"{ref!r} is not a reference to a capture in storage")
-        try:
-            svc.arts.ref_path(clean)
-            key = svc.arts.ref_fingerprint(clean)
-        except ArtifactError as exc:
-            raise InputError("capture_ref", str(exc)) from None
-        except FileNotFoundError:
-            raise InputError("capture_ref", f"{ref!r}: no such file or folder in storage") from None
-        return f"ref:{clean}", key
-
-    def make_job(key: ApiKey, kind: str, capture_ref: str, capture_key: str, name: str, params: dict[str, Any],
-                 batch: str | None) -> Job:  # fmt: skip
-        from workers.dispatch import publish_stages
-
-        batch_id = svc.store.batch_for(key.id, batch) if batch else None
-        job, ready = svc.store.create_job(
-            key.id,
-            NewJob(kind=kind, capture_ref=capture_ref, capture_key=capture_key, graph=graph_for(kind, params), name=name,
-                   params=params, batch_id=batch_id),  # fmt: skip
-        )
-        publish_stages(ready, settings)
-        return job
-
-    def probe_capture() -> tuple[str, str]:
-        return "none:", os.urandom(32).hex()
-
-    async def save_upload(f: UploadFile, dest: Path) -> None:
-        with open(dest, "wb") as out:
-            while block := await f.read(1 << 20):
-                out.write(block)
+            return await request.form(max_files=max_files, max_fields=16, max_part_size=64 << 10)
+        except _TooLarge:
+            raise
+        except Exception as exc:
+            raise _bad(exc, 400) from None
 
     # ---- routes ----------------------------------------------------------------------------
     @app.get("/health", response_model=Health, tags=["service"])
@@ -400,80 +295,13 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     async def submit_job(request: Request, key: Key) -> JobOut:
         """Submit a job: multipart (field ``capture``: zip or tar), or JSON (``upload_id`` of a
         finished upload session, or ``capture_ref`` into storage)."""
-        ctype = request.headers.get("content-type", "")
-        if ctype.startswith("multipart/form-data"):
+        if _is_form(request):
+            form = await read_form(request, max_files=4)
             try:
-                form = await request.form(max_files=4, max_fields=16, max_part_size=64 << 10)
-            except _TooLarge:
-                raise
-            except Exception as exc:
-                raise _bad(exc, 400) from None
-            try:
-                kind = _check_kind(str(form.get("kind") or "scan"))
-                name = _check_name(_str(form.get("name")), "name")
-                batch = _check_name(_str(form.get("batch")), "batch")
-                try:
-                    params = _check_params(json.loads(_str(form.get("params")) or "{}"))
-                except json.JSONDecodeError as exc:
-                    raise HTTPException(422, f"params: not JSON ({exc})") from None
-                capture, rig = form.get("capture"), form.get("rig")
-                if isinstance(rig, UploadFile):
-                    params["rig"] = await run_in_threadpool(store_rig, await rig.read(1 << 20), rig.filename or "rig")
-                elif rig is not None:
-                    raise HTTPException(422, "rig: must be a file")
-                if kind == "probe":
-                    cref, ckey = probe_capture()
-                    name = name or "probe"
-                elif not isinstance(capture, UploadFile) and _str(form.get("capture_ref")):
-                    ref = _str(form.get("capture_ref")) or ""
-                    cref, ckey = await run_in_threadpool(resolve_ref, ref, kind)
-                    name = name or ref.strip("/").rsplit("/", 1)[-1]
-                elif not isinstance(capture, UploadFile):
-                    raise HTTPException(422, "capture: a zip or tar file is required in this multipart field")
-                else:
-                    label = Path(capture.filename or "capture").name or "capture"
-                    with tempfile.TemporaryDirectory() as tmp:
-                        path = Path(tmp) / "upload"
-                        await save_upload(capture, path)
-                        cref, ckey = await run_in_threadpool(store_archive, path, label, kind)
-                    name = name or label
-                job = await run_in_threadpool(make_job, key, kind, cref, ckey, name or "", params, batch)
+                return job_out(await intake.job_from_form(form, key))
             finally:
                 await form.close()
-            return job_out(job)
-        try:
-            body = JobCreate.model_validate_json(await request.body())
-        except Exception as exc:
-            raise HTTPException(422, f"body: {exc}".splitlines()[0]) from None
-        kind = _check_kind(body.kind)
-        name = _check_name(body.name, "name")
-        batch = _check_name(body.batch, "batch")
-        params = _check_params(body.params)
-        if kind == "probe":
-            cref, ckey = probe_capture()
-            name = name or "probe"
-        elif body.upload_id:
-            up = svc.store.get_upload(body.upload_id, key.id) if _ID.match(body.upload_id) else None
-            if up is None:
-                raise HTTPException(404, f"upload {body.upload_id} not found")
-            if up.finished:
-                raise HTTPException(409, f"upload {up.id} was already used")
-            label = Path(up.filename).name or "upload"
-            with tempfile.TemporaryDirectory() as tmp:
-                path = Path(tmp) / "upload"
-                await run_in_threadpool(svc.arts.assemble_upload, up.id, up.chunks, path)
-                cref, ckey = await run_in_threadpool(store_archive, path, label, kind)
-            if not svc.store.finish_upload(up.id):
-                raise HTTPException(409, f"upload {up.id} was already used")
-            await run_in_threadpool(svc.arts.drop_upload, up.id)
-            name = name or label
-        elif body.capture_ref:
-            cref, ckey = await run_in_threadpool(resolve_ref, body.capture_ref, kind)
-            name = name or body.capture_ref.strip("/").rsplit("/", 1)[-1]
-        else:
-            raise HTTPException(422, "body: give upload_id or capture_ref (or send multipart with a capture file)")
-        job = await run_in_threadpool(make_job, key, kind, cref, ckey, name or "", params, batch)
-        return job_out(job)
+        return job_out(await intake.job_from_json(await _body(request, JobCreate), key))
 
     @app.get("/v1/jobs", response_model=JobList, tags=["jobs"])
     def list_jobs(
@@ -517,7 +345,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
             raise HTTPException(409, f"job {job.id} is {job.state}; cancel it first")
         params = dict(job.params)
         if body is not None and body.params is not None:
-            new = _check_params(body.params)
+            new = check_params(body.params)
             params = {**new, **({"rig": job.params["rig"]} if "rig" in job.params else {})}
         rerun: set[str] = set()
         keys: dict[str, str] = {}
@@ -627,83 +455,17 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         """Many captures at once: multipart files in ``captures``, or JSON with storage
         references (``captures``) or a ``manifest`` file listing them. A capture refused at
         intake is listed in ``rejected``; the others become jobs of the batch."""
-        jobs: list[str] = []
-        rejected: list[dict[str, str]] = []
-        ctype = request.headers.get("content-type", "")
-        if ctype.startswith("multipart/form-data"):
+        if _is_form(request):
+            form = await read_form(request, max_files=settings.max_archive_files)
             try:
-                form = await request.form(max_files=settings.max_archive_files, max_fields=16, max_part_size=64 << 10)
-            except _TooLarge:
-                raise
-            except Exception as exc:
-                raise _bad(exc, 400) from None
-            try:
-                name = _check_name(_str(form.get("name")), "name")
-                if not name:
-                    raise HTTPException(422, "name: a batch needs a name")
-                kind = _check_kind(str(form.get("kind") or "scan"))
-                try:
-                    params = _check_params(json.loads(_str(form.get("params")) or "{}"))
-                except json.JSONDecodeError as exc:
-                    raise HTTPException(422, f"params: not JSON ({exc})") from None
-                for f in form.getlist("captures"):
-                    if not isinstance(f, UploadFile):
-                        raise HTTPException(422, "captures: must be files")
-                    label = Path(f.filename or "capture").name or "capture"
-                    with tempfile.TemporaryDirectory() as tmp:
-                        path = Path(tmp) / "upload"
-                        await save_upload(f, path)
-                        try:
-                            cref, ckey = await run_in_threadpool(store_archive, path, label, kind)
-                        except InputError as exc:
-                            rejected.append({"capture": label, "error": str(exc)})
-                            continue
-                    job = await run_in_threadpool(make_job, key, kind, cref, ckey, label, params, name)
-                    jobs.append(job.id)
+                name, jobs, rejected = await intake.batch_from_form(form, key)
             finally:
                 await form.close()
         else:
-            try:
-                body = BatchCreate.model_validate_json(await request.body())
-            except Exception as exc:
-                raise HTTPException(422, f"body: {exc}".splitlines()[0]) from None
-            name = _check_name(body.name, "name")
-            if not name:
-                raise HTTPException(422, "name: a batch needs a name")
-            kind = _check_kind(body.kind)
-            params = _check_params(body.params)
-            refs = list(body.captures)
-            if body.manifest:
-                refs += await run_in_threadpool(read_manifest, body.manifest)
-            if len(refs) > 10000:
-                raise HTTPException(422, "captures: more than 10000 in one batch")
-            for ref in refs:
-                try:
-                    cref, ckey = await run_in_threadpool(resolve_ref, ref, kind)
-                except InputError as exc:
-                    rejected.append({"capture": ref, "error": str(exc)})
-                    continue
-                job = await run_in_threadpool(make_job, key, kind, cref, ckey, ref.rsplit("/", 1)[-1], params, name)
-                jobs.append(job.id)
-        bid = svc.store.batch_for(key.id, name)
-        b = svc.store.get_batch(bid, key.id)
+            name, jobs, rejected = await intake.batch_from_json(await _body(request, BatchCreate), key)
+        b = svc.store.get_batch(svc.store.batch_for(key.id, name), key.id)
         assert b is not None
         return _batch_out(b, jobs, rejected)
-
-    def read_manifest(ref: str) -> list[str]:
-        clean = ref.strip().strip("/")
-        if not clean or any(clean.startswith(p) for p in _PRIVATE_PREFIXES):
-            raise InputError("manifest", f"{ref!r} is not a reference to a file in storage")
-        try:
-            with svc.arts.fs.open(svc.arts.ref_path(clean), "rb") as f:
-                data = f.read(4 << 20)
-        except (FileNotFoundError, ArtifactError, IsADirectoryError):
-            raise InputError("manifest", f"{ref!r}: no such file in storage") from None
-        try:
-            text = data.decode("utf-8")
-        except UnicodeDecodeError:
-            raise InputError(ref, "manifest is not UTF-8 text") from None
-        return [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
 
     @app.get("/v1/batches", response_model=list[BatchOut], tags=["batches"])
     def list_batches(key: Key) -> list[BatchOut]:
@@ -712,7 +474,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
     @app.get("/v1/batches/{batch_id}", response_model=BatchOut, tags=["batches"])
     def get_batch(batch_id: str, key: Key) -> BatchOut:
         """A batch's progress: job counts by state and the finished fraction."""
-        b = svc.store.get_batch(batch_id, key.id) if _ID.match(batch_id) else None
+        b = svc.store.get_batch(batch_id, key.id) if ID.match(batch_id) else None
         if b is None:
             raise HTTPException(404, f"batch {batch_id} not found")
         return _batch_out(b)
@@ -726,7 +488,7 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         return UploadOut(id=up.id, offset=0, finished=False, max_bytes=settings.max_upload_bytes)
 
     def owned_upload(upload_id: str, key: ApiKey) -> Any:
-        up = svc.store.get_upload(upload_id, key.id) if _ID.match(upload_id) else None
+        up = svc.store.get_upload(upload_id, key.id) if ID.match(upload_id) else None
         if up is None:
             raise HTTPException(404, f"upload {upload_id} not found")
         return up
@@ -795,9 +557,13 @@ def _byte_range(header: str | None, size: int) -> tuple[int, int] | None:
     return start, end
 
 
-def _str(value: Any) -> str | None:
-    if value is None:
-        return None
-    if isinstance(value, UploadFile):
-        raise HTTPException(422, f"{value.filename or 'field'}: expected text, got a file")
-    return str(value)
+def _is_form(request: Request) -> bool:
+    return request.headers.get("content-type", "").startswith("multipart/form-data")
+
+
+async def _body(request: Request, model: type[_Body]) -> _Body:
+    """The JSON body as ``model``; 422 with the first line of the validation error."""
+    try:
+        return model.model_validate_json(await request.body())
+    except Exception as exc:
+        raise HTTPException(422, f"body: {exc}".splitlines()[0]) from None

@@ -1,0 +1,309 @@
+"""Intake of the job service: a submission (multipart form or JSON body) -> validated, stored
+captures -> queued jobs.
+
+In: the parsed form or body of ``POST /v1/jobs`` and ``POST /v1/batches`` and the caller's
+API key. Out: :class:`~shared.jobstore.Job` records whose ready stages are published, and for
+batches the captures refused at intake with their one-line reasons. Captures are zip or tar
+archives (inspected by :func:`shared.archive.inspect_archive` before anything is stored, then
+kept as content-addressed objects), finished upload sessions, or references to files already
+in storage. Errors name the field or file: ``HTTPException`` 404/409/422, or
+:class:`~shared.errors.InputError` (422) from the checks in ``shared/``.
+
+The routes in :mod:`services.api.app` only pick the form or the body and hand it here.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from fastapi import HTTPException
+from fastapi.concurrency import run_in_threadpool
+from pydantic import BaseModel, Field
+from starlette.datastructures import FormData, UploadFile
+
+from shared.archive import ArchiveLimits, inspect_archive
+from shared.artifacts import ArtifactError, ArtifactStore, sha256_file
+from shared.config import Settings
+from shared.errors import InputError
+from shared.jobs import GRAPHS, graph_for, root_file
+from shared.jobstore import ApiKey, Job, JobStore, NewJob
+from shared.rig import parse_rig
+
+ID = re.compile(r"^[0-9a-f-]{36}$")
+_NAME = re.compile(r"^[\w .,:+@()\[\]-]{1,200}$")
+#: Internal prefixes of the store that a storage reference may not point into.
+_PRIVATE_PREFIXES = ("objects/", "uploads/")
+#: Most storage references in one batch.
+MAX_BATCH_REFS = 10000
+
+
+class JobCreate(BaseModel):
+    """A job from an upload session or from a reference into storage (JSON instead of multipart)."""
+
+    kind: str = Field("scan", description="scan, calibrate or probe")
+    name: str | None = Field(None, max_length=200)
+    batch: str | None = Field(None, max_length=200)
+    upload_id: str | None = Field(None, description="a finished upload session")
+    capture_ref: str | None = Field(None, description="path of an archive or capture folder, relative to the storage root")
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+class BatchCreate(BaseModel):
+    name: str = Field(..., max_length=200)
+    kind: str = "scan"
+    captures: list[str] = Field(default_factory=list, description="storage references, one capture each")
+    manifest: str | None = Field(None, description="storage reference of a text file listing one reference per line")
+    params: dict[str, Any] = Field(default_factory=dict)
+
+
+# ---- field checks -------------------------------------------------------------------------
+def check_kind(kind: str) -> str:
+    if kind not in GRAPHS:
+        raise HTTPException(422, f"kind: unknown job kind {kind!r} (one of {', '.join(sorted(GRAPHS))})")
+    if not graph_for(kind):
+        raise HTTPException(422, f"kind: {kind} jobs cannot run in this installation (their stages are not installed)")
+    return kind
+
+
+def check_name(value: str | None, field: str) -> str | None:
+    if value is None or value == "":
+        return None
+    if not _NAME.match(value):
+        raise HTTPException(422, f"{field}: must be 1-200 letters, digits, spaces or .,:+@()[]-_")
+    return value
+
+
+def check_params(params: Any) -> dict[str, Any]:
+    if not isinstance(params, dict):
+        raise HTTPException(422, "params: must be a JSON object")
+    if len(json.dumps(params, default=str)) > 16384:
+        raise HTTPException(422, "params: larger than 16 KiB")
+    if "rig" in params:
+        raise HTTPException(422, "params.rig: upload a rig in the multipart field 'rig' instead")
+    return params
+
+
+def form_text(value: Any) -> str | None:
+    """A text field of a form; 422 when a file came in its place."""
+    if value is None:
+        return None
+    if isinstance(value, UploadFile):
+        raise HTTPException(422, f"{value.filename or 'field'}: expected text, got a file")
+    return str(value)
+
+
+def _form_params(form: FormData) -> dict[str, Any]:
+    try:
+        return check_params(json.loads(form_text(form.get("params")) or "{}"))
+    except json.JSONDecodeError as exc:
+        raise HTTPException(422, f"params: not JSON ({exc})") from None
+
+
+def _label(f: UploadFile) -> str:
+    return Path(f.filename or "capture").name or "capture"
+
+
+def _ref_name(ref: str) -> str:
+    return ref.strip().strip("/").rsplit("/", 1)[-1]
+
+
+async def _save(f: UploadFile, dest: Path) -> None:
+    with open(dest, "wb") as out:
+        while block := await f.read(1 << 20):
+            out.write(block)
+
+
+class Intake:
+    """Turns submissions into stored captures and queued jobs, for one service."""
+
+    def __init__(self, settings: Settings, store: JobStore, arts: ArtifactStore) -> None:
+        self.settings = settings
+        self.store = store
+        self.arts = arts
+        self.limits = ArchiveLimits.from_settings(settings)
+
+    # ---- captures (blocking: run in the thread pool) ------------------------------------
+    def store_archive(self, path: Path, label: str, kind: str) -> tuple[str, str]:
+        """Inspect an archive, then store it as a capture object: (capture_ref, capture_key)."""
+        report = inspect_archive(path, self.limits, label=label, require=root_file(kind))
+        key = sha256_file(path)
+        suffix = ".zip" if report.kind == "zip" else ".tar"
+        self.arts.put_files(key, {f"capture{suffix}": path})
+        return f"object:{key}", key
+
+    def store_rig(self, data: bytes, label: str) -> str:
+        try:
+            doc = json.loads(data.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise InputError(label, f"not a JSON rig file ({exc})") from None
+        parse_rig(doc, label)
+        with tempfile.TemporaryDirectory() as tmp:
+            p = Path(tmp) / "rig.json"
+            p.write_bytes(data)
+            key = sha256_file(p)
+            self.arts.put_files(key, {"rig.json": p})
+        return key
+
+    def resolve_ref(self, ref: str) -> tuple[str, str]:
+        """A reference to a capture already in storage: (capture_ref, capture_key)."""
+        clean = ref.strip().strip("/")
+        if not clean or any(clean.startswith(p) for p in _PRIVATE_PREFIXES) or clean in ("objects", "uploads"):
+            raise InputError("capture_ref", f"{ref!r} is not a reference to a capture in storage")
+        try:
+            self.arts.ref_path(clean)
+            key = self.arts.ref_fingerprint(clean)
+        except ArtifactError as exc:
+            raise InputError("capture_ref", str(exc)) from None
+        except FileNotFoundError:
+            raise InputError("capture_ref", f"{ref!r}: no such file or folder in storage") from None
+        return f"ref:{clean}", key
+
+    def read_manifest(self, ref: str) -> list[str]:
+        """The storage references listed in a manifest file (one a line, ``#`` comments)."""
+        clean = ref.strip().strip("/")
+        if not clean or any(clean.startswith(p) for p in _PRIVATE_PREFIXES):
+            raise InputError("manifest", f"{ref!r} is not a reference to a file in storage")
+        try:
+            with self.arts.fs.open(self.arts.ref_path(clean), "rb") as f:
+                data = f.read(4 << 20)
+        except (FileNotFoundError, ArtifactError, IsADirectoryError):
+            raise InputError("manifest", f"{ref!r}: no such file in storage") from None
+        try:
+            text = data.decode("utf-8")
+        except UnicodeDecodeError:
+            raise InputError(ref, "manifest is not UTF-8 text") from None
+        return [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
+
+    def make_job(self, key: ApiKey, kind: str, capture_ref: str, capture_key: str, name: str,
+                 params: dict[str, Any], batch: str | None) -> Job:  # fmt: skip
+        """Record the job and publish its ready stages."""
+        from workers.dispatch import publish_stages
+
+        batch_id = self.store.batch_for(key.id, batch) if batch else None
+        job, ready = self.store.create_job(
+            key.id,
+            NewJob(kind=kind, capture_ref=capture_ref, capture_key=capture_key, graph=graph_for(kind, params), name=name,
+                   params=params, batch_id=batch_id),  # fmt: skip
+        )
+        publish_stages(ready, self.settings)
+        return job
+
+    # ---- submissions --------------------------------------------------------------------
+    async def _archive(self, f: UploadFile, kind: str) -> tuple[str, str]:
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "upload"
+            await _save(f, path)
+            return await run_in_threadpool(self.store_archive, path, _label(f), kind)
+
+    async def _finished_upload(self, upload_id: str, key: ApiKey, kind: str) -> tuple[str, str, str]:
+        """The capture of an upload session, stored as an object: (capture_ref, capture_key, label)."""
+        up = self.store.get_upload(upload_id, key.id) if ID.match(upload_id) else None
+        if up is None:
+            raise HTTPException(404, f"upload {upload_id} not found")
+        if up.finished:
+            raise HTTPException(409, f"upload {up.id} was already used")
+        label = Path(up.filename).name or "upload"
+        with tempfile.TemporaryDirectory() as tmp:
+            path = Path(tmp) / "upload"
+            await run_in_threadpool(self.arts.assemble_upload, up.id, up.chunks, path)
+            cref, ckey = await run_in_threadpool(self.store_archive, path, label, kind)
+        if not self.store.finish_upload(up.id):
+            raise HTTPException(409, f"upload {up.id} was already used")
+        await run_in_threadpool(self.arts.drop_upload, up.id)
+        return cref, ckey, label
+
+    async def job_from_form(self, form: FormData, key: ApiKey) -> Job:
+        """``POST /v1/jobs`` as multipart: ``capture`` (zip or tar) or ``capture_ref``, optional
+        ``rig`` file, ``kind``, ``name``, ``batch`` and ``params`` (JSON)."""
+        kind = check_kind(str(form.get("kind") or "scan"))
+        name = check_name(form_text(form.get("name")), "name")
+        batch = check_name(form_text(form.get("batch")), "batch")
+        params = _form_params(form)
+        capture, rig = form.get("capture"), form.get("rig")
+        ref = None if isinstance(capture, UploadFile) else form_text(form.get("capture_ref"))
+        if isinstance(rig, UploadFile):
+            params["rig"] = await run_in_threadpool(self.store_rig, await rig.read(1 << 20), rig.filename or "rig")
+        elif rig is not None:
+            raise HTTPException(422, "rig: must be a file")
+        if kind == "probe":
+            cref, ckey = "none:", os.urandom(32).hex()
+            name = name or "probe"
+        elif isinstance(capture, UploadFile):
+            cref, ckey = await self._archive(capture, kind)
+            name = name or _label(capture)
+        elif ref:
+            cref, ckey = await run_in_threadpool(self.resolve_ref, ref)
+            name = name or _ref_name(ref)
+        else:
+            raise HTTPException(422, "capture: a zip or tar file is required in this multipart field")
+        return await run_in_threadpool(self.make_job, key, kind, cref, ckey, name or "", params, batch)
+
+    async def job_from_json(self, body: JobCreate, key: ApiKey) -> Job:
+        """``POST /v1/jobs`` as JSON: ``upload_id`` of an upload session, or ``capture_ref``."""
+        kind = check_kind(body.kind)
+        name = check_name(body.name, "name")
+        batch = check_name(body.batch, "batch")
+        params = check_params(body.params)
+        if kind == "probe":
+            cref, ckey = "none:", os.urandom(32).hex()
+            name = name or "probe"
+        elif body.upload_id:
+            cref, ckey, label = await self._finished_upload(body.upload_id, key, kind)
+            name = name or label
+        elif body.capture_ref:
+            cref, ckey = await run_in_threadpool(self.resolve_ref, body.capture_ref)
+            name = name or _ref_name(body.capture_ref)
+        else:
+            raise HTTPException(422, "body: give upload_id or capture_ref (or send multipart with a capture file)")
+        return await run_in_threadpool(self.make_job, key, kind, cref, ckey, name or "", params, batch)
+
+    async def batch_from_form(self, form: FormData, key: ApiKey) -> tuple[str, list[str], list[dict[str, str]]]:
+        """``POST /v1/batches`` as multipart: files in ``captures``, ``name``, ``kind``, ``params``.
+        Returns the batch name, the ids of the jobs made and the captures refused."""
+        name = check_name(form_text(form.get("name")), "name")
+        if not name:
+            raise HTTPException(422, "name: a batch needs a name")
+        kind = check_kind(str(form.get("kind") or "scan"))
+        params = _form_params(form)
+        jobs: list[str] = []
+        rejected: list[dict[str, str]] = []
+        for f in form.getlist("captures"):
+            if not isinstance(f, UploadFile):
+                raise HTTPException(422, "captures: must be files")
+            try:
+                cref, ckey = await self._archive(f, kind)
+            except InputError as exc:
+                rejected.append({"capture": _label(f), "error": str(exc)})
+                continue
+            job = await run_in_threadpool(self.make_job, key, kind, cref, ckey, _label(f), params, name)
+            jobs.append(job.id)
+        return name, jobs, rejected
+
+    async def batch_from_json(self, body: BatchCreate, key: ApiKey) -> tuple[str, list[str], list[dict[str, str]]]:
+        """``POST /v1/batches`` as JSON: storage references in ``captures`` and/or a ``manifest``."""
+        name = check_name(body.name, "name")
+        if not name:
+            raise HTTPException(422, "name: a batch needs a name")
+        kind = check_kind(body.kind)
+        params = check_params(body.params)
+        refs = list(body.captures)
+        if body.manifest:
+            refs += await run_in_threadpool(self.read_manifest, body.manifest)
+        if len(refs) > MAX_BATCH_REFS:
+            raise HTTPException(422, f"captures: more than {MAX_BATCH_REFS} in one batch")
+        jobs: list[str] = []
+        rejected: list[dict[str, str]] = []
+        for ref in refs:
+            try:
+                cref, ckey = await run_in_threadpool(self.resolve_ref, ref)
+            except InputError as exc:
+                rejected.append({"capture": ref, "error": str(exc)})
+                continue
+            job = await run_in_threadpool(self.make_job, key, kind, cref, ckey, ref.rsplit("/", 1)[-1], params, name)
+            jobs.append(job.id)
+        return name, jobs, rejected
