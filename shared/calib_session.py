@@ -37,6 +37,7 @@ from shared.calibrate import (
     ViewPoints,
     calibrate_camera,
     calibrate_rig,
+    distortion_flags,
     plane_fit_rms,
     projector_corners,
     triangulate_corners,
@@ -247,12 +248,14 @@ def run_session(
     decode: DecodeFn | None = None,
     progress: ProgressFn | None = None,
     window: int | None = None,
+    k3: bool = False,
 ) -> SessionResult:
     """Calibrate a session folder in memory (nothing written). Raises :class:`InputError` on bad input.
 
     ``decode`` maps a pose's capture to its (column, row) maps (default :func:`default_decode`);
     ``progress(done, total, message)`` is called per pose; ``window`` overrides the local
-    homography's window (pixels).
+    homography's window (pixels); ``k3`` estimates the third radial distortion coefficient of
+    both devices (held at 0 by default, see :func:`shared.calibrate.distortion_flags`).
     """
     t0 = time.perf_counter()
     session = load_session(session_dir)
@@ -260,7 +263,7 @@ def run_session(
     t1 = time.perf_counter()
     projector_size = (session.poses[0][1].projector_width, session.poses[0][1].projector_height)
     calibration = calibrate_rig(
-        poses, camera_size, projector_size, units=session.board.units, where=session.root, skipped=skipped
+        poses, camera_size, projector_size, units=session.board.units, where=session.root, skipped=skipped, k3=k3
     )
     t2 = time.perf_counter()
     log.info(
@@ -414,8 +417,9 @@ class CameraOnlyResult:
         }
 
 
-def calibrate_camera_images(paths: Sequence[Path], board: Board) -> CameraOnlyResult:
+def calibrate_camera_images(paths: Sequence[Path], board: Board, *, k3: bool = False) -> CameraOnlyResult:
     """Calibrate a camera from photos of a board; images without the board are skipped with a warning.
+    ``k3`` estimates the third radial distortion coefficient (held at 0 by default).
 
     Raises :class:`InputError` for unreadable images, mixed sizes, fewer than three usable
     images or a degenerate set of views.
@@ -443,5 +447,5 @@ def calibrate_camera_images(paths: Sequence[Path], board: Board) -> CameraOnlyRe
             "board.json", f"the board was not found in any of the {len(paths)} images: board.json does not match them"
         )
     where = Path(paths[0]).parent
-    calibration = calibrate_camera(views, size, where=where, what="camera")
+    calibration = calibrate_camera(views, size, where=where, what="camera", flags=distortion_flags(k3))
     return CameraOnlyResult(calibration=calibration, board=board, images=images)

@@ -1,11 +1,13 @@
 """``graylight calibrate``: a projector-camera rig, or a camera alone, from board captures.
 
-* ``calibrate SESSION_DIR --out rig.json [--export-opencv FILE.yaml] [--report FILE] [--plot FILE]``:
+* ``calibrate SESSION_DIR --out rig.json [--export-opencv FILE.yaml] [--report FILE] [--plot FILE] [--k3]``:
   a session folder (``board.json`` + one ``graycode-v1`` capture per board pose) to ``rig.json``,
   with a report JSON (per-pose reprojection errors of both devices; default ``<out>-report.json``
   beside the rig) and a PNG plot of the residuals (default ``<out>-residuals.png``).
 * ``calibrate --camera-only IMAGES... --board board.json --out camera.json [--export-opencv FILE]``:
   the camera's intrinsics and distortion from photos of a board.
+
+OpenCV's five-parameter distortion model is fitted with k3 held at 0 unless ``--k3`` is given.
 
 Bad input ends with a one-line error naming the file or field, and nothing written.
 """
@@ -54,7 +56,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         def progress(done: int, total: int, message: str) -> None:
             bar.update(task, completed=done / max(total, 1), description=message)
 
-        result = run_session(Path(args.inputs[0]), progress=progress)
+        result = run_session(Path(args.inputs[0]), progress=progress, k3=args.k3)
     report = write_outputs(
         result,
         rig_path=out,
@@ -86,7 +88,7 @@ def _camera_only(args: argparse.Namespace, out: Path) -> int:
         raise InputError("--board", "--camera-only needs --board board.json")
     board = load_board(args.board)
     paths = [Path(p) for p in args.inputs]
-    result = calibrate_camera_images(paths, board)
+    result = calibrate_camera_images(paths, board, k3=args.k3)
     doc = result.to_json()
     if args.export_opencv:
         write_opencv_yaml(Path(args.export_opencv), camera=result.calibration.device, extra={"rms": result.calibration.rms})
@@ -114,6 +116,9 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--camera-only", action="store_true", help="calibrate only a camera from photos of a board")
     p.add_argument("--board", help="board.json (with --camera-only)")
     p.add_argument("--export-opencv", metavar="FILE.yaml", help="also write the numbers as an OpenCV FileStorage YAML")
+    p.add_argument("--k3", action="store_true",
+                   help="also estimate the third radial distortion coefficient (wide-angle lenses; needs poses that "
+                        "reach the image corners; held at 0 by default)")  # fmt: skip
     p.add_argument("--report", help="report JSON (default: <out>-report.json)")
     p.add_argument("--plot", help="residual plot PNG (default: <out>-residuals.png)")
     p.set_defaults(func=_cmd_calibrate)

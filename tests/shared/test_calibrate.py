@@ -340,7 +340,7 @@ def test_cli_calibrate(tmp_path: Path, real_result, monkeypatch, capsys) -> None
     seen = []
 
     def fake_run(path: Path, **kwargs):  # the calibration itself is tested above; this is the CLI layer
-        seen.append(path)
+        seen.append((path, kwargs.get("k3")))
         return real_result
 
     monkeypatch.setattr("shared.calib_session.run_session", fake_run)
@@ -348,7 +348,8 @@ def test_cli_calibrate(tmp_path: Path, real_result, monkeypatch, capsys) -> None
     yaml = tmp_path / "cli" / "rig.yaml"
     session = real_result.session.root
     assert main(["calibrate", str(session), "--out", str(out), "--export-opencv", str(yaml)]) == 0
-    assert seen == [session]
+    assert main(["calibrate", str(session), "--out", str(tmp_path / "k3" / "rig.json"), "--k3"]) == 0
+    assert seen == [(session, False), (session, True)]
     printed = capsys.readouterr().out
     assert "rig from 5 of 5 poses" in printed and str(out) in printed
     assert load_rig(out).baseline > 100
@@ -391,6 +392,22 @@ def test_cli_camera_only(tmp_path: Path, capsys) -> None:
         cv2.FileStorage(str(yaml), cv2.FILE_STORAGE_READ).getNode("camera_matrix").mat(), doc["camera"]["K"]
     )
     assert "camera from 4 of 4 images" in capsys.readouterr().out
+    # k3 is held at exactly 0 unless --k3 frees it.
+    assert doc["camera"]["dist"][4] == 0.0
+    assert main([*args[:-1], str(tmp_path / "k3.json"), "--k3"]) == 0
+    assert json.loads((tmp_path / "k3.json").read_text())["camera"]["dist"][4] != 0.0
+
+
+@needs_real
+@pytest.mark.xdist_group("calibrate_real")
+def test_k3_can_be_estimated_on_the_real_session(real_result, decode_cache) -> None:
+    free = run_session(real_result.session.root, decode=decode_cache, k3=True).calibration
+    held = real_result.calibration
+    assert held.rig.camera.dist[4] == 0.0 and held.rig.projector.dist[4] == 0.0
+    assert free.rig.camera.dist[4] != 0.0 and free.rig.projector.dist[4] != 0.0
+    # One more free parameter: the fit can only come out about as good or better.
+    assert free.camera_rms <= held.camera_rms * 1.02 and free.projector_rms <= held.projector_rms * 1.02
+    assert abs(free.rig.baseline / held.rig.baseline - 1) < 0.01
 
 
 # ---------------------------------------------------------------------------------------------
