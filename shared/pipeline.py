@@ -89,10 +89,11 @@ def _require_rig(capture: Capture) -> Rig:
     return load_rig(capture.rig)
 
 
-def decode_stage(capture_dir: Path, out_dir: Path) -> dict[str, Any]:
-    """Decode a capture and write ``out_dir/decoded.npz``; returns the decode statistics."""
+def decode_stage(capture_dir: Path, out_dir: Path, progress: Callable[[float], None] | None = None) -> dict[str, Any]:
+    """Decode a capture and write ``out_dir/decoded.npz``; returns the decode statistics.
+    ``progress`` is called with the fraction of images read, in [0, 1]."""
     capture = load_capture(capture_dir)
-    decoded = decode_capture(capture)
+    decoded = decode_capture(capture, progress=progress)
     save_decoded(decoded, Path(out_dir) / DECODED_FILE)
     return decoded.stats
 

@@ -19,6 +19,7 @@ import logging
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -223,11 +224,12 @@ def render_preview(
     budget: int = DEFAULT_BUDGET,
     edl: float = 0.0,
     renderer: str = "auto",
+    progress: Callable[[float], None] | None = None,
 ) -> dict:
     """Render a flythrough of ``tiles_dir`` to ``out_path`` (MP4) and its poster PNG.
 
     ``renderer`` is "auto" (OpenGL when a hardware GPU is there, else the CPU rasteriser),
-    "cpu" or "gl". Returns a report: video, poster, frames, width, height, fps, seconds,
+    "cpu" or "gl". ``progress`` is called with the fraction of frames written. Returns a report: video, poster, frames, width, height, fps, seconds,
     points (loaded), mean_points_per_frame, render_seconds, render_fps, elapsed_seconds.
     """
     import imageio_ffmpeg
@@ -273,6 +275,8 @@ def render_preview(
                     if not cv2.imwrite(str(tmp_poster), rgb[:, :, ::-1]):
                         raise OSError(f"could not write {tmp_poster}")
                 writer.send(np.ascontiguousarray(rgb))
+                if progress is not None:
+                    progress((k + 1) / frames)
         finally:
             if it is not None:
                 it.close()

@@ -14,6 +14,7 @@ chunk, independent) and :func:`shared.octree.merge_tiles` (one task).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from shared.octree import build_tiles
@@ -37,11 +38,14 @@ def preview_stage(
     seconds: float = 10.0,
     fps: int = 30,
     renderer: str = "auto",
+    progress: Callable[[float], None] | None = None,
 ) -> dict:
     """Render a preview flythrough of ``tiles_dir`` to ``out_path`` (MP4) plus a poster PNG.
 
-    ``renderer``: "auto" (OpenGL on a hardware GPU, else the CPU rasteriser), "cpu" or "gl".
+    ``renderer``: "auto" (OpenGL on a hardware GPU, else the CPU rasteriser), "cpu" or "gl";
+    ``progress`` is called with the fraction of frames written.
     """
     return render_preview(
-        Path(tiles_dir), Path(out_path), path=path, size=size, seconds=seconds, fps=fps, renderer=renderer
-    )
+        Path(tiles_dir), Path(out_path), path=path, size=size, seconds=seconds, fps=fps, renderer=renderer,
+        progress=progress,
+    )  # fmt: skip

@@ -9,7 +9,9 @@ and its new state in the database; the stages it unblocks are published.
    that object (a retry, a duplicate, an identical earlier job), finish at once.
 3. Otherwise fetch the inputs to local folders, run the adapter into a temporary folder
    while a heartbeat thread renews the lease, store the folder under the key (atomic),
-   and mark the stage succeeded — only if the lease is still ours.
+   and mark the stage succeeded — only if the lease is still ours. When the lease is lost
+   (the job was cancelled, or the reconciler gave the stage to another worker), the stage
+   stops at its next progress report (:class:`LeaseLost`) and nothing is stored.
 
 Bad input (:class:`~shared.errors.InputError`) fails the stage with its one-line reason
 and is never retried; transient faults (connections, timeouts) give the stage back to
@@ -74,6 +76,11 @@ def worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
+class LeaseLost(Exception):
+    """Raised in a running stage, from its progress callback, once its lease is gone: the job
+    was cancelled or the stage was given to another worker, so its work would be dropped."""
+
+
 class Heartbeat(threading.Thread):
     """Renews a stage's lease every ``interval`` seconds and carries its progress; notes when
     the lease is lost (the reconciler gave the stage to someone else, or the job was cancelled)."""
@@ -89,6 +96,9 @@ class Heartbeat(threading.Thread):
         self._stop_event = threading.Event()
 
     def set_progress(self, fraction: float) -> None:
+        """The stage's progress callback; raises :class:`LeaseLost` when the lease is gone."""
+        if self.lost.is_set():
+            raise LeaseLost(f"stage {self.stage_id} lost its lease")
         self.progress = fraction
 
     def run(self) -> None:
@@ -211,6 +221,9 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
         if publish and newly:
             publish_stages(newly, settings)
         return Outcome("reused" if reused else "succeeded", stage_id)
+    except LeaseLost:
+        log.info("job %s stage %s: lease lost (cancelled or reassigned); stopped", job.id, stage.name)
+        return Outcome("lost", stage_id)
     except InputError as exc:
         msg = _user_facing(exc, job, settings)
         store.fail_stage(stage_id, token, msg)

@@ -74,7 +74,7 @@ def run_decode(ctx: StageContext) -> dict[str, Any]:
     from shared.pipeline import decode_stage
 
     assert ctx.capture_dir is not None
-    return _jsonable(decode_stage(ctx.capture_dir, ctx.out_dir))
+    return _jsonable(decode_stage(ctx.capture_dir, ctx.out_dir, progress=ctx.progress))
 
 
 def run_triangulate(ctx: StageContext) -> dict[str, Any]:
@@ -148,14 +148,16 @@ def run_preview(ctx: StageContext) -> dict[str, Any]:
         if not (isinstance(size, list | tuple) and len(size) == 2 and all(isinstance(v, int) for v in size)):
             raise InputError("params.preview.size", f"must be [width, height] in pixels, got {size!r}")
         options["size"] = (int(size[0]), int(size[1]))
-    return _jsonable(preview_stage(ctx.inputs["tiles"], ctx.out_dir / "preview.mp4", **options))
+    return _jsonable(preview_stage(ctx.inputs["tiles"], ctx.out_dir / "preview.mp4", progress=ctx.progress, **options))
 
 
 def run_calibrate(ctx: StageContext) -> dict[str, Any]:
     from shared.calibrate import calibrate_session  # type: ignore[attr-defined]
 
     assert ctx.capture_dir is not None
-    return _jsonable(calibrate_session(ctx.capture_dir, ctx.out_dir))
+    return _jsonable(
+        calibrate_session(ctx.capture_dir, ctx.out_dir, progress=lambda done, total, _msg: ctx.progress(done / max(total, 1)))
+    )
 
 
 #: Longest a probe stage may sleep, seconds.

@@ -328,7 +328,9 @@ def create_app(settings: Settings | None = None) -> FastAPI:
 
     @app.post("/v1/jobs/{job_id}/cancel", response_model=JobOut, tags=["jobs"])
     def cancel_job(job_id: str, key: Key) -> JobOut:
-        """Cancel a queued or running job (a running stage's result is dropped)."""
+        """Cancel a queued or running job. A running stage stops at its next progress report
+        after its next heartbeat (decode, preview and calibration report often) and stores
+        nothing."""
         job = owned_job(job_id, key)
         if svc.store.cancel_job(job.id) is None:
             raise HTTPException(409, f"job {job.id} is already {job.state}")

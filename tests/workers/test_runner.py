@@ -130,3 +130,34 @@ def test_tiles_fan_out_into_chunk_stages_and_merge(tmp_path: Path, small_capture
     meta = json.loads((tiles / "metadata.json").read_text())
     cloud = arts.fetch(done.stage("triangulate").output_key, tmp_path / "cache") / "cloud.ply"
     assert meta["points"] == len(read_ply(cloud)) > 1000  # every point once, over all chunks
+
+
+def test_cancel_stops_a_running_stage_at_its_next_progress_report(tmp_path: Path) -> None:
+    import threading
+    import time
+
+    settings = make_env(tmp_path / "svc").settings
+    store = JobStore(settings.database_url)
+    owner, _ = store.create_key("c")
+    seconds = 60.0  # the longest probe: far longer than cancelling takes
+    job, ready = store.create_job(owner.id, NewJob(kind="probe", capture_ref="none:", capture_key="c" * 64,
+                                                   graph=graph_for("probe"), params={"seconds": seconds}))  # fmt: skip
+    result = {}
+
+    def run() -> None:
+        t0 = time.monotonic()
+        result["outcome"] = run_stage(ready[0].id, settings, publish=False)
+        result["ran"] = time.monotonic() - t0
+
+    worker = threading.Thread(target=run)
+    worker.start()
+    # Cancel once the stage has reported progress through a heartbeat (it is running).
+    while store.get_job(job.id).stage("probe").progress == 0.0 and worker.is_alive():
+        time.sleep(0.05)
+    assert store.cancel_job(job.id) is not None
+    worker.join(seconds + 30)
+    assert result["outcome"].status == "lost"
+    # It stopped instead of sleeping its minute out, and stored nothing.
+    assert result["ran"] < seconds
+    final = store.get_job(job.id)
+    assert final.state == "cancelled" and final.stage("probe").output_key is None
