@@ -27,6 +27,11 @@ Each axis whose images fit in memory (up to 480 MB: any 8-bit capture up to 15 M
 in one pass by a numba kernel working through bands of camera rows: every bit plane of a row is
 classified into row buffers that stay in cache, then the same row's codes are resolved and its
 sub-pixel edges placed, so each image is read once and only the outputs go back to memory.
+The loops are written for LLVM's vectoriser: bit planes are classified in narrow integers
+(int16 differences for 8-bit images, scaled only where a confidence or an edge needs them),
+codes are resolved level by level over a whole row without branches, and values are loaded
+before any conditional expression (numba turns a load inside one into a branch, which keeps
+a loop scalar).
 Larger axes stream in batches of pattern/inverse pairs (about 160 MB of images at a time) into
 whole-frame code planes. A small thread pool reads images ahead (PNG decoding releases the
 GIL): the row patterns load while the columns are decoded. Working memory is about 25 bytes
