@@ -492,14 +492,36 @@ def _grey_rgb(grey, shift, out):  # pragma: no cover
 # --------------------------------------------------------------------------- threads
 
 
+def _own_running() -> int:
+    """Runnable threads of this process right now (the caller among them), from
+    /proc/self/task; 1 when unknown."""
+    n = 0
+    try:
+        tasks = list(Path("/proc/self/task").iterdir())
+    except OSError:
+        return 1
+    for task in tasks:
+        try:
+            stat = (task / "stat").read_text()
+        except OSError:
+            continue  # the thread has ended
+        # The state letter follows the command name, which may itself hold ") ".
+        n += stat[stat.rindex(")") + 2 : stat.rindex(")") + 3] == "R"
+    return max(n, 1)
+
+
 def _others_running() -> int:
-    """Runnable threads on the machine right now besides the caller (from /proc/loadavg); the
-    core count when unknown, so that the load average alone decides."""
+    """Runnable threads of other processes right now (from /proc/loadavg, less this
+    process's own: OpenMP's workers spin for a while after each parallel kernel and would
+    count as load); the core count when unknown, so that the load average alone decides."""
+    # Own threads first: one that stops spinning before loadavg is read then errs towards
+    # "not busy", which is what this count is for.
+    own = _own_running()
     try:
         running = int(Path("/proc/loadavg").read_text().split()[3].split("/")[0])
     except (OSError, ValueError, IndexError):
         return os.cpu_count() or 1
-    return running - 1
+    return max(running - own, 0)
 
 
 def kernel_threads() -> int:

@@ -215,3 +215,41 @@ def test_real_capture_decodes_at_least_90_percent_of_lit_pixels() -> None:
     both = decoded[:, 1:] & decoded[:, :-1] & lit[:, 1:] & lit[:, :-1]
     step = np.abs(np.diff(dec.column, axis=1))[both]
     assert np.median(step) < 1.5 and np.mean(step > 8) < 0.01
+
+
+def test_thread_choice_counts_other_processes_not_our_own_threads() -> None:
+    """kernel_threads() drops to one thread only for load from other processes: OpenMP's
+    workers spin after each kernel and must not make the decoder think the machine is busy."""
+    import subprocess
+    import sys
+    import threading
+    import time
+
+    import numba
+
+    from shared.decode import _others_running, _own_running
+
+    @numba.njit(nogil=True)
+    def spin(n: int) -> int:  # pragma: no cover
+        x = np.uint64(88172645463325252)  # xorshift: a loop the compiler cannot shorten
+        for _ in range(n):
+            x ^= x << np.uint64(13)
+            x ^= x >> np.uint64(7)
+            x ^= x << np.uint64(17)
+        return x
+
+    spin(1)
+    busy = threading.Thread(target=spin, args=(1_000_000_000,))
+    busy.start()
+    try:
+        time.sleep(0.3)
+        assert busy.is_alive() and _own_running() >= 2  # the caller and the spinning thread
+    finally:
+        busy.join()
+    burner = subprocess.Popen([sys.executable, "-c", "import time\nt = time.time()\nwhile time.time() - t < 10: pass"])
+    try:
+        time.sleep(0.5)
+        assert _others_running() >= 1
+    finally:
+        burner.kill()
+        burner.wait()
