@@ -317,6 +317,16 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ou
     return n_sub
 
 
+@numba.njit(inline="always")
+def _row_scratch(W, q, levels):  # pragma: no cover
+    """Row buffers of the code resolution and the sub-pixel step, once per band: blk, sel
+    (int32), qa, qb (q's dtype), pos, val (float64), jx (int64), frac (float64), all (W,), and
+    the level histogram (levels,) int64."""
+    return (np.empty(W, np.int32), np.empty(W, np.int32), np.empty(W, q.dtype), np.empty(W, q.dtype),
+            np.empty(W, np.float64), np.empty(W, np.float64), np.empty(W, np.int64), np.empty(W, np.float64),
+            np.zeros(levels, np.int64))  # fmt: skip
+
+
 #: Camera rows per parallel work item: few enough items to keep launches cheap, enough to
 #: balance two threads; row buffers are allocated once per item.
 _BAND = 16
@@ -361,15 +371,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
         q = np.empty((nq, W), diff.dtype)
         a1 = np.empty(W, diff.dtype)
         a2 = np.empty(W, diff.dtype)
-        blk = np.empty(W, np.int32)
-        sel = np.empty(W, np.int32)
-        qa = np.empty(W, diff.dtype)
-        qb = np.empty(W, diff.dtype)
-        pos = np.empty(W, np.float64)
-        val = np.empty(W, np.float64)
-        jx = np.empty(W, np.int64)
-        frac = np.empty(W, np.float64)
-        hist = np.zeros(max_level - lowest + 1, np.int64)
+        blk, sel, qa, qb, pos, val, jx, frac, hist = _row_scratch(W, q, max_level - lowest + 1)
         for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
             wr = white[y]
             br = black[y]
@@ -446,15 +448,7 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
     full = (1 << nbits) - 1
     kq = np.zeros(W, np.float32)  # unread: q is already scaled
     for band in numba.prange((H + _BAND - 1) // _BAND):
-        blk = np.empty(W, np.int32)
-        sel = np.empty(W, np.int32)
-        qa = np.empty(W, q.dtype)
-        qb = np.empty(W, q.dtype)
-        pos = np.empty(W, np.float64)
-        val = np.empty(W, np.float64)
-        jx = np.empty(W, np.int64)
-        frac = np.empty(W, np.float64)
-        hist = np.zeros(max_level - lowest + 1, np.int64)
+        blk, sel, qa, qb, pos, val, jx, frac, hist = _row_scratch(W, q, max_level - lowest + 1)
         for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
             hist[:] = 0
             _resolve_row(signs[y], weak[y], lit[y], full, lowest, max_level, n_proj, blk, level[y], value[y], sel,
