@@ -1,8 +1,8 @@
-"""Root pytest fixtures: simulated captures from the virtual rig (:mod:`shared.simulate`).
+"""Root pytest fixtures: simulated captures from the virtual rig (:mod:`shared.sim.simulate`).
 
 - ``sim_capture_factory(scene, size=(2048, 1536), seed=0, **kw) -> Path``: renders a capture once per
   test session (cached by its arguments) and returns the folder (``capture.json``, ``rig.json``,
-  ``truth.npz``, images). ``kw`` goes to :class:`shared.simulate.ImagingParams` (e.g. ``colour=True``,
+  ``truth.npz``, images). ``kw`` goes to :class:`shared.sim.simulate.ImagingParams` (e.g. ``colour=True``,
   ``bits=16``, ``noise=False``, ``inverses=False``), plus ``projector=(w, h)``. Under pytest-xdist the
   workers share one cache (a file lock makes the first worker render and the others wait), so each
   capture is rendered once per run. Treat the folder as read-only: other tests share it.
@@ -24,7 +24,7 @@ import pytest
 
 @pytest.fixture(scope="session")
 def sim_capture_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., Path]:
-    from shared.simulate import ImagingParams, simulate_named
+    from shared.sim.simulate import ImagingParams, simulate_named
 
     base = tmp_path_factory.getbasetemp()
     # xdist gives each worker its own basetemp under one shared run folder: cache there.

@@ -24,8 +24,8 @@ from celery import Celery
 from celery.schedules import crontab
 from celery.signals import worker_process_init
 
-from shared.config import Settings, get_settings
-from shared.jobs import all_stage_specs, longest_time_limit
+from shared.service.config import Settings, get_settings
+from shared.service.jobs import all_stage_specs, longest_time_limit
 from workers.dispatch import task_name
 
 log = logging.getLogger(__name__)
@@ -137,7 +137,7 @@ def get_app(settings: Settings | None = None) -> Celery:
 @worker_process_init.connect
 def _after_fork(**_kwargs: Any) -> None:
     # A forked child must not share the parent's pooled database connections.
-    from shared.jobstore import dispose_engines
+    from shared.service.jobstore import dispose_engines
 
     dispose_engines()
 

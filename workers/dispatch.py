@@ -9,15 +9,15 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable
 
-from shared.config import Settings
-from shared.jobstore import Stage
+from shared.service.config import Settings
+from shared.service.jobstore import Stage
 
 log = logging.getLogger(__name__)
 
 
 def task_name(stage: str) -> str:
     """The Celery task that runs stage ``stage`` (a map stage's rows share their spec's task)."""
-    from shared.jobs import base_name
+    from shared.service.jobs import base_name
 
     return f"graylight.stage.{base_name(stage)}"
 

@@ -25,10 +25,10 @@ import logging
 import time
 from dataclasses import asdict, dataclass
 
-from shared.artifacts import ArtifactError, ArtifactStore
-from shared.config import Settings
-from shared.jobs import JobState, StageState, stage_key, stage_spec
-from shared.jobstore import JobStore, Stage
+from shared.service.artifacts import ArtifactError, ArtifactStore
+from shared.service.config import Settings
+from shared.service.jobs import JobState, StageState, stage_key, stage_spec
+from shared.service.jobstore import JobStore, Stage
 from workers.dispatch import publish_stages
 
 log = logging.getLogger(__name__)

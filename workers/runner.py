@@ -13,7 +13,7 @@ and its new state in the database; the stages it unblocks are published.
    (the job was cancelled, or the reconciler gave the stage to another worker), the stage
    stops at its next progress report (:class:`LeaseLost`) and nothing is stored.
 
-Bad input (:class:`~shared.errors.InputError`) fails the stage with its one-line reason
+Bad input (:class:`~shared.core.errors.InputError`) fails the stage with its one-line reason
 and is never retried; transient faults (connections, timeouts) give the stage back to
 the queue and are retried with backoff by Celery; anything else fails the stage.
 """
@@ -30,12 +30,12 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-from shared.archive import ArchiveLimits, extract_archive
-from shared.artifacts import ArtifactError, ArtifactStore
-from shared.config import Settings
-from shared.errors import InputError
-from shared.jobs import CAPTURE, GRAPHS, base_name, fanout_index, root_file, stage_key, stage_spec
-from shared.jobstore import Job, JobStore, Stage
+from shared.core.errors import InputError
+from shared.service.archive import ArchiveLimits, extract_archive
+from shared.service.artifacts import ArtifactError, ArtifactStore
+from shared.service.config import Settings
+from shared.service.jobs import CAPTURE, GRAPHS, base_name, fanout_index, root_file, stage_key, stage_spec
+from shared.service.jobstore import Job, JobStore, Stage
 from workers.stages import STAGE_FUNCS, StageContext
 
 log = logging.getLogger(__name__)

@@ -1,4 +1,4 @@
-"""Stage adapters: what each stage of :data:`shared.jobs.GRAPHS` calls, in the job service.
+"""Stage adapters: what each stage of :data:`shared.service.jobs.GRAPHS` calls, in the job service.
 
 Each adapter takes a :class:`StageContext` (local folders of the capture and of the
 upstream stages' outputs, an empty output folder, the job's parameters) and calls the
@@ -16,8 +16,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from shared.capture import load_capture, write_json_atomic
-from shared.errors import InputError
+from shared.core.errors import InputError
+from shared.formats.capture import load_capture, write_json_atomic
 
 log = logging.getLogger(__name__)
 
@@ -55,7 +55,7 @@ def _rig_for(ctx: StageContext) -> Path:
 
 
 def run_ingest(ctx: StageContext) -> dict[str, Any]:
-    from shared.pipeline import ingest_stage
+    from shared.scan.pipeline import ingest_stage
 
     assert ctx.capture_dir is not None
     capture = ingest_stage(ctx.capture_dir, rig=ctx.rig_path)
@@ -71,14 +71,14 @@ def run_ingest(ctx: StageContext) -> dict[str, Any]:
 
 
 def run_decode(ctx: StageContext) -> dict[str, Any]:
-    from shared.pipeline import decode_stage
+    from shared.scan.pipeline import decode_stage
 
     assert ctx.capture_dir is not None
     return _jsonable(decode_stage(ctx.capture_dir, ctx.out_dir, progress=ctx.progress))
 
 
 def run_triangulate(ctx: StageContext) -> dict[str, Any]:
-    from shared.pipeline import triangulate_stage
+    from shared.scan.pipeline import triangulate_stage
 
     decoded = ctx.inputs["decode"] / "decoded.npz"
     return _jsonable(triangulate_stage(decoded, _rig_for(ctx), ctx.out_dir))
@@ -86,7 +86,7 @@ def run_triangulate(ctx: StageContext) -> dict[str, Any]:
 
 def run_tiles_plan(ctx: StageContext) -> dict[str, Any]:
     """Tiles pass 1: bounds and chunks; the summary's ``fanout`` is the number of chunks."""
-    from shared.octree import plan_tiles
+    from shared.render.octree import plan_tiles
 
     options = ctx.params.get("tiles") or {}
     if not isinstance(options, dict) or set(options) - {"max_chunk", "max_leaf"}:
@@ -105,7 +105,7 @@ def _link(src: Path, dst: Path) -> None:
 
 def run_tiles_chunk(ctx: StageContext) -> dict[str, Any]:
     """Tiles pass 2 for chunk ``ctx.index`` (one subtree), independent of every other chunk."""
-    from shared.octree import PLAN_FILE, build_chunk
+    from shared.render.octree import PLAN_FILE, build_chunk
 
     assert ctx.index is not None
     plan_dir = ctx.inputs["tiles_plan"]
@@ -118,7 +118,7 @@ def run_tiles_chunk(ctx: StageContext) -> dict[str, Any]:
 
 def run_tiles(ctx: StageContext) -> dict[str, Any]:
     """Tiles pass 3: merge every chunk's nodes into the Potree 2.0 folder (the fan-in)."""
-    from shared.octree import PLAN_FILE, merge_tiles
+    from shared.render.octree import PLAN_FILE, merge_tiles
 
     work = ctx.out_dir.parent / "merge"
     work.mkdir()
@@ -135,7 +135,7 @@ PREVIEW_OPTIONS = frozenset({"path", "size", "seconds", "fps"})
 
 
 def run_preview(ctx: StageContext) -> dict[str, Any]:
-    from shared.render_stages import preview_stage  # type: ignore[import-not-found]
+    from shared.render.stages import preview_stage  # type: ignore[import-not-found]
 
     options = dict(ctx.params.get("preview") or {})
     if not isinstance(ctx.params.get("preview") or {}, dict):
@@ -152,7 +152,7 @@ def run_preview(ctx: StageContext) -> dict[str, Any]:
 
 
 def run_calibrate(ctx: StageContext) -> dict[str, Any]:
-    from shared.calibrate import calibrate_session  # type: ignore[attr-defined]
+    from shared.calib.calibrate import calibrate_session  # type: ignore[attr-defined]
 
     assert ctx.capture_dir is not None
     return _jsonable(

@@ -34,17 +34,17 @@ from starlette.datastructures import FormData
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from services.api.intake import ID, BatchCreate, Intake, JobCreate, check_params
-from shared.artifacts import ArtifactStore
-from shared.config import Settings, get_settings
-from shared.errors import InputError
-from shared.jobs import (
+from shared.core.errors import InputError
+from shared.service.artifacts import ArtifactStore
+from shared.service.config import Settings, get_settings
+from shared.service.jobs import (
     JobState,
     StageState,
     fanout_index,
     stage_key,
     stage_spec,
 )
-from shared.jobstore import ApiKey, Batch, Job, JobStore, Stage
+from shared.service.jobstore import ApiKey, Batch, Job, JobStore, Stage
 
 log = logging.getLogger(__name__)
 

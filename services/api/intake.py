@@ -2,12 +2,12 @@
 captures -> queued jobs.
 
 In: the parsed form or body of ``POST /v1/jobs`` and ``POST /v1/batches`` and the caller's
-API key. Out: :class:`~shared.jobstore.Job` records whose ready stages are published, and for
+API key. Out: :class:`~shared.service.jobstore.Job` records whose ready stages are published, and for
 batches the captures refused at intake with their one-line reasons. Captures are zip or tar
-archives (inspected by :func:`shared.archive.inspect_archive` before anything is stored, then
+archives (inspected by :func:`shared.service.archive.inspect_archive` before anything is stored, then
 kept as content-addressed objects), finished upload sessions, or references to files already
 in storage. Errors name the field or file: ``HTTPException`` 404/409/422, or
-:class:`~shared.errors.InputError` (422) from the checks in ``shared/``.
+:class:`~shared.core.errors.InputError` (422) from the checks in ``shared/``.
 
 The routes in :mod:`services.api.app` only pick the form or the body and hand it here.
 """
@@ -26,13 +26,13 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 from starlette.datastructures import FormData, UploadFile
 
-from shared.archive import ArchiveLimits, inspect_archive
-from shared.artifacts import ArtifactError, ArtifactStore, sha256_file
-from shared.config import Settings
-from shared.errors import InputError
-from shared.jobs import GRAPHS, graph_for, root_file
-from shared.jobstore import ApiKey, Job, JobStore, NewJob
-from shared.rig import parse_rig
+from shared.core.errors import InputError
+from shared.formats.rig import parse_rig
+from shared.service.archive import ArchiveLimits, inspect_archive
+from shared.service.artifacts import ArtifactError, ArtifactStore, sha256_file
+from shared.service.config import Settings
+from shared.service.jobs import GRAPHS, graph_for, root_file
+from shared.service.jobstore import ApiKey, Job, JobStore, NewJob
 
 ID = re.compile(r"^[0-9a-f-]{36}$")
 _NAME = re.compile(r"^[\w .,:+@()\[\]-]{1,200}$")

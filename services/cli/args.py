@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import re
 
-from shared.errors import InputError
+from shared.core.errors import InputError
 
 
 def parse_size(text: str, where: str, *, lo: int = 0, hi: int | None = None) -> tuple[int, int]:

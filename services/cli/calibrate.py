@@ -37,7 +37,7 @@ def _progress_bar():  # type: ignore[no-untyped-def]
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from shared.errors import InputError
+    from shared.core.errors import InputError
 
     out = Path(args.out)
     if out.suffix.lower() != ".json":
@@ -48,7 +48,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         raise InputError("SESSION_DIR", f"give exactly one session folder (or use --camera-only), got {len(args.inputs)}")
     if args.board:
         raise InputError("--board", "only with --camera-only: a session folder carries its own board.json")
-    from shared.calib_session import run_session, write_outputs
+    from shared.calib.session import run_session, write_outputs
 
     with _progress_bar() as bar:
         task = bar.add_task("", total=1.0)
@@ -79,10 +79,10 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 
 
 def _camera_only(args: argparse.Namespace, out: Path) -> int:
-    from shared.board import load_board
-    from shared.calib_session import calibrate_camera_images, write_opencv_yaml
-    from shared.capture import write_json_atomic
-    from shared.errors import InputError
+    from shared.calib.board import load_board
+    from shared.calib.session import calibrate_camera_images, write_opencv_yaml
+    from shared.core.errors import InputError
+    from shared.formats.capture import write_json_atomic
 
     if not args.board:
         raise InputError("--board", "--camera-only needs --board board.json")

@@ -22,8 +22,8 @@ import time
 from pathlib import Path
 from typing import Any
 
-from shared.config import get_settings
-from shared.errors import GraylightError, InputError
+from shared.core.errors import GraylightError, InputError
+from shared.service.config import get_settings
 
 log = logging.getLogger(__name__)
 
@@ -186,7 +186,7 @@ def hold_beat_lock(settings: Any) -> None:
 
 # ---- keys -------------------------------------------------------------------------------------
 def cmd_keys_create(args: argparse.Namespace) -> int:
-    from shared.jobstore import JobStore
+    from shared.service.jobstore import JobStore
 
     name = args.name.strip()
     if not name or len(name) > 200:
@@ -197,7 +197,7 @@ def cmd_keys_create(args: argparse.Namespace) -> int:
 
 
 def cmd_keys_list(args: argparse.Namespace) -> int:
-    from shared.jobstore import JobStore
+    from shared.service.jobstore import JobStore
 
     for k in JobStore(get_settings().database_url).list_keys():
         print(f"{k.prefix}\t{k.name}\t{time.strftime('%Y-%m-%d %H:%M', time.gmtime(k.created_at))}")
@@ -205,7 +205,7 @@ def cmd_keys_list(args: argparse.Namespace) -> int:
 
 
 def cmd_keys_revoke(args: argparse.Namespace) -> int:
-    from shared.jobstore import JobStore
+    from shared.service.jobstore import JobStore
 
     if not JobStore(get_settings().database_url).revoke_key(args.prefix):
         raise InputError(args.prefix, "no key with this prefix")
@@ -300,7 +300,7 @@ class Client:
 
 
 def _as_archive(path: Path, tmp: Path) -> Path:
-    from shared.archive import pack_folder
+    from shared.service.archive import pack_folder
 
     if path.is_dir():
         return pack_folder(path, tmp / f"{path.name or 'capture'}.zip")

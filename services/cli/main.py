@@ -1,7 +1,7 @@
 """Entry point of the ``graylight`` command.
 
 Each command group lives in its own module with a ``register(subparsers)`` function;
-``COMMAND_MODULES`` lists them. A :class:`~shared.errors.GraylightError` ends the
+``COMMAND_MODULES`` lists them. A :class:`~shared.core.errors.GraylightError` ends the
 command with its one-line message on stderr and exit status 1.
 """
 
@@ -12,7 +12,7 @@ import importlib
 import logging
 import sys
 
-from shared.errors import GraylightError
+from shared.core.errors import GraylightError
 
 COMMAND_MODULES = [
     "services.cli.scan",

@@ -6,11 +6,11 @@ import argparse
 from pathlib import Path
 
 from services.cli.args import parse_size
-from shared.errors import InputError
+from shared.core.errors import InputError
 
 
 def _tiles(args: argparse.Namespace) -> int:
-    from shared.render_stages import tiles_stage
+    from shared.render.stages import tiles_stage
 
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", f"must be at least 1, got {args.workers}")
@@ -24,7 +24,7 @@ def _tiles(args: argparse.Namespace) -> int:
 
 
 def _preview(args: argparse.Namespace) -> int:
-    from shared.render_stages import preview_stage
+    from shared.render.stages import preview_stage
 
     report = preview_stage(
         Path(args.tiles),

@@ -1,7 +1,7 @@
 """``graylight scan``, ``graylight patterns`` and ``graylight import-sequence``.
 
 * ``scan CAPTURE --out OUT [--rig FILE]``: the whole single-view scan in-process
-  (:func:`shared.pipeline.scan`) with a progress bar on stderr; prints where the results are.
+  (:func:`shared.scan.pipeline.scan`) with a progress bar on stderr; prints where the results are.
 * ``patterns --projector WxH --out DIR [--no-rows]``: the Gray-code pattern images to show on a
   projector, plus a ``capture.json`` template naming the camera images to take of them.
 * ``import-sequence DIR --projector WxH [--white N --black M]``: writes ``DIR/capture.json``
@@ -15,14 +15,14 @@ import sys
 from pathlib import Path
 
 from services.cli.args import parse_size
-from shared.errors import InputError
+from shared.core.errors import InputError
 
 # OpenCV and the capture modules load inside the commands that use them, so other commands
 # (``graylight tiles`` ...) start without them.
 
 
 def _projector_size(text: str) -> tuple[int, int]:
-    from shared.capture import MAX_PROJECTOR_SIDE
+    from shared.formats.capture import MAX_PROJECTOR_SIDE
 
     return parse_size(text, "--projector", lo=2, hi=MAX_PROJECTOR_SIDE)
 
@@ -31,7 +31,7 @@ def _cmd_scan(args: argparse.Namespace) -> int:
     from rich.console import Console
     from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
 
-    from shared.pipeline import scan
+    from shared.scan.pipeline import scan
 
     console = Console(stderr=True)
     with Progress(
@@ -57,7 +57,7 @@ def _cmd_scan(args: argparse.Namespace) -> int:
 def _write_png_atomic(path: Path, image) -> None:
     import cv2
 
-    from shared.files import atomic_file
+    from shared.core.files import atomic_file
 
     with atomic_file(path, suffix=".png") as tmp:
         if not cv2.imwrite(str(tmp), image):
@@ -65,8 +65,8 @@ def _write_png_atomic(path: Path, image) -> None:
 
 
 def _cmd_patterns(args: argparse.Namespace) -> int:
-    from shared.capture import write_capture
-    from shared.graycode import capture_for_names, pattern_sequence
+    from shared.formats.capture import write_capture
+    from shared.scan.graycode import capture_for_names, pattern_sequence
 
     w, h = _projector_size(args.projector)
     out = Path(args.out)
@@ -82,7 +82,7 @@ def _cmd_patterns(args: argparse.Namespace) -> int:
 
 
 def _cmd_import(args: argparse.Namespace) -> int:
-    from shared.capture import code_bits, numbered_frames, opencv_order_capture, write_capture
+    from shared.formats.capture import code_bits, numbered_frames, opencv_order_capture, write_capture
 
     w, h = _projector_size(args.projector)
     folder = Path(args.dir)

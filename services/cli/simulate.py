@@ -2,7 +2,7 @@
 
 ``graylight simulate --scene bunny --out DIR [--size 2048x1536] [--projector 1024x768] [--seed N]
 [--colour] [--bits 16] [--no-rows] [--no-inverses] [--force]`` writes a ``graycode-v1`` capture folder with
-``rig.json`` and ``truth.npz`` (see :mod:`shared.simulate`).
+``rig.json`` and ``truth.npz`` (see :mod:`shared.sim.simulate`).
 """
 
 from __future__ import annotations
@@ -18,7 +18,7 @@ log = logging.getLogger(__name__)
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:
-    from shared.scenes import SCENES
+    from shared.sim.scenes import SCENES
 
     p = subparsers.add_parser(
         "simulate",
@@ -39,7 +39,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from shared.simulate import ImagingParams, simulate_named
+    from shared.sim.simulate import ImagingParams, simulate_named
 
     size = parse_size(args.size, "--size", lo=2)
     projector = parse_size(args.projector, "--projector", lo=2)

@@ -19,14 +19,14 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.board import Board, detect_board
-from shared.calib_session import run_session
-from shared.calibrate import PoseCorners, calibrate_rig, nearest_code_corners, projector_corners
-from shared.capture import numbered_frames, opencv_order_capture, write_capture
-from shared.datapaths import shared_data_dir
-from shared.decode import decode_capture
-from shared.images import read_grey
-from shared.simulate_calibration import simulate_session
+from shared.calib.board import Board, detect_board
+from shared.calib.calibrate import PoseCorners, calibrate_rig, nearest_code_corners, projector_corners
+from shared.calib.session import run_session
+from shared.core.datapaths import shared_data_dir
+from shared.formats.capture import numbered_frames, opencv_order_capture, write_capture
+from shared.formats.images import read_grey
+from shared.scan.decode import decode_capture
+from shared.sim.calibration import simulate_session
 
 # Issue 3 targets.
 TARGET = {"f_pct": 0.2, "pp_px": 2.0, "rot_deg": 0.05, "baseline_pct": 0.3, "cam_rms": 0.2, "proj_rms": 0.3}
@@ -47,7 +47,7 @@ def _simulated(tmp: Path) -> None:
     errs = {"local homography (sub-pixel decode)": [], "plain, integer decode": [], "plain, sub-pixel decode": []}
     t_h = 0.0
     for pose in sim.poses:
-        from shared.capture import load_capture
+        from shared.formats.capture import load_capture
 
         cap = load_capture(sim.root / pose.name)
         white = read_grey(cap.white)

@@ -6,7 +6,7 @@
   stage function's end to the database recording success (artifact stored, state updated,
   successors queued). The peer is calling the same stage function in-process.
 * Jobs per minute on small simulated captures (160x120 camera, scan stages only), with one
-  and with two worker processes, beside ``shared.pipeline.scan`` run in-process on the same
+  and with two worker processes, beside ``shared.scan.pipeline.scan`` run in-process on the same
   captures one after another.
 
 Real Redis (database 11, a private queue prefix), SQLite, real ``graylight worker`` processes.
@@ -19,9 +19,9 @@ import tempfile
 import time
 from pathlib import Path
 
-from shared.artifacts import ArtifactStore, sha256_file
-from shared.jobs import graph_for
-from shared.jobstore import JobStore, NewJob
+from shared.service.artifacts import ArtifactStore, sha256_file
+from shared.service.jobs import graph_for
+from shared.service.jobstore import JobStore, NewJob
 from tests.workers import jobsvc
 from workers.dispatch import publish_stages
 
@@ -88,7 +88,7 @@ def queue_overhead(senv: jobsvc.ServiceEnv) -> None:
 
 
 def jobs_per_minute(root: Path, captures: list[Path]) -> None:
-    from shared.pipeline import scan
+    from shared.scan.pipeline import scan
 
     # Warm up first (imports, compiled kernels), as the workers below are warmed on one job.
     scan(captures[0].parent / "folder", root / "embedded-warm")
@@ -130,7 +130,7 @@ def jobs_per_minute(root: Path, captures: list[Path]) -> None:
 
 
 def main() -> None:
-    from shared.simulate import simulate_named
+    from shared.sim.simulate import simulate_named
 
     with tempfile.TemporaryDirectory(prefix="graylight-bench-queue-") as tmp:
         root = Path(tmp)

@@ -21,13 +21,13 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.camera_path import make_path
-from shared.octree import build_tiles
-from shared.ply import CLOUD_DTYPE, read_header
-from shared.potree import open_tiles
-from shared.preview import DEFAULT_BUDGET, LoadedScene, frame_camera, frame_selection, load_scene
-from shared.raster import GLRasterizer, Rasterizer
-from shared.render_stages import preview_stage
+from shared.formats.ply import CLOUD_DTYPE, read_header
+from shared.formats.potree import open_tiles
+from shared.render.camera_path import make_path
+from shared.render.octree import build_tiles
+from shared.render.preview import DEFAULT_BUDGET, LoadedScene, frame_camera, frame_selection, load_scene
+from shared.render.raster import GLRasterizer, Rasterizer
+from shared.render.stages import preview_stage
 
 F_SCAN = 1400.0  # focal length (px) of the simulated scanner camera
 

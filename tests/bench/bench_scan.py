@@ -1,7 +1,7 @@
 """Scanner benchmark: decode throughput against OpenCV, real-capture robustness, 15 MP end-to-end.
 
 1. Decode throughput on one in-memory image stack (real capture_0, 1280x1024, 42 frames):
-   ours (:func:`shared.decode.decode_stack`, sub-pixel, columns and rows) against OpenCV's
+   ours (:func:`shared.scan.decode.decode_stack`, sub-pixel, columns and rows) against OpenCV's
    ``GrayCodePattern.decode`` (its only mode takes two cameras: the same stack is passed twice and
    its time halved), alternating in three rounds; the median of the rounds' ratios is the figure.
    Target: ours >= 20x OpenCV.
@@ -28,9 +28,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.capture import numbered_frames, opencv_order_capture
-from shared.datapaths import shared_data_dir
-from shared.decode import decode_capture, decode_stack
+from shared.core.datapaths import shared_data_dir
+from shared.formats.capture import numbered_frames, opencv_order_capture
+from shared.scan.decode import decode_capture, decode_stack
 
 REPO = Path(__file__).resolve().parents[2]
 REAL = shared_data_dir() / "procam-kamino410"
@@ -108,7 +108,7 @@ def _capture_15mp() -> Path:
     folder = Path(tempfile.gettempdir()) / "graylight-bench" / "bunny-4480x3360-s0"
     if (folder / "capture.json").is_file():
         return folder
-    from shared.simulate import simulate_named
+    from shared.sim.simulate import simulate_named
 
     t0 = time.perf_counter()
     simulate_named("bunny", folder, size=(4480, 3360), seed=0, overwrite=True)

@@ -14,7 +14,7 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.api.app import create_app
-from shared.jobstore import JobStore
+from shared.service.jobstore import JobStore
 from tests.workers import jobsvc
 from workers.runner import run_stage
 
@@ -252,9 +252,9 @@ def test_uploaded_rig_replaces_a_missing_one(api, capture: Path, tmp_path: Path)
 
 @pytest.mark.slow
 def test_calibrate_job(api, tmp_path: Path) -> None:
-    from shared.archive import pack_folder
-    from shared.rig import load_rig
-    from shared.simulate_calibration import simulate_session
+    from shared.formats.rig import load_rig
+    from shared.service.archive import pack_folder
+    from shared.sim.calibration import simulate_session
 
     client, senv, alice, _bob = api
     session = simulate_session(tmp_path / "session", n_poses=5, camera_size=(320, 240), projector_size=(128, 96),

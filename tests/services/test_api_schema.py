@@ -14,7 +14,7 @@ from hypothesis import HealthCheck, settings
 from schemathesis.checks import not_a_server_error
 
 from services.api.app import create_app
-from shared.jobstore import JobStore
+from shared.service.jobstore import JobStore
 from tests.workers import jobsvc
 
 # Schemathesis reads the schema when the module is collected, so the app is built here, in

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 
 from services.cli.main import main
-from shared.capture import load_capture
-from shared.datapaths import shared_data_dir
-from shared.ply import read_ply
+from shared.core.datapaths import shared_data_dir
+from shared.formats.capture import load_capture
+from shared.formats.ply import read_ply
 from tests.shared.synthetic_plane import render_plane_capture
 
 REPO = Path(__file__).resolve().parents[2]

@@ -1,6 +1,6 @@
 """Web viewer (services/viewer): routes, and the page in a real headless Chromium.
 
-The browser tests build Potree 2.0 tiles with ``shared.octree.build_tiles`` from synthetic
+The browser tests build Potree 2.0 tiles with ``shared.render.octree.build_tiles`` from synthetic
 scans (analytic scenes ray-cast from a virtual scanner, so every point carries the scanner's
 world sample size Z / f), serve them with the viewer's routes from a real uvicorn server on
 127.0.0.1 and drive Debian's Chromium through Playwright (WebGL2 on SwiftShader).
@@ -32,7 +32,7 @@ from fastapi.staticfiles import StaticFiles
 from fastapi.testclient import TestClient
 
 from services.viewer import routes
-from shared.ply import write_ply
+from shared.formats.ply import write_ply
 
 pytestmark = pytest.mark.xdist_group("viewer")
 
@@ -238,7 +238,7 @@ TILE_SETS = {"job-scene": (scan_scene, 4000), "wall": (scan_wall, 4000), "blob":
 @pytest.fixture(scope="module")
 def build(tiles_root: Path) -> Callable[[str], Path]:
     """Build a tile set of :data:`TILE_SETS` once per test process (workers only build what they run)."""
-    from shared.octree import build_tiles
+    from shared.render.octree import build_tiles
 
     def make(name: str) -> Path:
         out = tiles_root / name
@@ -332,7 +332,7 @@ def test_routes_without_built_assets_say_how_to_build(tmp_path: Path) -> None:
 @pytest.mark.slow
 def test_page_loads_job_tiles_and_renders(served, browser, build) -> None:
     server, log = served
-    from shared.potree import open_tiles
+    from shared.formats.potree import open_tiles
 
     tiles = open_tiles(build("job-scene"))
     total = tiles.points
@@ -496,7 +496,7 @@ def test_seed_sizing_closes_holes_on_a_close_wall(served, browser, build) -> Non
 
 @pytest.mark.slow
 def test_deep_hierarchy_with_proxy_chunks_loads_every_node_without_ranges(served, browser, build) -> None:
-    from shared.potree import open_tiles
+    from shared.formats.potree import open_tiles
 
     tiles = open_tiles(build("blob"))
     depth = max(n.level for n in tiles.nodes.values())

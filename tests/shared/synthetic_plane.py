@@ -15,9 +15,9 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.capture import code_bits, write_capture
-from shared.graycode import capture_for_names, gray_encode
-from shared.rig import Device, Rig, save_rig
+from shared.formats.capture import code_bits, write_capture
+from shared.formats.rig import Device, Rig, save_rig
+from shared.scan.graycode import capture_for_names, gray_encode
 
 
 @dataclass

@@ -13,8 +13,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shared.archive import ArchiveLimits, extract_archive, inspect_archive, pack_folder
-from shared.errors import InputError
+from shared.core.errors import InputError
+from shared.service.archive import ArchiveLimits, extract_archive, inspect_archive, pack_folder
 
 LIMITS = ArchiveLimits(max_files=50, max_unpacked_bytes=20 << 20, max_compression_ratio=100,
                        max_image_pixels=4_000_000, max_image_side=4096)  # fmt: skip

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from shared.artifacts import ArtifactError, ArtifactStore
+from shared.service.artifacts import ArtifactError, ArtifactStore
 from tests.workers.jobsvc import moto_server
 
 

@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.board import Board, detect_board, load_board, parse_board
-from shared.errors import InputError
+from shared.calib.board import Board, detect_board, load_board, parse_board
+from shared.core.errors import InputError
 
 CHESS = {"kind": "chessboard", "inner_corners": [9, 7], "square_size": 75.0}
 CHARUCO = {

@@ -15,9 +15,8 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.board import Board, parse_board
-from shared.calib_session import calibrate_camera_images, default_decode, run_session, write_outputs
-from shared.calibrate import (
+from shared.calib.board import Board, parse_board
+from shared.calib.calibrate import (
     ViewPoints,
     calibrate_camera,
     calibrate_session,
@@ -25,10 +24,11 @@ from shared.calibrate import (
     projector_corners,
     triangulate_corners,
 )
-from shared.capture import Capture, numbered_frames, opencv_order_capture, write_capture
-from shared.datapaths import shared_data_dir
-from shared.errors import InputError
-from shared.rig import load_rig
+from shared.calib.session import calibrate_camera_images, default_decode, run_session, write_outputs
+from shared.core.datapaths import shared_data_dir
+from shared.core.errors import InputError
+from shared.formats.capture import Capture, numbered_frames, opencv_order_capture, write_capture
+from shared.formats.rig import load_rig
 
 REAL = shared_data_dir() / "procam-kamino410"
 REAL_BOARD = {"kind": "chessboard", "inner_corners": [9, 7], "square_size": 75.0}
@@ -343,7 +343,7 @@ def test_cli_calibrate(tmp_path: Path, real_result, monkeypatch, capsys) -> None
         seen.append((path, kwargs.get("k3")))
         return real_result
 
-    monkeypatch.setattr("shared.calib_session.run_session", fake_run)
+    monkeypatch.setattr("shared.calib.session.run_session", fake_run)
     out = tmp_path / "cli" / "rig.json"
     yaml = tmp_path / "cli" / "rig.yaml"
     session = real_result.session.root
@@ -470,9 +470,9 @@ def test_session_folder_errors(tmp_path: Path) -> None:
 
 def _synthetic_rig_poses(seed: int, n: int = 8, cam_noise: float = 0.04, proj_noise: float = 0.02):
     """Corners of n board poses seen by a true virtual rig, with detection noise (no rendering)."""
-    from shared.calibrate import PoseCorners
-    from shared.simulate import make_rig
-    from shared.simulate_calibration import random_board_poses
+    from shared.calib.calibrate import PoseCorners
+    from shared.sim.calibration import random_board_poses
+    from shared.sim.simulate import make_rig
 
     rig = make_rig(seed=seed)
     board = Board("chessboard", (14, 10), 25.0)
@@ -489,7 +489,7 @@ def _synthetic_rig_poses(seed: int, n: int = 8, cam_noise: float = 0.04, proj_no
 
 
 def test_calibrate_rig_tolerates_bad_pairs_and_a_bad_pose(caplog) -> None:
-    from shared.calibrate import PoseCorners, calibrate_rig
+    from shared.calib.calibrate import PoseCorners, calibrate_rig
 
     true, poses = _synthetic_rig_poses(seed=5)
     rng = np.random.default_rng(9)

@@ -21,19 +21,19 @@ import numpy as np
 import pytest
 
 import shared
-from shared.board import Board, parse_board
-from shared.calibrate import calibrate_session
-from shared.capture import load_capture
-from shared.decode import decode_capture
-from shared.rig import Rig, load_rig
-from shared.scenes import build_scene
-from shared.simulate import ImagingParams, compute_truth, simulate_capture
-from shared.simulate_calibration import (
+from shared.calib.board import Board, parse_board
+from shared.calib.calibrate import calibrate_session
+from shared.formats.capture import load_capture
+from shared.formats.rig import Rig, load_rig
+from shared.scan.decode import decode_capture
+from shared.scan.triangulate import triangulate
+from shared.sim.calibration import (
     SimulatedSession,
     load_simulated_session,
     simulate_session,
 )
-from shared.triangulate import triangulate
+from shared.sim.scenes import build_scene
+from shared.sim.simulate import ImagingParams, compute_truth, simulate_capture
 
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("calibrate_simulated")]
 

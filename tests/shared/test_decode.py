@@ -10,11 +10,11 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.capture import load_capture, numbered_frames, opencv_order_capture
-from shared.datapaths import shared_data_dir
-from shared.decode import Decoded, decode_capture, decode_stack, load_decoded, save_decoded
-from shared.errors import InputError
-from shared.graycode import pattern_sequence
+from shared.core.datapaths import shared_data_dir
+from shared.core.errors import InputError
+from shared.formats.capture import load_capture, numbered_frames, opencv_order_capture
+from shared.scan.decode import Decoded, decode_capture, decode_stack, load_decoded, save_decoded
+from shared.scan.graycode import pattern_sequence
 from tests.shared.synthetic_plane import PlaneTruth, render_plane_capture
 
 REAL = shared_data_dir() / "procam-kamino410"
@@ -141,7 +141,7 @@ def test_streaming_path_equals_one_pass(sim_capture_factory, monkeypatch, kw) ->
     """Axes too large for one pass stream through whole-frame code planes with the int8 ``q``;
     the one-pass kernel keeps raw differences and scales them only where they are read. Both
     must give the same decode, bit for bit."""
-    import shared.decode as decode
+    import shared.scan.decode as decode
 
     cap = load_capture(sim_capture_factory("corner", size=(400, 300), projector=(256, 192), seed=3, **kw))
     one = decode_capture(cap)
@@ -227,7 +227,7 @@ def test_thread_choice_counts_other_processes_not_our_own_threads() -> None:
 
     import numba
 
-    from shared.decode import _others_running, _own_running
+    from shared.scan.decode import _others_running, _own_running
 
     @numba.njit(nogil=True)
     def spin(n: int) -> int:  # pragma: no cover

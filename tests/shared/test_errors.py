@@ -7,7 +7,7 @@ from concurrent.futures import ProcessPoolExecutor
 
 import pytest
 
-from shared.errors import InputError
+from shared.core.errors import InputError
 
 
 def _fail(where: str) -> None:

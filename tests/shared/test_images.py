@@ -8,8 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.errors import InputError
-from shared.images import probe_image, read_colour, read_grey, read_grey_and_colour
+from shared.core.errors import InputError
+from shared.formats.images import probe_image, read_colour, read_grey, read_grey_and_colour
 
 
 def _image(h: int, w: int, channels: int, dtype) -> np.ndarray:

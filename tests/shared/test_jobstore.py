@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from shared.jobs import CAPTURE, JOB_TRANSITIONS, STAGE_TRANSITIONS, StageSpec, graph_for, stage_key
-from shared.jobstore import JobStore, NewJob
+from shared.service.jobs import CAPTURE, JOB_TRANSITIONS, STAGE_TRANSITIONS, StageSpec, graph_for, stage_key
+from shared.service.jobstore import JobStore, NewJob
 from tests.workers.jobsvc import pg_database
 
 DIAMOND = (
@@ -35,7 +35,7 @@ def store(request: pytest.FixtureRequest, tmp_path: Path) -> JobStore:
     url = request.getfixturevalue("pg_url")
     s = JobStore(url)
     # One database per session: start each test from empty tables.
-    from shared.jobstore import Base
+    from shared.service.jobstore import Base
 
     with s.engine.begin() as conn:
         for table in reversed(Base.metadata.sorted_tables):
@@ -62,7 +62,7 @@ def test_keys_are_stored_hashed_and_authenticate(store: JobStore) -> None:
     assert store.authenticate(secret) == rec
     assert store.authenticate(secret + "x") is None
     with store.session() as s:
-        from shared.jobstore import ApiKeyRow
+        from shared.service.jobstore import ApiKeyRow
 
         row = s.get(ApiKeyRow, rec.id)
         assert secret not in (row.key_hash, row.prefix) and len(row.key_hash) == 64

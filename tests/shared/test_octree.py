@@ -8,11 +8,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shared import octree
-from shared.errors import InputError
-from shared.octree import HIERARCHY_STEP, POINT_DTYPE, build_tiles, quantise
-from shared.ply import read_ply, write_ply
-from shared.potree import open_tiles
+from shared.core.errors import InputError
+from shared.formats.ply import read_ply, write_ply
+from shared.formats.potree import open_tiles
+from shared.render import octree
+from shared.render.octree import HIERARCHY_STEP, POINT_DTYPE, build_tiles, quantise
 from tests.bench.bench_render import synthetic_scan
 
 # One worker builds the module's tiles once and runs every test on them.

@@ -10,10 +10,10 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.errors import InputError
-from shared.pipeline import decode_stage, ingest_stage, scan, triangulate_stage
-from shared.ply import read_header, read_ply
-from shared.rig import load_rig, save_rig
+from shared.core.errors import InputError
+from shared.formats.ply import read_header, read_ply
+from shared.formats.rig import load_rig, save_rig
+from shared.scan.pipeline import decode_stage, ingest_stage, scan, triangulate_stage
 from tests.shared.synthetic_plane import PlaneTruth, render_plane_capture
 
 
@@ -91,7 +91,7 @@ def test_ingest_rejects_mixed_sizes_and_mismatched_rigs(tmp_path: Path, small) -
 
 def test_scan_of_a_simulated_colour_16bit_capture(tmp_path: Path, sim_capture_factory) -> None:
     """16-bit colour images (the virtual rig's spheres, with specular highlights) against truth."""
-    from shared.simulate import load_truth
+    from shared.sim.simulate import load_truth
 
     root = sim_capture_factory("spheres", size=(480, 360), seed=2, colour=True, bits=16)
     assert cv2.imread(str(root / "col_00.png"), cv2.IMREAD_UNCHANGED).dtype == np.uint16
@@ -115,7 +115,7 @@ def test_scan_of_a_simulated_colour_16bit_capture(tmp_path: Path, sim_capture_fa
 
 
 def test_failure_while_writing_leaves_nothing(tmp_path: Path, small, monkeypatch: pytest.MonkeyPatch) -> None:
-    import shared.pipeline as pipeline
+    import shared.scan.pipeline as pipeline
 
     root, _ = small
 

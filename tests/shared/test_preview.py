@@ -11,12 +11,12 @@ import imageio_ffmpeg
 import numpy as np
 import pytest
 
-from shared.camera_path import dolly_path, load_path_file, orbit_path
-from shared.errors import InputError
-from shared.octree import build_tiles
-from shared.ply import read_header
-from shared.preview import BACKGROUND, render_preview
-from shared.render_stages import preview_stage, tiles_stage
+from shared.core.errors import InputError
+from shared.formats.ply import read_header
+from shared.render.camera_path import dolly_path, load_path_file, orbit_path
+from shared.render.octree import build_tiles
+from shared.render.preview import BACKGROUND, render_preview
+from shared.render.stages import preview_stage, tiles_stage
 from tests.bench.bench_render import synthetic_scan
 
 # One worker builds the module's tiles once and runs every test on them.
@@ -153,7 +153,7 @@ def test_stages_and_cli(tmp_path: Path) -> None:
 
 
 def test_opengl_renderer_makes_the_same_video(tiles: Path, tmp_path: Path) -> None:
-    from shared.raster import GLRasterizer
+    from shared.render.raster import GLRasterizer
 
     try:
         GLRasterizer(16, 16).release()

@@ -7,7 +7,7 @@ import cv2
 import numpy as np
 import pytest
 
-from shared.raster import Camera, GLRasterizer, NodeTable, Rasterizer, pack_colours, select_nodes
+from shared.render.raster import Camera, GLRasterizer, NodeTable, Rasterizer, pack_colours, select_nodes
 
 
 def _project_cv(cam: Camera, p: np.ndarray) -> np.ndarray:

@@ -9,13 +9,13 @@ import numpy as np
 import pytest
 
 from services.cli.main import main as cli_main
-from shared.capture import load_capture
-from shared.errors import InputError
-from shared.graycode import gray_decode
-from shared.mesh import load_obj, parse_obj
-from shared.rig import load_rig
-from shared.scenes import Material, Scene, TexturedPlane, build_scene, rotation_about
-from shared.simulate import (
+from shared.core.errors import InputError
+from shared.formats.capture import load_capture
+from shared.formats.mesh import load_obj, parse_obj
+from shared.formats.rig import load_rig
+from shared.scan.graycode import gray_decode
+from shared.sim.scenes import Material, Scene, TexturedPlane, build_scene, rotation_about
+from shared.sim.simulate import (
     ImagingParams,
     compute_truth,
     load_truth,
@@ -137,8 +137,8 @@ def test_truth_is_consistent_with_the_rig(scene: str) -> None:
 
 def test_mesh_ray_casting_is_exact_and_watertight() -> None:
     """A tilted square as a fan of triangles gives the same depths as the analytic plane, with no holes."""
-    from shared.mesh import TriangleMesh
-    from shared.scenes import MeshObject
+    from shared.formats.mesh import TriangleMesh
+    from shared.sim.scenes import MeshObject
 
     rig = make_rig(camera_size=SMALL, seed=2)
     R = rotation_about([1, 1, 0], 30.0)
@@ -188,7 +188,7 @@ def test_shadow_boundaries_follow_occluders() -> None:
     rig = make_rig(camera_size=SMALL, seed=0)
     R = np.eye(3)
     wall = TexturedPlane(R, np.array([-600.0, -450.0, 1200.0]), np.full((4, 4), 0.8, np.float32), 300.0)
-    from shared.scenes import Sphere
+    from shared.sim.scenes import Sphere
 
     ball = Sphere(np.array([0.0, 0.0, 950.0]), 60.0)
     truth = compute_truth(Scene("ball", [wall, ball]), rig)

@@ -8,10 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shared.capture import load_capture
-from shared.decode import Decoded, decode_capture
-from shared.rig import Device, load_rig
-from shared.triangulate import Triangulated, triangulate
+from shared.formats.capture import load_capture
+from shared.formats.rig import Device, load_rig
+from shared.scan.decode import Decoded, decode_capture
+from shared.scan.triangulate import Triangulated, triangulate
 from tests.shared.synthetic_plane import PlaneTruth, render_plane_capture
 
 CAM, PROJ = (480, 360), (128, 96)
@@ -96,7 +96,7 @@ def _truth_distances(tri: Triangulated, truth) -> np.ndarray:
 @pytest.mark.slow
 def test_simulated_bunny_2048x1536_against_truth(bunny_capture: Path) -> None:
     """The issue's bar: >= 98 % of lit pixels give a point, <= 0.2 % beyond 5 mm, sub-pixel RMS <= half integer."""
-    from shared.simulate import load_truth
+    from shared.sim.simulate import load_truth
 
     truth = load_truth(bunny_capture)
     rig = load_rig(bunny_capture / "rig.json")

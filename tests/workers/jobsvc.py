@@ -23,7 +23,7 @@ from typing import Any
 
 import pytest
 
-from shared.config import Settings, get_settings
+from shared.service.config import Settings, get_settings
 
 REPO = Path(__file__).resolve().parents[2]
 GRAYLIGHT = str(REPO / ".venv" / "bin" / "graylight")
@@ -170,7 +170,7 @@ def pg_database() -> Iterator[str]:
     try:
         yield PG_ADMIN.rsplit("/", 1)[0].replace("postgresql://", "postgresql+psycopg://") + f"/{name}"
     finally:
-        from shared.jobstore import dispose_engines
+        from shared.service.jobstore import dispose_engines
 
         dispose_engines()
         admin.execute(f'DROP DATABASE IF EXISTS "{name}" WITH (FORCE)')
@@ -205,7 +205,7 @@ def service_env(tmp_path: Path, **extra: str) -> Iterator[ServiceEnv]:
 
 def simulate_small(out: Path) -> Path:
     """A small simulated capture (plane, 160x120 camera, 64x48 projector) with its rig."""
-    from shared.simulate import simulate_named
+    from shared.sim.simulate import simulate_named
 
     simulate_named("plane", out, size=(160, 120), projector=(64, 48), seed=3)
     return out

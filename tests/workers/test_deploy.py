@@ -1,5 +1,5 @@
 """The deploy files parse, name every service the issue asks for, run exactly one beat, and
-document every setting ``shared.config`` reads."""
+document every setting ``shared.service.config`` reads."""
 
 from __future__ import annotations
 

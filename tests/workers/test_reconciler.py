@@ -9,8 +9,8 @@ from pathlib import Path
 
 import redis
 
-from shared.jobs import StageSpec, fanout_index, graph_for, stage_key, stage_spec
-from shared.jobstore import JobStore, NewJob
+from shared.service.jobs import StageSpec, fanout_index, graph_for, stage_key, stage_spec
+from shared.service.jobstore import JobStore, NewJob
 from tests.workers.jobsvc import ServiceEnv
 from workers.reconciler import enqueue_preview_rerender, reconcile_once
 
@@ -96,7 +96,7 @@ def test_nightly_rerender_resets_only_previews(svc_env: ServiceEnv, tmp_path: Pa
 
 
 def test_abandoned_upload_sessions_are_deleted_with_their_chunks(svc_env: ServiceEnv, tmp_path: Path) -> None:
-    from shared.artifacts import ArtifactStore
+    from shared.service.artifacts import ArtifactStore
 
     settings = svc_env.settings
     store = JobStore(settings.database_url)

@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shared.artifacts import ArtifactStore, sha256_file
-from shared.jobs import graph_for
-from shared.jobstore import Job, JobStore, NewJob
-from shared.ply import read_ply
+from shared.formats.ply import read_ply
+from shared.service.artifacts import ArtifactStore, sha256_file
+from shared.service.jobs import graph_for
+from shared.service.jobstore import Job, JobStore, NewJob
 from tests.workers.jobsvc import capture_zip, make_env
 from workers.runner import run_stage
 
@@ -51,7 +51,7 @@ def cloud_points(path: Path) -> np.ndarray:
 
 @pytest.mark.slow
 def test_job_cloud_equals_scan_and_duplicates_do_nothing(tmp_path: Path, small_capture: Path) -> None:
-    from shared.pipeline import scan
+    from shared.scan.pipeline import scan
 
     settings = make_env(tmp_path / "svc").settings
     store, job = submit(settings, capture_zip(small_capture, tmp_path / "c.zip"))

@@ -22,9 +22,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from services.api.app import create_app
-from shared.artifacts import ArtifactStore
-from shared.jobstore import JobStore
-from shared.ply import read_ply
+from shared.formats.ply import read_ply
+from shared.service.artifacts import ArtifactStore
+from shared.service.jobstore import JobStore
 from tests.workers.jobsvc import (
     GRAYLIGHT,
     ServiceEnv,
@@ -76,7 +76,7 @@ def stage_successes(store: JobStore, job_id: str, stage: str) -> int:
 
 
 def test_api_job_matches_scan(pg_env: ServiceEnv, small_capture: Path, tmp_path: Path) -> None:
-    from shared.pipeline import scan
+    from shared.scan.pipeline import scan
 
     svc_env = pg_env  # this one runs on PostgreSQL
 
@@ -192,7 +192,7 @@ def test_redis_restart_strands_nothing(tmp_path: Path, redis_server, small_captu
 
 
 def test_fifty_jobs_with_broken_captures(svc_env: ServiceEnv, tmp_path: Path) -> None:
-    from shared.simulate import simulate_named
+    from shared.sim.simulate import simulate_named
 
     worker = start_worker(svc_env, "cpu", concurrency=2)
     # A tinier capture than elsewhere: fifty of them run here.

@@ -1,6 +1,6 @@
 """Gray-code decoding: camera images of stripe patterns -> sub-pixel projector coordinates.
 
-In: a :class:`~shared.capture.Capture` (white and black frames, column patterns, optional
+In: a :class:`~shared.formats.capture.Capture` (white and black frames, column patterns, optional
 row patterns, each with an optional inverse; 8- or 16-bit, grey or colour).
 Out: a :class:`Decoded` record of per-camera-pixel arrays: projector ``column`` (sub-pixel,
 in projector pixels with OpenCV's convention that pixel centres are integers), projector
@@ -54,10 +54,10 @@ from typing import Any
 import numba
 import numpy as np
 
-from shared.capture import Capture, CodeImage
-from shared.errors import InputError
-from shared.files import atomic_file
-from shared.images import read_grey, read_grey_and_colour
+from shared.core.errors import InputError
+from shared.core.files import atomic_file
+from shared.formats.capture import Capture, CodeImage
+from shared.formats.images import read_grey, read_grey_and_colour
 
 log = logging.getLogger(__name__)
 
@@ -892,7 +892,7 @@ def _decode_inner(
     params: DecodeParams,
     pool: ThreadPoolExecutor | None,
 ) -> Decoded:
-    from shared.capture import code_bits
+    from shared.formats.capture import code_bits
 
     t0 = time.perf_counter()
     pw, ph = projector_size

@@ -13,7 +13,7 @@ Phong specular lobe, and whether it takes part in one-bounce inter-reflection.
 
 Named scenes (``SCENES``, built by :func:`build_scene`): ``plane``, ``spheres``, ``corner``,
 ``bunny``, ``teapot``, ``spot``, ``fandisk``. Mesh scenes read ``meshes/*.obj`` under
-:func:`shared.datapaths.shared_data_dir`; a missing file is an :class:`InputError` naming it.
+:func:`shared.core.datapaths.shared_data_dir`; a missing file is an :class:`InputError` naming it.
 """
 
 from __future__ import annotations
@@ -24,9 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.datapaths import shared_data_dir
-from shared.errors import InputError
-from shared.mesh import TriangleMesh, load_obj
+from shared.core.datapaths import shared_data_dir
+from shared.core.errors import InputError
+from shared.formats.mesh import TriangleMesh, load_obj
 
 
 @dataclass(frozen=True)
@@ -188,7 +188,7 @@ class TexturedPlane:
         larger than a texel use a downsampled copy of the texture (mip level), so the cost per
         sample stays bounded.
         """
-        from shared.raycast import texture_filtered
+        from shared.sim.raycast import texture_filtered
 
         fp = np.asarray(footprint_mm, np.float64) / self.mm_per_texel
         h0, w0 = self._tex.shape[:2]

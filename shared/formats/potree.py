@@ -1,4 +1,4 @@
-"""Reader of Potree 2.0 tiles (our :mod:`shared.octree` output, or PotreeConverter 2's "DEFAULT").
+"""Reader of Potree 2.0 tiles (our :mod:`shared.render.octree` output, or PotreeConverter 2's "DEFAULT").
 
 In: a folder with ``metadata.json``, ``hierarchy.bin`` and ``octree.bin``. Out:
 :class:`PotreeTiles` — metadata, every node of the hierarchy (proxies resolved, the same walk
@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.errors import InputError
+from shared.core.errors import InputError
 
 _TYPES = {
     "int8": "i1", "uint8": "u1", "int16": "<i2", "uint16": "<u2", "int32": "<i4", "uint32": "<u4",

@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from shared.errors import InputError
+from shared.core.errors import InputError
 
 
 @contextmanager

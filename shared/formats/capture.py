@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from shared.errors import InputError
-from shared.files import read_json, write_json_atomic
+from shared.core.errors import InputError
+from shared.core.files import read_json, write_json_atomic
 
 __all__ = ["write_json_atomic"]  # re-exported: stages import it from here
 

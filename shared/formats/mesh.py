@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.errors import InputError
+from shared.core.errors import InputError
 
 
 @dataclass(frozen=True)

@@ -2,7 +2,7 @@
 
 In: a capture folder (``capture.json`` + images, contract ``graycode-v1``) and a ``rig.json``
 (from the capture or given explicitly).
-Out, in an output folder: ``cloud.ply`` (binary little-endian, see :mod:`shared.ply`),
+Out, in an output folder: ``cloud.ply`` (binary little-endian, see :mod:`shared.formats.ply`),
 ``range.npz`` (``z``: (H, W) float32 range image of Z in rig units, NaN holes; ``K`` and
 ``dist`` of the camera; ``units``) and ``report.json`` (counts, per-stage timings, decode and
 triangulation statistics).
@@ -10,7 +10,7 @@ triangulation statistics).
 The job service runs :func:`ingest_stage`, :func:`decode_stage` and :func:`triangulate_stage`
 as separate tasks; :func:`scan` runs the whole in-process (``graylight scan``). Every file is
 written to a temporary name and renamed, so a failure never leaves a half-written file.
-Bad input raises :class:`~shared.errors.InputError` naming the file and the problem.
+Bad input raises :class:`~shared.core.errors.InputError` naming the file and the problem.
 """
 
 from __future__ import annotations
@@ -25,14 +25,14 @@ from typing import Any
 
 import numpy as np
 
-from shared.capture import Capture, load_capture, write_json_atomic
-from shared.decode import Decoded, decode_capture, load_decoded, save_decoded
-from shared.errors import InputError
-from shared.files import atomic_file
-from shared.images import probe_image
-from shared.ply import write_ply
-from shared.rig import Rig, check_rig_matches, load_rig
-from shared.triangulate import Triangulated, triangulate
+from shared.core.errors import InputError
+from shared.core.files import atomic_file
+from shared.formats.capture import Capture, load_capture, write_json_atomic
+from shared.formats.images import probe_image
+from shared.formats.ply import write_ply
+from shared.formats.rig import Rig, check_rig_matches, load_rig
+from shared.scan.decode import Decoded, decode_capture, load_decoded, save_decoded
+from shared.scan.triangulate import Triangulated, triangulate
 
 log = logging.getLogger(__name__)
 

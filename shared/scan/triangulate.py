@@ -1,7 +1,7 @@
 """Triangulation: decoded projector coordinates + calibrated rig -> coloured, oriented 3D points.
 
-In: a :class:`~shared.decode.Decoded` (per camera pixel: sub-pixel projector column, projector
-row, colour) and a :class:`~shared.rig.Rig` (OpenCV pinhole + five-parameter distortion on
+In: a :class:`~shared.scan.decode.Decoded` (per camera pixel: sub-pixel projector column, projector
+row, colour) and a :class:`~shared.formats.rig.Rig` (OpenCV pinhole + five-parameter distortion on
 both devices; ``X_projector = R @ X_camera + T``).
 Out: a :class:`Triangulated`: points in the camera frame in the rig's units, their colours,
 camera-facing unit normals, sample sizes ``Z / f_camera``, the (H, W) range image of Z and
@@ -30,8 +30,8 @@ import cv2
 import numba
 import numpy as np
 
-from shared.decode import Decoded, kernel_thread_scope
-from shared.rig import Device, Rig
+from shared.formats.rig import Device, Rig
+from shared.scan.decode import Decoded, kernel_thread_scope
 
 log = logging.getLogger(__name__)
 

@@ -5,7 +5,7 @@ Out: numpy arrays — grey ``(H, W)`` ``uint8`` or ``uint16``, colour ``(H, W, 3
 order — or an :class:`ImageInfo` read from the header alone.
 
 Every failure on bad input (missing, empty, truncated, corrupt, unsupported, wrong size)
-raises :class:`~shared.errors.InputError` naming the file, so a scan stops with one line
+raises :class:`~shared.core.errors.InputError` naming the file, so a scan stops with one line
 that says which image is at fault. :func:`probe_image` reads only the first few KiB of a
 file, which lets the job service reject a huge image before decoding it.
 """
@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.errors import InputError
+from shared.core.errors import InputError
 
 #: Bytes read by :func:`probe_image`; JPEG headers can sit behind large EXIF blocks.
 _PROBE_BYTES = 1 << 16

@@ -21,8 +21,8 @@ from typing import Any
 
 import numpy as np
 
-from shared.errors import InputError
-from shared.files import read_json, write_json_atomic
+from shared.core.errors import InputError
+from shared.core.files import read_json, write_json_atomic
 
 
 @dataclass(frozen=True)

@@ -1,6 +1,6 @@
 """The virtual rig: physically plausible synthetic Gray-code captures with per-pixel ground truth.
 
-In: a :class:`~shared.scenes.Scene` (surfaces in the camera frame, mm), a :class:`~shared.rig.Rig`
+In: a :class:`~shared.sim.scenes.Scene` (surfaces in the camera frame, mm), a :class:`~shared.formats.rig.Rig`
 (:func:`make_rig` builds a realistic one) and :class:`ImagingParams`. Out: a ``graycode-v1``
 capture folder (``capture.json``, ``rig.json``, ``white.png``, ``black.png``, ``col_NN[_inv].png``,
 ``row_NN[_inv].png``) plus ``truth.npz`` with, per camera pixel (H, W):
@@ -57,10 +57,11 @@ import cv2
 import numpy as np
 from scipy.ndimage import gaussian_filter1d
 
-from shared.capture import Capture, load_capture, write_capture
-from shared.errors import InputError
-from shared.graycode import capture_for_names, pattern_sequence, stripe_bits
-from shared.raycast import (
+from shared.core.errors import InputError
+from shared.formats.capture import Capture, load_capture, write_capture
+from shared.formats.rig import Device, Rig, save_rig
+from shared.scan.graycode import capture_for_names, pattern_sequence, stripe_bits
+from shared.sim.raycast import (
     cast_plane,
     cast_sphere,
     compose_image,
@@ -70,8 +71,7 @@ from shared.raycast import (
     shade_points,
     undistort_grid,
 )
-from shared.rig import Device, Rig, save_rig
-from shared.scenes import (
+from shared.sim.scenes import (
     SCENES,
     Material,
     MeshObject,
@@ -436,7 +436,7 @@ def _projector_terms(rig: Rig, imaging: ImagingParams, P: np.ndarray, n: np.ndar
     """Projector coordinates, lit mask, irradiance factor, blur and specular factor of points (N, 3).
 
     ``sid`` (N,) gives each point's surface in ``scene`` for its specular material; without them
-    there is no specular term. See :func:`shared.raycast.shade_points`.
+    there is no specular term. See :func:`shared.sim.raycast.shade_points`.
     """
     if sid is None or scene is None:
         sid = np.zeros(len(P), np.int64)
@@ -733,7 +733,7 @@ def render_pattern_images(
     imaging: ImagingParams | None = None,
     names: Collection[str] | None = None,
 ) -> tuple[dict[str, np.ndarray], Truth]:
-    """Capture images in memory (name -> image, names as :func:`shared.graycode.pattern_sequence`) and the truth.
+    """Capture images in memory (name -> image, names as :func:`shared.scan.graycode.pattern_sequence`) and the truth.
 
     ``names`` picks some of the images (e.g. ``{"white.png", "col_09.png"}``); each image is the
     same as in the full capture with the same seed. Meant for small sizes and tests;
@@ -780,7 +780,7 @@ def simulate_capture(
     rendered and written one at a time (PNG, low compression), so memory stays a few times the size
     of one image's float buffers even at 15 MP (about 1.9 GB peak there). ``seed`` drives the sensor noise; the same inputs give identical files.
 
-    Returns the written capture (as :func:`shared.capture.load_capture` would read it).
+    Returns the written capture (as :func:`shared.formats.capture.load_capture` would read it).
     """
     imaging = imaging or ImagingParams()
     if imaging.bits not in (8, 16):

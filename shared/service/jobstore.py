@@ -43,7 +43,7 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
-from shared.jobs import (
+from shared.service.jobs import (
     FANOUT_SEP,
     JobState,
     StageSpec,
@@ -860,7 +860,7 @@ class JobStore:
 def open_store(url: str | None = None) -> JobStore:
     """The job store at ``url`` (default: the configured ``GRAYLIGHT_DATABASE_URL``)."""
     if url is None:
-        from shared.config import get_settings
+        from shared.service.config import get_settings
 
         url = get_settings().database_url
     return JobStore(url)

@@ -1,12 +1,12 @@
 """Preview flythrough videos of Potree tiles, rendered headlessly and encoded to H.264 MP4.
 
-In: a tiles folder (:mod:`shared.octree` output), a camera path ("orbit", "dolly" or a JSON
-keyframe file, :mod:`shared.camera_path`), a frame size, duration and rate. Out: an MP4
+In: a tiles folder (:mod:`shared.render.octree` output), a camera path ("orbit", "dolly" or a JSON
+keyframe file, :mod:`shared.render.camera_path`), a frame size, duration and rate. Out: an MP4
 (H.264, yuv420p, via the ffmpeg that ships with imageio-ffmpeg) and a poster PNG beside it
 (same name, ``.png``), both written under temporary names and renamed when complete.
 
 Per frame the octree nodes are chosen by projected size under a point budget
-(:func:`shared.raster.select_nodes`) and drawn by the CPU software rasteriser (or by
+(:func:`shared.render.raster.select_nodes`) and drawn by the CPU software rasteriser (or by
 OpenGL through moderngl when a hardware GPU is present: Mesa's llvmpipe is far slower than
 the CPU rasteriser, so it is never picked automatically); nodes drawn
 without all their children get splats at least as wide as their spacing, so coarse levels
@@ -26,10 +26,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from shared.camera_path import CameraPose, make_path
-from shared.errors import InputError
-from shared.potree import PotreeTiles, open_tiles, tight_bounds
-from shared.raster import Camera, GLRasterizer, NodeTable, Rasterizer, select_nodes
+from shared.core.errors import InputError
+from shared.formats.potree import PotreeTiles, open_tiles, tight_bounds
+from shared.render.camera_path import CameraPose, make_path
+from shared.render.raster import Camera, GLRasterizer, NodeTable, Rasterizer, select_nodes
 
 log = logging.getLogger(__name__)
 

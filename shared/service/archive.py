@@ -11,7 +11,7 @@ the archive stream; no pixel is decoded). Extraction then streams each member, r
 that grows past its declared size (a lying zip header), writes into a temporary folder and
 renames it into place, so a failure leaves nothing behind.
 
-Every problem raises :class:`~shared.errors.InputError` whose ``where`` is
+Every problem raises :class:`~shared.core.errors.InputError` whose ``where`` is
 ``ARCHIVE:MEMBER`` (or the archive alone) and whose message says what is wrong.
 """
 
@@ -32,9 +32,9 @@ from dataclasses import dataclass
 from pathlib import Path, PurePosixPath
 from typing import IO
 
-from shared.capture import CAPTURE_FILE, IMAGE_SUFFIXES
-from shared.errors import InputError
-from shared.files import atomic_file
+from shared.core.errors import InputError
+from shared.core.files import atomic_file
+from shared.formats.capture import CAPTURE_FILE, IMAGE_SUFFIXES
 
 log = logging.getLogger(__name__)
 

@@ -2,7 +2,7 @@
 
 A session is a folder::
 
-    SESSION_DIR/board.json          the printed target (see shared.board)
+    SESSION_DIR/board.json          the printed target (see shared.calib.board)
     SESSION_DIR/<pose>/capture.json one graycode-v1 capture of the board per pose
     SESSION_DIR/<pose>/...          its images
 
@@ -10,7 +10,7 @@ Pose folders are taken in name order; any sub-folder with a ``capture.json`` is 
 Each pose must carry row patterns as well as columns (the projector needs both
 coordinates of every corner). The board is found in the capture's white frame.
 
-Outputs (:func:`write_outputs`): ``rig.json`` (the contract of :mod:`shared.rig`), a
+Outputs (:func:`write_outputs`): ``rig.json`` (the contract of :mod:`shared.formats.rig`), a
 report JSON with per-pose reprojection errors of both devices, an OpenCV FileStorage
 YAML of the same numbers, and a PNG plot of the residuals per pose. Every file is written
 under a temporary name and renamed; ``rig.json`` is written last, so a failure leaves no rig.
@@ -29,8 +29,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from shared.board import BOARD_FILE, Board, Detection, detect_board, load_board
-from shared.calibrate import (
+from shared.calib.board import BOARD_FILE, Board, Detection, detect_board, load_board
+from shared.calib.calibrate import (
     CameraCalibration,
     PoseCorners,
     RigCalibration,
@@ -42,11 +42,11 @@ from shared.calibrate import (
     projector_corners,
     triangulate_corners,
 )
-from shared.capture import CAPTURE_FILE, Capture, load_capture, write_json_atomic
-from shared.errors import InputError
-from shared.files import atomic_file
-from shared.images import read_grey
-from shared.rig import Device, Rig, save_rig
+from shared.core.errors import InputError
+from shared.core.files import atomic_file
+from shared.formats.capture import CAPTURE_FILE, Capture, load_capture, write_json_atomic
+from shared.formats.images import read_grey
+from shared.formats.rig import Device, Rig, save_rig
 
 log = logging.getLogger(__name__)
 
@@ -59,8 +59,8 @@ ProgressFn = Callable[[int, int, str], None]
 
 
 def default_decode(capture: Capture) -> tuple[np.ndarray, np.ndarray]:
-    """Decode with the scanner's own decoder (``shared.decode``), sub-pixel projector coordinates."""
-    from shared.decode import decode_capture
+    """Decode with the scanner's own decoder (``shared.scan.decode``), sub-pixel projector coordinates."""
+    from shared.scan.decode import decode_capture
 
     decoded = decode_capture(capture, subpixel=True)
     return np.asarray(decoded.column, np.float32), np.asarray(decoded.row, np.float32)
@@ -255,7 +255,7 @@ def run_session(
     ``decode`` maps a pose's capture to its (column, row) maps (default :func:`default_decode`);
     ``progress(done, total, message)`` is called per pose; ``window`` overrides the local
     homography's window (pixels); ``k3`` estimates the third radial distortion coefficient of
-    both devices (held at 0 by default, see :func:`shared.calibrate.distortion_flags`).
+    both devices (held at 0 by default, see :func:`shared.calib.calibrate.distortion_flags`).
     """
     t0 = time.perf_counter()
     session = load_session(session_dir)
@@ -317,7 +317,7 @@ def write_opencv_yaml(path: Path, *, rig: Rig | None = None, camera: Device | No
 def plot_residuals(path: Path, poses: Sequence[Any], title: str = "Reprojection residuals") -> Path:
     """PNG plot: per-pose RMS bars for both devices and the residual vectors of every corner (atomic).
 
-    ``poses`` are :class:`~shared.calibrate.PoseResult` records (only used ones are drawn).
+    ``poses`` are :class:`~shared.calib.calibrate.PoseResult` records (only used ones are drawn).
     """
     import matplotlib
 

@@ -31,8 +31,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from shared.errors import InputError
-from shared.files import read_json
+from shared.core.errors import InputError
+from shared.core.files import read_json
 
 log = logging.getLogger(__name__)
 

@@ -38,7 +38,7 @@ import secrets
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from shared.errors import InputError
+from shared.core.errors import InputError
 
 DEFAULT_BROKER_URL = "redis://127.0.0.1:6379/0"
 DEFAULT_API_URL = "http://127.0.0.1:8000"

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.errors import InputError
+from shared.core.errors import InputError
 
 DEFAULT_UP = (0.0, -1.0, 0.0)
 DEFAULT_FOV = 50.0

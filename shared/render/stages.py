@@ -1,15 +1,15 @@
 """Render stages as the job service and the CLI run them: tiles from a cloud, a preview video
 from tiles.
 
-``tiles_stage(cloud_ply, out_dir)`` builds Potree 2.0 tiles (:mod:`shared.octree`);
+``tiles_stage(cloud_ply, out_dir)`` builds Potree 2.0 tiles (:mod:`shared.render.octree`);
 ``preview_stage(tiles_dir, out_path, ...)`` renders an MP4 and a poster PNG
-(:mod:`shared.preview`). Both return a JSON-able report and write their outputs atomically
+(:mod:`shared.render.preview`). Both return a JSON-able report and write their outputs atomically
 (a temporary folder or file renamed when complete), so a failure leaves no finished-looking
-artifact. Bad input raises :class:`shared.errors.InputError`.
+artifact. Bad input raises :class:`shared.core.errors.InputError`.
 
 For fan-out under the job service, the tile build splits into
-:func:`shared.octree.plan_tiles` (one task), :func:`shared.octree.build_chunk` (one task a
-chunk, independent) and :func:`shared.octree.merge_tiles` (one task).
+:func:`shared.render.octree.plan_tiles` (one task), :func:`shared.render.octree.build_chunk` (one task a
+chunk, independent) and :func:`shared.render.octree.merge_tiles` (one task).
 """
 
 from __future__ import annotations
@@ -17,8 +17,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-from shared.octree import build_tiles
-from shared.preview import render_preview
+from shared.render.octree import build_tiles
+from shared.render.preview import render_preview
 
 
 def tiles_stage(cloud_ply: Path, out_dir: Path, *, workers: int | None = None) -> dict:

@@ -1,9 +1,9 @@
 """Simulated calibration sessions: a printed chessboard at random poses under the virtual rig.
 
-In: a rig (by default :func:`shared.simulate.make_rig`), a chessboard or ChArUco board, a number of poses
-and a seed. Out: a session folder in the layout :mod:`shared.calib_session` reads
+In: a rig (by default :func:`shared.sim.simulate.make_rig`), a chessboard or ChArUco board, a number of poses
+and a seed. Out: a session folder in the layout :mod:`shared.calib.session` reads
 (``board.json`` + one ``graycode-v1`` capture per pose, rendered by
-:func:`shared.simulate.simulate_capture` with its noise, blur, distortion and falloff),
+:func:`shared.sim.simulate.simulate_capture` with its noise, blur, distortion and falloff),
 plus ``truth.json`` holding the true rig and each pose's board pose, so tests can compare
 every recovered parameter with the truth. Units are millimetres.
 
@@ -23,11 +23,11 @@ from typing import Any
 
 import numpy as np
 
-from shared.board import BOARD_FILE, Board
-from shared.capture import write_json_atomic
-from shared.rig import Rig, parse_rig
-from shared.scenes import Scene, TexturedPlane, rotation_about
-from shared.simulate import ImagingParams, make_rig, simulate_capture
+from shared.calib.board import BOARD_FILE, Board
+from shared.formats.capture import write_json_atomic
+from shared.formats.rig import Rig, parse_rig
+from shared.sim.scenes import Scene, TexturedPlane, rotation_about
+from shared.sim.simulate import ImagingParams, make_rig, simulate_capture
 
 log = logging.getLogger(__name__)
 
@@ -212,7 +212,7 @@ def simulate_session(
 
 def load_simulated_session(path: str | os.PathLike[str]) -> SimulatedSession:
     """Read back a session written by :func:`simulate_session` (its ``truth.json`` and ``board.json``)."""
-    from shared.board import load_board
+    from shared.calib.board import load_board
 
     root = Path(path).absolute()
     doc = json.loads((root / TRUTH_FILE).read_text(encoding="utf-8"))

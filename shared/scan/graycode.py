@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.capture import Capture, CodeImage, code_bits
+from shared.formats.capture import Capture, CodeImage, code_bits
 
 
 def gray_encode(n: np.ndarray | int) -> np.ndarray:

@@ -36,7 +36,7 @@ from typing import IO, Any
 
 import fsspec
 
-from shared.errors import GraylightError
+from shared.core.errors import GraylightError
 
 log = logging.getLogger(__name__)
 
@@ -417,7 +417,7 @@ class ArtifactStore:
 def open_artifacts(url: str | None = None, s3_endpoint: str | None = None) -> ArtifactStore:
     """The configured artifact store (``GRAYLIGHT_STORAGE_URL``, ``GRAYLIGHT_S3_ENDPOINT``)."""
     if url is None:
-        from shared.config import get_settings
+        from shared.service.config import get_settings
 
         cfg = get_settings()
         url, s3_endpoint = cfg.storage_url, cfg.s3_endpoint

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.errors import InputError
-from shared.files import atomic_file
+from shared.core.errors import InputError
+from shared.core.files import atomic_file
 
 #: Field layout of the clouds Graylight writes (31 bytes per point, packed).
 CLOUD_DTYPE = np.dtype(

@@ -2,7 +2,7 @@
 
 In: board corners seen by the camera (pixels) with their board coordinates (the board's
 units, usually mm), and for a projector-camera session the Gray-code decode of each pose
-(per camera pixel, the projector column and row it sees). Out: a :class:`~shared.rig.Rig`
+(per camera pixel, the projector column and row it sees). Out: a :class:`~shared.formats.rig.Rig`
 (``X_projector = R @ X_camera + T``) with per-pose reprojection errors of both devices.
 
 The projector is calibrated as an inverse camera (Moreno and Taubin, "Simple, Accurate,
@@ -13,7 +13,7 @@ camera, and ``cv2.stereoCalibrate`` refines both devices and their pose together
 Views and corners that fit badly (a shiny patch, a misdetected board) are dropped and the
 fit repeated.
 
-:func:`calibrate_session` runs a whole session folder (see :mod:`shared.calib_session`)
+:func:`calibrate_session` runs a whole session folder (see :mod:`shared.calib.session`)
 and writes ``rig.json`` with its report: it is the stage the CLI and the job service call.
 """
 
@@ -28,8 +28,8 @@ from typing import Any
 import cv2
 import numpy as np
 
-from shared.errors import InputError
-from shared.rig import Device, Rig
+from shared.core.errors import InputError
+from shared.formats.rig import Device, Rig
 
 log = logging.getLogger(__name__)
 
@@ -704,14 +704,14 @@ def calibrate_session(session_dir: Path, out_dir: Path, **kwargs: Any) -> dict[s
     session_dir : a folder with ``board.json`` and one capture folder per pose.
     out_dir : receives ``rig.json``, ``calibration.json`` (report), ``calibration.yaml``
         (OpenCV FileStorage) and ``residuals.png``.
-    kwargs : passed to :func:`shared.calib_session.run_session` (``decode``, ``progress``).
+    kwargs : passed to :func:`shared.calib.session.run_session` (``decode``, ``progress``).
 
     Returns
     -------
     The report document (also written to ``calibration.json``). Raises :class:`InputError`
     on bad input, leaving no ``rig.json`` behind.
     """
-    from shared.calib_session import run_session, write_outputs
+    from shared.calib.session import run_session, write_outputs
 
     out_dir = Path(out_dir)
     result = run_session(Path(session_dir), **kwargs)

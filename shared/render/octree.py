@@ -1,6 +1,6 @@
 """Out-of-core builder of Potree 2.0 level-of-detail tiles from a PLY point cloud.
 
-In: a cloud PLY per :mod:`shared.ply` (``x, y, z`` required; colour, normal and the world
+In: a cloud PLY per :mod:`shared.formats.ply` (``x, y, z`` required; colour, normal and the world
 sample ``size`` = Z / f_camera carried when present). Out: a folder readable by Potree 2.x
 viewers (``OctreeLoader.js``)::
 
@@ -57,8 +57,8 @@ from pathlib import Path
 import numba
 import numpy as np
 
-from shared.errors import InputError
-from shared.ply import CLOUD_DTYPE, iter_ply_chunks, read_header
+from shared.core.errors import InputError
+from shared.formats.ply import CLOUD_DTYPE, iter_ply_chunks, read_header
 
 log = logging.getLogger(__name__)
 
