@@ -1,0 +1,533 @@
+"""Quadtree range-image band codec kernels (private; the public API is :mod:`shared.compress.range`).
+
+A band of rows is coded as one rANS stream of three parts:
+
+1. the validity mask, exactly: per row the lengths of alternating invalid/valid runs (the
+   last run of a row is implied);
+2. the quadtree: every 64x64 block holding a valid sample either splits into four (down
+   to 4x4) or is a leaf with a surface model -- constant, plane, bilinear or quadratic in
+   depth, chosen per block by the estimated code length (Gaussian residual entropy plus the
+   model's bits), so a block straddling a depth discontinuity splits because its residuals
+   cost more than its children's. Model coefficients are integers (fixed point, so encoder
+   and decoder evaluate bit-identical predictions), coded as differences from the previous
+   leaf's model extrapolated to the new block;
+3. the residuals in raster order, each in one of :data:`NCTX` tables chosen by the size of
+   its left and upper neighbours' residuals (the context).
+
+All values are integers in *fine units*: ``FINE = 2**F_SHIFT`` fine units per quantum, so
+that predictions carry sub-quantum precision. Lossless mode codes ``Q = round(z / q)``
+exactly (target ``Q * FINE``); bounded mode codes ``round((t - p) / FINE)`` for the fine
+target ``t`` and prediction ``p`` (reconstruction within half a quantum of ``t``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from shared.compress._rans import (
+    NSYM,
+    bitlen,
+    count_symbols,
+    dec_init,
+    decode_tables,
+    encode_events,
+    get_symbol,
+    get_value,
+    normalise,
+    pack_tables,
+    put,
+    put_value,
+    unpack_tables,
+    unzigzag,
+    zigzag,
+)
+
+TOP = 64  # top block size (a band's height is a multiple of it)
+MINB = 4
+F_SHIFT = 5
+FINE = 1 << F_SHIFT
+A_SHIFT = 3  # slope coefficients in 2**-A_SHIFT fine units per half pixel
+Q_SHIFT = 9  # curvature coefficients in 2**-Q_SHIFT fine units per half pixel squared
+NCTX = 8
+
+T_SPLIT = 0  # 4 tables, one per splittable level (64, 32, 16, 8)
+T_MODEL = 4
+T_C0 = 5
+T_C12 = 6
+T_C345 = 7
+T_RUN = 8  # 2 tables: invalid runs, valid runs
+T_RES = 10
+NTABLES = T_RES + NCTX
+
+L_SPLIT = 1
+L_MODEL = 2
+L_COEF = 4
+L_RUN = 4
+L_RES = 8
+
+#: Parameters of the models 0..3 (constant, plane, bilinear, quadratic) and their estimated bits.
+K_OF = np.array([1, 3, 4, 6], np.int64)
+MODEL_BITS = np.array([8.0, 24.0, 32.0, 48.0])
+TWO_PI_E = 2.0 * math.pi * math.e
+
+assert NSYM >= (1 << L_RES) + 64
+
+
+@njit(cache=True, nogil=True, inline="always")
+def model_eval(m, c, X, Y):
+    """Prediction in fine units of model ``m`` with integer coefficients ``c`` at half-pixel
+    offsets (X, Y) from the block's centre."""
+    p = c[0]
+    if m >= 1:
+        p += (c[1] * X + c[2] * Y) >> A_SHIFT
+    if m >= 2:
+        q = c[3] * X * Y
+        if m == 3:
+            q += c[4] * X * X + c[5] * Y * Y
+        p += q >> Q_SHIFT
+    return p
+
+
+@njit(cache=True, nogil=True)
+def _solve(M, r, idx, k, a):
+    """Least squares by Cholesky on the k x k sub-system ``idx``; False if singular."""
+    L = np.zeros((6, 6))
+    tr = 0.0
+    for i in range(k):
+        tr += M[idx[i], idx[i]]
+    ridge = 1e-12 * tr + 1e-300
+    for i in range(k):
+        for j in range(i + 1):
+            s = M[idx[i], idx[j]]
+            if i == j:
+                s += ridge
+            for m in range(j):
+                s -= L[i, m] * L[j, m]
+            if i == j:
+                if s <= 1e-9 * (M[idx[i], idx[i]] + 1e-300):
+                    return False
+                L[i, i] = math.sqrt(s)
+            else:
+                L[i, j] = s / L[j, j]
+    y = np.zeros(6)
+    for i in range(k):
+        s = r[idx[i]]
+        for m in range(i):
+            s -= L[i, m] * y[m]
+        y[i] = s / L[i, i]
+    for i in range(k - 1, -1, -1):
+        s = y[i]
+        for m in range(i + 1, k):
+            s -= L[m, i] * a[m]
+        a[i] = s / L[i, i]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def fit_block(t, valid, y0, x0, B, coef):
+    """Choose and fit the model of one block: returns (model, estimated bits, valid count);
+    ``coef`` receives the integer coefficients. Model -1 and count 0 for an empty block."""
+    H, W = t.shape
+    M = np.zeros((6, 6))
+    r = np.zeros(6)
+    dd = 0.0
+    n = 0
+    tref = 0.0
+    inv = 1.0 / B
+    b = np.zeros(6)
+    for y in range(y0, min(y0 + B, H)):
+        Y = (2 * (y - y0) - (B - 1)) * inv
+        for x in range(x0, min(x0 + B, W)):
+            if not valid[y, x]:
+                continue
+            if n == 0:
+                tref = float(t[y, x])
+            X = (2 * (x - x0) - (B - 1)) * inv
+            d = float(t[y, x]) - tref
+            b[0] = 1.0
+            b[1] = X
+            b[2] = Y
+            b[3] = X * Y
+            b[4] = X * X
+            b[5] = Y * Y
+            for i in range(6):
+                bi = b[i]
+                r[i] += bi * d
+                for j in range(i, 6):
+                    M[i, j] += bi * b[j]
+            dd += d * d
+            n += 1
+    if n == 0:
+        return -1, 0.0, 0
+    for i in range(6):
+        for j in range(i):
+            M[i, j] = M[j, i]
+    idx = np.array([0, 1, 2, 3, 4, 5])
+    best_m = 0
+    best_cost = 1e300
+    best_a = np.zeros(6)
+    a = np.zeros(6)
+    for m in range(4):
+        k = K_OF[m]
+        if m > 0 and n < 2 * k:
+            break
+        if not _solve(M, r, idx, k, a):
+            continue
+        sse = dd
+        for i in range(k):
+            sse -= a[i] * r[i]
+        dof = n - k if n > k else 1
+        s2 = max(sse, 0.0) / dof / (FINE * FINE)
+        cost = 0.5 * n * math.log2(1.0 + TWO_PI_E * s2) + MODEL_BITS[m]
+        if cost < best_cost:
+            best_cost = cost
+            best_m = m
+            for i in range(6):
+                best_a[i] = a[i] if i < k else 0.0
+    coef[0] = np.int64(round(tref + best_a[0]))
+    coef[1] = np.int64(round(best_a[1] * inv * (1 << A_SHIFT)))
+    coef[2] = np.int64(round(best_a[2] * inv * (1 << A_SHIFT)))
+    coef[3] = np.int64(round(best_a[3] * inv * inv * (1 << Q_SHIFT)))
+    coef[4] = np.int64(round(best_a[4] * inv * inv * (1 << Q_SHIFT)))
+    coef[5] = np.int64(round(best_a[5] * inv * inv * (1 << Q_SHIFT)))
+    return best_m, best_cost, n
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _predict_coefs(pm, pc, px, py, pB, x0, y0, B, out):
+    """The previous leaf's model carried to the centre of block (x0, y0, B)."""
+    Xc = 2 * (x0 - px) + B - pB
+    Yc = 2 * (y0 - py) + B - pB
+    out[0] = model_eval(pm, pc, Xc, Yc)
+    c3 = pc[3] if pm >= 2 else 0
+    c4 = pc[4] if pm == 3 else 0
+    c5 = pc[5] if pm == 3 else 0
+    if pm >= 1:
+        out[1] = pc[1] + ((c3 * Yc + 2 * c4 * Xc) >> (Q_SHIFT - A_SHIFT))
+        out[2] = pc[2] + ((c3 * Xc + 2 * c5 * Yc) >> (Q_SHIFT - A_SHIFT))
+    else:
+        out[1] = 0
+        out[2] = 0
+    out[3] = c3
+    out[4] = c4
+    out[5] = c5
+
+
+@njit(cache=True, nogil=True)
+def _encode_events(t, valid, lossless, tab, val, nb):
+    """Every event of one band; returns the count, or -1 when the event buffers are too small."""
+    H, W = t.shape
+    n = 0
+    # 1. the mask, as run lengths
+    for y in range(H):
+        x = 0
+        state = False
+        while x < W:
+            e = x
+            while e < W and valid[y, e] == state:
+                e += 1
+            n = put_value(tab, val, nb, n, T_RUN + (1 if state else 0), _run_code(x, e, W), L_RUN)
+            x = e
+            state = not state
+    # 2. the quadtree with its leaves' models
+    nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
+    leaves = np.empty((nleaf_max, 4), np.int64)  # x0, y0, B, model
+    lcoef = np.empty((nleaf_max, 6), np.int64)
+    nleaf = 0
+    st_xyb = np.empty((64, 4), np.int64)  # x0, y0, B, level
+    st_fit = np.empty((64, 6), np.int64)
+    st_m = np.empty(64, np.int64)
+    st_cost = np.empty(64, np.float64)
+    pm = 0
+    pc = np.zeros(6, np.int64)
+    px = 0
+    py = 0
+    pB = TOP
+    pred = np.zeros(6, np.int64)
+    coef = np.zeros(6, np.int64)
+    kids = np.zeros((4, 6), np.int64)
+    kid_m = np.zeros(4, np.int64)
+    kid_cost = np.zeros(4)
+    for ty in range(0, H, TOP):
+        for tx in range(0, W, TOP):
+            m, cost, cnt = fit_block(t, valid, ty, tx, TOP, coef)
+            if cnt == 0:
+                continue
+            sp = 0
+            st_xyb[0, 0] = tx
+            st_xyb[0, 1] = ty
+            st_xyb[0, 2] = TOP
+            st_xyb[0, 3] = 0
+            st_fit[0, :] = coef
+            st_m[0] = m
+            st_cost[0] = cost
+            sp = 1
+            while sp > 0:
+                sp -= 1
+                x0 = st_xyb[sp, 0]
+                y0 = st_xyb[sp, 1]
+                B = st_xyb[sp, 2]
+                lev = st_xyb[sp, 3]
+                m = st_m[sp]
+                cost = st_cost[sp]
+                for i in range(6):
+                    coef[i] = st_fit[sp, i]
+                if B > MINB:
+                    h = B // 2
+                    split_cost = 4.0
+                    for k in range(4):
+                        kx = x0 + (k & 1) * h
+                        ky = y0 + (k >> 1) * h
+                        kid_m[k], kid_cost[k], kc = fit_block(t, valid, ky, kx, h, kids[k])
+                        if kc > 0:
+                            split_cost += kid_cost[k]
+                    split = split_cost < cost
+                    n = put(tab, val, nb, n, T_SPLIT + lev, 1 if split else 0, 0)
+                    if split:
+                        for k in range(3, -1, -1):  # pushed in reverse: popped in Z order
+                            if kid_m[k] < 0:
+                                continue
+                            st_xyb[sp, 0] = x0 + (k & 1) * h
+                            st_xyb[sp, 1] = y0 + (k >> 1) * h
+                            st_xyb[sp, 2] = h
+                            st_xyb[sp, 3] = lev + 1
+                            st_fit[sp, :] = kids[k]
+                            st_m[sp] = kid_m[k]
+                            st_cost[sp] = kid_cost[k]
+                            sp += 1
+                        continue
+                # a leaf
+                n = put(tab, val, nb, n, T_MODEL, m, 0)
+                _predict_coefs(pm, pc, px, py, pB, x0, y0, B, pred)
+                n = put_value(tab, val, nb, n, T_C0, zigzag(coef[0] - pred[0]), L_COEF)
+                if m >= 1:
+                    n = put_value(tab, val, nb, n, T_C12, zigzag(coef[1] - pred[1]), L_COEF)
+                    n = put_value(tab, val, nb, n, T_C12, zigzag(coef[2] - pred[2]), L_COEF)
+                if m >= 2:
+                    n = put_value(tab, val, nb, n, T_C345, zigzag(coef[3] - pred[3]), L_COEF)
+                if m == 3:
+                    n = put_value(tab, val, nb, n, T_C345, zigzag(coef[4] - pred[4]), L_COEF)
+                    n = put_value(tab, val, nb, n, T_C345, zigzag(coef[5] - pred[5]), L_COEF)
+                for i in range(6):
+                    if (i >= 1 and m == 0) or (i >= 3 and m == 1) or (i >= 4 and m == 2):
+                        coef[i] = 0
+                leaves[nleaf, 0] = x0
+                leaves[nleaf, 1] = y0
+                leaves[nleaf, 2] = B
+                leaves[nleaf, 3] = m
+                lcoef[nleaf, :] = coef
+                nleaf += 1
+                pm = m
+                pc[:] = coef
+                px = x0
+                py = y0
+                pB = B
+    if n < 0:
+        return -1
+    # 3. residuals in raster order, context from the left and upper neighbours
+    pf = _fill_prediction(H, W, leaves, lcoef, nleaf)
+    up = np.zeros(W, np.uint64)
+    cur = np.zeros(W, np.uint64)
+    for y in range(H):
+        for x in range(W):
+            if not valid[y, x]:
+                cur[x] = up[x]
+                continue
+            p = pf[y, x]
+            if lossless:
+                r = (t[y, x] >> F_SHIFT) - ((p + (FINE >> 1)) >> F_SHIFT)
+            else:
+                r = (t[y, x] - p + (FINE >> 1)) >> F_SHIFT
+            u = zigzag(r)
+            left = cur[x - 1] if x > 0 else up[x]
+            ctx = min(bitlen(left + up[x]), NCTX - 1)
+            n = put_value(tab, val, nb, n, T_RES + ctx, u, L_RES)
+            cur[x] = u
+        up, cur = cur, up
+    return n
+
+
+@njit(cache=True, nogil=True)
+def _fill_prediction(H, W, leaves, lcoef, nleaf):
+    pf = np.zeros((H, W), np.int64)
+    for i in range(nleaf):
+        x0 = leaves[i, 0]
+        y0 = leaves[i, 1]
+        B = leaves[i, 2]
+        m = leaves[i, 3]
+        c = lcoef[i]
+        for y in range(y0, min(y0 + B, H)):
+            Y = 2 * (y - y0) - (B - 1)
+            for x in range(x0, min(x0 + B, W)):
+                pf[y, x] = model_eval(m, c, 2 * (x - x0) - (B - 1), Y)
+    return pf
+
+
+@njit(cache=True, nogil=True)
+def encode_band(t, valid, lossless):
+    """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool.
+    Returns (packed tables uint8, rANS words uint16)."""
+    H, W = t.shape
+    cap = 2 * H * W + 64 * (H + 1) + 4096
+    while True:
+        tab = np.empty(cap, np.int8)
+        val = np.empty(cap, np.int64)
+        nb = np.empty(cap, np.int8)
+        n = _encode_events(t, valid, lossless, tab, val, nb)
+        if n >= 0:
+            break
+        cap *= 4
+    counts = count_symbols(tab, val, n, NTABLES)
+    freq = normalise(counts)
+    words = encode_events(tab, val, nb, n, freq)
+    return pack_tables(freq), words
+
+
+@njit(cache=True, nogil=True)
+def _count(ii, y0, x0, B, H, W):
+    y1 = min(y0 + B, H)
+    x1 = min(x0 + B, W)
+    if y0 >= H or x0 >= W:
+        return 0
+    return ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0]
+
+
+@njit(cache=True, nogil=True)
+def decode_band(tables, words, H, W, lossless, scale, out):
+    """Decode one band into ``out`` (H, W) float32 (NaN where invalid). ``scale`` is the
+    quantum (lossless) or the fine unit (bounded). Returns 0, or -1 for a corrupt stream."""
+    freq, used = unpack_tables(tables, NTABLES)
+    if used < 0 or used != tables.shape[0]:
+        return -1
+    cum, lut = decode_tables(freq)
+    st = dec_init(words)
+    nwords = np.uint64(words.shape[0])
+    valid = np.zeros((H, W), np.bool_)
+    for y in range(H):
+        x = 0
+        state = False
+        while x < W:
+            v = np.int64(get_value(st, words, freq, cum, lut, T_RUN + (1 if state else 0), L_RUN))
+            if x == 0:
+                e = W if v == 0 else v - 1
+            else:
+                e = W if v == 0 else x + v
+            if e > W or st[1] > nwords:
+                return -1
+            if state:
+                valid[y, x:e] = True
+            x = e
+            state = not state
+    ii = np.zeros((H + 1, W + 1), np.int64)
+    for y in range(H):
+        acc = 0
+        for x in range(W):
+            acc += valid[y, x]
+            ii[y + 1, x + 1] = ii[y, x + 1] + acc
+    nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
+    leaves = np.empty((nleaf_max, 4), np.int64)
+    lcoef = np.zeros((nleaf_max, 6), np.int64)
+    nleaf = 0
+    stack = np.empty((64, 4), np.int64)
+    pm = 0
+    pc = np.zeros(6, np.int64)
+    px = 0
+    py = 0
+    pB = TOP
+    pred = np.zeros(6, np.int64)
+    for ty in range(0, H, TOP):
+        for tx in range(0, W, TOP):
+            if _count(ii, ty, tx, TOP, H, W) == 0:
+                continue
+            stack[0, 0] = tx
+            stack[0, 1] = ty
+            stack[0, 2] = TOP
+            stack[0, 3] = 0
+            sp = 1
+            while sp > 0:
+                sp -= 1
+                x0 = stack[sp, 0]
+                y0 = stack[sp, 1]
+                B = stack[sp, 2]
+                lev = stack[sp, 3]
+                if B > MINB:
+                    split = get_symbol(st, words, freq, cum, lut, T_SPLIT + lev)
+                    if split > 1:
+                        return -1
+                    if split == 1:
+                        h = B // 2
+                        for k in range(3, -1, -1):
+                            kx = x0 + (k & 1) * h
+                            ky = y0 + (k >> 1) * h
+                            if _count(ii, ky, kx, h, H, W) == 0:
+                                continue
+                            stack[sp, 0] = kx
+                            stack[sp, 1] = ky
+                            stack[sp, 2] = h
+                            stack[sp, 3] = lev + 1
+                            sp += 1
+                        continue
+                m = np.int64(get_symbol(st, words, freq, cum, lut, T_MODEL))
+                if m > 3 or st[1] > nwords:
+                    return -1
+                _predict_coefs(pm, pc, px, py, pB, x0, y0, B, pred)
+                c = lcoef[nleaf]
+                c[0] = pred[0] + unzigzag(get_value(st, words, freq, cum, lut, T_C0, L_COEF))
+                if m >= 1:
+                    c[1] = pred[1] + unzigzag(get_value(st, words, freq, cum, lut, T_C12, L_COEF))
+                    c[2] = pred[2] + unzigzag(get_value(st, words, freq, cum, lut, T_C12, L_COEF))
+                if m >= 2:
+                    c[3] = pred[3] + unzigzag(get_value(st, words, freq, cum, lut, T_C345, L_COEF))
+                if m == 3:
+                    c[4] = pred[4] + unzigzag(get_value(st, words, freq, cum, lut, T_C345, L_COEF))
+                    c[5] = pred[5] + unzigzag(get_value(st, words, freq, cum, lut, T_C345, L_COEF))
+                leaves[nleaf, 0] = x0
+                leaves[nleaf, 1] = y0
+                leaves[nleaf, 2] = B
+                leaves[nleaf, 3] = m
+                nleaf += 1
+                pm = m
+                pc[:] = c
+                px = x0
+                py = y0
+                pB = B
+    if st[1] > nwords:
+        return -1
+    pf = _fill_prediction(H, W, leaves, lcoef, nleaf)
+    up = np.zeros(W, np.uint64)
+    cur = np.zeros(W, np.uint64)
+    half = FINE >> 1
+    nan = np.float32(np.nan)
+    for y in range(H):
+        for x in range(W):
+            if not valid[y, x]:
+                cur[x] = up[x]
+                out[y, x] = nan
+                continue
+            left = cur[x - 1] if x > 0 else up[x]
+            ctx = min(bitlen(left + up[x]), NCTX - 1)
+            u = get_value(st, words, freq, cum, lut, T_RES + ctx, L_RES)
+            r = unzigzag(u)
+            p = pf[y, x]
+            if lossless:
+                out[y, x] = np.float32((((p + half) >> F_SHIFT) + r) * scale)
+            else:
+                out[y, x] = np.float32((p + (r << F_SHIFT)) * scale)
+            cur[x] = u
+        up, cur = cur, up
+    # A sound stream ends exactly at its last word, in the state the encoder started from.
+    if st[1] != nwords or st[0] != np.uint64(1 << 16):
+        return -1
+    return 0
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _run_code(x, e, W):
+    """The coded value of run [x, e) of a row of width W: 0 means "to the end of the row";
+    the first run (x == 0, possibly empty) is offset by one."""
+    if e >= W:
+        return 0
+    return e - x + 1 if x == 0 else e - x

@@ -1,0 +1,272 @@
+"""Range images (depth on the camera grid) coded by a quadtree of surface models and rANS.
+
+A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
+``range.npz`` a scan writes). Two modes:
+
+- **lossless at a quantum** ``q``: every valid sample decodes to ``float32(round(z / q) * q)``,
+  the nearest multiple of ``q`` (e.g. 0.02 mm, a tenth of the scanner's noise);
+- **error-bounded** ``max_error`` E: every valid sample decodes within E of the input
+  (``|z' - z| <= E``, float32 rounding included).
+
+The validity mask (the non-NaN samples) is always coded exactly. The image is cut into
+bands of :data:`BAND_ROWS` rows, each an independent chunk of the container
+(:mod:`shared.formats.container`, kind ``range``), coded and decoded on a thread pool by
+``nogil`` kernels (:mod:`shared.compress._quadtree`), so memory stays proportional to a few
+bands and both cores work.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import math
+import os
+import struct
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shared.compress import _quadtree as qt
+from shared.core.errors import InputError
+from shared.core.files import atomic_file
+from shared.formats.container import open_container, write_container, write_stream
+
+log = logging.getLogger(__name__)
+
+#: Rows per chunk (a multiple of the quadtree's top block).
+BAND_ROWS = 256
+CODEC = "quadtree-rans-1"
+_U32 = struct.Struct("<I")
+#: Largest |z / quantum|: fine units (32 per quantum) must stay well inside int64.
+_MAX_QUANTA = 2.0**55
+
+
+@dataclass
+class RangeImage:
+    """A range image: ``z`` (H, W) float32 depth in ``units`` with NaN holes; the camera's
+    ``K`` (3, 3) and ``dist`` (5,) when known."""
+
+    z: np.ndarray
+    K: np.ndarray | None = None
+    dist: np.ndarray | None = None
+    units: str = "mm"
+
+    @property
+    def mask(self) -> np.ndarray:
+        return ~np.isnan(self.z)
+
+
+def _threads() -> int:
+    return max(1, min(2, os.cpu_count() or 1))
+
+
+@dataclass(frozen=True)
+class _Plan:
+    lossless: bool
+    scale: float  # the quantum (lossless) or the fine unit (bounded), in units
+    step: float  # the residual quantum in units
+
+
+def _plan(z: np.ndarray, quantum: float | None, max_error: float | None) -> _Plan:
+    if (quantum is None) == (max_error is None):
+        raise InputError("--quantum/--max-error", "give exactly one of a quantum and an error bound")
+    finite = np.abs(z[~np.isnan(z)])
+    zmax = float(finite.max()) if finite.size else 1.0
+    ulp = float(np.spacing(np.float32(max(zmax, 1e-30))))
+    if quantum is not None:
+        q = float(quantum)
+        if not math.isfinite(q) or q <= 0:
+            raise InputError("--quantum", f"must be a positive number, got {quantum!r}")
+        if q < ulp:
+            raise InputError("--quantum", f"{q:g} is finer than float32 can hold at depth {zmax:g} (spacing {ulp:.3g})")
+        if zmax / q > _MAX_QUANTA:
+            raise InputError("--quantum", f"{q:g} is too fine for depths up to {zmax:g}")
+        return _Plan(True, q, q)
+    e = float(max_error)  # type: ignore[arg-type]
+    if not math.isfinite(e) or e <= 0:
+        raise InputError("--max-error", f"must be a positive number, got {max_error!r}")
+    # Reconstruction errs by half a step plus half a fine unit, plus float32 rounding (<= ulp/2).
+    step = 2.0 * (e - ulp) / (1.0 + 1.0 / qt.FINE)
+    if step < 2 * ulp:
+        raise InputError("--max-error", f"{e:g} is finer than float32 can hold at depth {zmax:g} (spacing {ulp:.3g})")
+    if zmax / step > _MAX_QUANTA:
+        raise InputError("--max-error", f"{e:g} is too fine for depths up to {zmax:g}")
+    return _Plan(False, step / qt.FINE, step)
+
+
+def check_range(z: np.ndarray, where: str = "z") -> np.ndarray:
+    """``z`` as a C-contiguous (H, W) float32 array; :class:`InputError` for another shape or an
+    infinite depth (holes must be NaN)."""
+    z = np.asarray(z)
+    if z.ndim != 2 or z.shape[0] < 1 or z.shape[1] < 1:
+        raise InputError(where, f"a range image must be a 2-D array, got shape {z.shape}")
+    if not np.issubdtype(z.dtype, np.floating):
+        raise InputError(where, f"a range image must be floating point, got {z.dtype}")
+    z = np.ascontiguousarray(z, np.float32)
+    bad = np.isinf(z)
+    if bad.any():
+        y, x = np.argwhere(bad)[0]
+        raise InputError(where, f"infinite depth among the valid samples ({int(bad.sum())} samples, first at row {y}, column {x}); holes must be NaN")
+    return z
+
+
+def _encode_band(zb: np.ndarray, plan: _Plan) -> bytes:
+    valid = ~np.isnan(zb)
+    if plan.lossless:
+        q = np.rint(np.where(valid, zb, 0).astype(np.float64) / plan.scale)
+        t = q.astype(np.int64) << qt.F_SHIFT
+    else:
+        t = np.rint(np.where(valid, zb, 0).astype(np.float64) / plan.scale).astype(np.int64)
+    tables, words = qt.encode_band(t, valid, plan.lossless)
+    return _U32.pack(len(tables)) + tables.tobytes() + words.astype("<u2").tobytes()
+
+
+def _bands(h: int) -> list[tuple[int, int]]:
+    return [(y, min(y + BAND_ROWS, h)) for y in range(0, h, BAND_ROWS)]
+
+
+def _encoded_chunks(z: np.ndarray, plan: _Plan) -> Iterator[bytes]:
+    bands = _bands(z.shape[0])
+    with ThreadPoolExecutor(_threads()) as pool:
+        # At most two bands per thread in flight: memory stays a few bands' worth.
+        window = 2 * _threads()
+        futures = [pool.submit(_encode_band, z[a:b], plan) for a, b in bands[:window]]
+        for i in range(len(bands)):
+            nxt = i + window
+            if nxt < len(bands):
+                a, b = bands[nxt]
+                futures.append(pool.submit(_encode_band, z[a:b], plan))
+            yield futures[i].result()
+            futures[i] = None  # type: ignore[call-overload]
+
+
+def _meta(img: RangeImage, z: np.ndarray, plan: _Plan, quantum: float | None, max_error: float | None) -> dict[str, Any]:
+    h, w = z.shape
+    return {
+        "codec": CODEC,
+        "width": w,
+        "height": h,
+        "band_rows": BAND_ROWS,
+        "chunks": len(_bands(h)),
+        "units": img.units,
+        "mode": "lossless" if plan.lossless else "bounded",
+        "quantum": quantum,
+        "max_error": max_error,
+        "scale": plan.scale,
+        "fine_shift": qt.F_SHIFT,
+        "valid": int(np.count_nonzero(~np.isnan(z))),
+        "K": None if img.K is None else np.asarray(img.K, np.float64).tolist(),
+        "dist": None if img.dist is None else np.asarray(img.dist, np.float64).ravel().tolist(),
+    }
+
+
+def write_range(path: str | os.PathLike[str], img: RangeImage, *, quantum: float | None = None,
+                max_error: float | None = None) -> int:
+    """Code ``img`` into the container file ``path`` (atomically); returns its size in bytes.
+
+    Exactly one of ``quantum`` (lossless at that quantum, in ``img.units``) and ``max_error``
+    (every valid sample within it, in ``img.units``) is given.
+    """
+    z = check_range(img.z)
+    plan = _plan(z, quantum, max_error)
+    return write_container(path, "range", _meta(img, z, plan, quantum, max_error), _encoded_chunks(z, plan))
+
+
+def encode_range(img: RangeImage, *, quantum: float | None = None, max_error: float | None = None) -> bytes:
+    """:func:`write_range` into memory: the container's bytes."""
+    z = check_range(img.z)
+    plan = _plan(z, quantum, max_error)
+    buf = io.BytesIO()
+    write_stream(buf, "range", _meta(img, z, plan, quantum, max_error), _encoded_chunks(z, plan))
+    return buf.getvalue()
+
+
+def _check_meta(meta: dict[str, Any], where: str) -> tuple[int, int, int, bool, float]:
+    try:
+        w, h, band = int(meta["width"]), int(meta["height"]), int(meta["band_rows"])
+        lossless = meta["mode"] == "lossless"
+        scale = float(meta["scale"])
+        ok = (meta.get("codec") == CODEC and int(meta["fine_shift"]) == qt.F_SHIFT and w > 0 and h > 0
+              and band > 0 and band % qt.TOP == 0 and meta["chunks"] == -(-h // band) and scale > 0)
+    except (KeyError, TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(where, "corrupt or unsupported range header")
+    return w, h, band, lossless, scale
+
+
+def read_range(source: str | os.PathLike[str] | bytes) -> RangeImage:
+    """Decode a range container (a file or its bytes) into a :class:`RangeImage`."""
+    where = "<bytes>" if isinstance(source, bytes | bytearray | memoryview) else str(source)
+    header, chunks = open_container(source, kind="range")
+    w, h, band, lossless, scale = _check_meta(header.meta, where)
+    z = np.empty((h, w), np.float32)
+
+    def decode(i: int, payload: bytes) -> None:
+        a, b = i * band, min((i + 1) * band, h)
+        if len(payload) < 4:
+            raise InputError(where, f"corrupt chunk {i} (too short)")
+        (nt,) = _U32.unpack_from(payload)
+        if 4 + nt > len(payload) or (len(payload) - 4 - nt) % 2:
+            raise InputError(where, f"corrupt chunk {i} (bad table length)")
+        tables = np.frombuffer(payload, np.uint8, nt, 4)
+        words = np.frombuffer(payload, "<u2", (len(payload) - 4 - nt) // 2, 4 + nt).astype(np.uint16)
+        if qt.decode_band(tables, words, b - a, w, lossless, scale, z[a:b]) != 0:
+            raise InputError(where, f"corrupt chunk {i} (the coded stream does not decode)")
+
+    with ThreadPoolExecutor(_threads()) as pool:
+        futures = []
+        for i, payload in enumerate(chunks):
+            futures.append(pool.submit(decode, i, payload))
+            if len(futures) > 2 * _threads():
+                futures.pop(0).result()
+        for f in futures:
+            f.result()
+    meta = header.meta
+    K = None if meta.get("K") is None else np.asarray(meta["K"], np.float64)
+    dist = None if meta.get("dist") is None else np.asarray(meta["dist"], np.float64)
+    return RangeImage(z, K, dist, str(meta.get("units", "mm")))
+
+
+def expected_lossless(z: np.ndarray, quantum: float) -> np.ndarray:
+    """What lossless mode reproduces: ``float32(round(z / q) * q)`` with NaN kept (the reference of tests)."""
+    z = np.asarray(z, np.float32)
+    return (np.rint(z.astype(np.float64) / quantum) * quantum).astype(np.float32)
+
+
+def load_range_npz(path: str | os.PathLike[str]) -> RangeImage:
+    """A scan's ``range.npz`` (``z``, ``K``, ``dist``, ``units``) as a :class:`RangeImage`."""
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(p, "no such file")
+    try:
+        with np.load(p, allow_pickle=False) as d:
+            if "z" not in d:
+                raise InputError(p, 'no "z" array: not a range.npz of a scan')
+            z = np.asarray(d["z"])
+            K = np.asarray(d["K"], np.float64) if "K" in d else None
+            dist = np.asarray(d["dist"], np.float64) if "dist" in d else None
+            units = str(d["units"]) if "units" in d else "mm"
+    except InputError:
+        raise
+    except Exception as exc:  # zipfile/np.load raise many types for a damaged file
+        raise InputError(p, f"unreadable range.npz ({type(exc).__name__}: {exc})") from None
+    return RangeImage(check_range(z, f"{p}: z"), K, dist, units)
+
+
+def save_range_npz(path: str | os.PathLike[str], img: RangeImage) -> Path:
+    """Write ``range.npz`` as a scan does (``z`` float32 NaN holes, ``K``, ``dist``, ``units``), atomically."""
+    p = Path(path)
+    with atomic_file(p, suffix=".tmp.npz") as tmp:
+        np.savez(
+            tmp,
+            z=np.asarray(img.z, np.float32),
+            K=np.asarray(img.K if img.K is not None else np.full((3, 3), np.nan), np.float64),
+            dist=np.asarray(img.dist if img.dist is not None else np.zeros(5), np.float64),
+            units=np.array(img.units),
+        )
+    return p
