@@ -6,10 +6,11 @@ API key. Out: :class:`~shared.service.jobstore.Job` records whose ready stages a
 batches the captures refused at intake with their one-line reasons. Captures are zip or tar
 archives (inspected by :func:`shared.service.archive.inspect_archive` before anything is stored, then
 kept as content-addressed objects), finished upload sessions, or references to files already
-in storage. Errors name the field or file: ``HTTPException`` 404/409/422, or
-:class:`~shared.core.errors.InputError` (422) from the checks in ``shared/``.
+in storage. Errors name the field or file: ``HTTPException`` 404/409, or
+:class:`~shared.core.errors.InputError` (422, its field as the location) here and from the
+checks in ``shared/``.
 
-The routes in :mod:`services.api.app` only pick the form or the body and hand it here.
+The routers in :mod:`services.api.routers` only pick the form or the body and hand it here.
 """
 
 from __future__ import annotations
@@ -33,9 +34,14 @@ from shared.service.artifacts import ArtifactError, ArtifactStore, sha256_file
 from shared.service.config import Settings
 from shared.service.jobs import GRAPHS, graph_for, root_file
 from shared.service.jobstore import ApiKey, Job, JobStore, NewJob
+from shared.service.params import check_job_params
+from shared.service.queue import publish_stages
 
+#: Ids of jobs, batches and uploads (UUIDs); anything else is 404 without a database query.
 ID = re.compile(r"^[0-9a-f-]{36}$")
-_NAME = re.compile(r"^[\w .,:+@()\[\]-]{1,200}$")
+#: Names of jobs and batches (the OpenAPI document states the same pattern).
+NAME_PATTERN = r"^[\w .,:+@()\[\]-]{1,200}$"
+_NAME = re.compile(NAME_PATTERN)
 #: Internal prefixes of the store that a storage reference may not point into.
 _PRIVATE_PREFIXES = ("objects/", "uploads/")
 #: Most storage references in one batch.
@@ -46,16 +52,16 @@ class JobCreate(BaseModel):
     """A job from an upload session or from a reference into storage (JSON instead of multipart)."""
 
     kind: str = Field("scan", description="scan, calibrate or probe")
-    name: str | None = Field(None, max_length=200)
-    batch: str | None = Field(None, max_length=200)
+    name: str | None = Field(None, max_length=200, pattern=NAME_PATTERN)
+    batch: str | None = Field(None, max_length=200, pattern=NAME_PATTERN)
     upload_id: str | None = Field(None, description="a finished upload session")
     capture_ref: str | None = Field(None, description="path of an archive or capture folder, relative to the storage root")
     params: dict[str, Any] = Field(default_factory=dict)
 
 
 class BatchCreate(BaseModel):
-    name: str = Field(..., max_length=200)
-    kind: str = "scan"
+    name: str = Field(..., min_length=1, max_length=200, pattern=NAME_PATTERN)
+    kind: str = Field("scan", description="scan, calibrate or probe")
     captures: list[str] = Field(default_factory=list, description="storage references, one capture each")
     manifest: str | None = Field(None, description="storage reference of a text file listing one reference per line")
     params: dict[str, Any] = Field(default_factory=dict)
@@ -64,9 +70,9 @@ class BatchCreate(BaseModel):
 # ---- field checks -------------------------------------------------------------------------
 def check_kind(kind: str) -> str:
     if kind not in GRAPHS:
-        raise HTTPException(422, f"kind: unknown job kind {kind!r} (one of {', '.join(sorted(GRAPHS))})")
+        raise InputError("kind", f"unknown job kind {kind!r} (one of {', '.join(sorted(GRAPHS))})")
     if not graph_for(kind):
-        raise HTTPException(422, f"kind: {kind} jobs cannot run in this installation (their stages are not installed)")
+        raise InputError("kind", f"{kind} jobs cannot run in this installation (their stages are not installed)")
     return kind
 
 
@@ -74,18 +80,14 @@ def check_name(value: str | None, field: str) -> str | None:
     if value is None or value == "":
         return None
     if not _NAME.match(value):
-        raise HTTPException(422, f"{field}: must be 1-200 letters, digits, spaces or .,:+@()[]-_")
+        raise InputError(field, "must be 1-200 letters, digits, spaces or .,:+@()[]-_")
     return value
 
 
-def check_params(params: Any) -> dict[str, Any]:
-    if not isinstance(params, dict):
-        raise HTTPException(422, "params: must be a JSON object")
-    if len(json.dumps(params, default=str)) > 16384:
-        raise HTTPException(422, "params: larger than 16 KiB")
-    if "rig" in params:
-        raise HTTPException(422, "params.rig: upload a rig in the multipart field 'rig' instead")
-    return params
+def check_params(params: Any, kind: str) -> dict[str, Any]:
+    """A client's job parameters for a ``kind`` job (:func:`shared.service.params.check_job_params`);
+    :class:`InputError` (422) names the field."""
+    return check_job_params(kind, params)
 
 
 def form_text(value: Any) -> str | None:
@@ -93,15 +95,15 @@ def form_text(value: Any) -> str | None:
     if value is None:
         return None
     if isinstance(value, UploadFile):
-        raise HTTPException(422, f"{value.filename or 'field'}: expected text, got a file")
+        raise InputError(value.filename or "field", "expected text, got a file")
     return str(value)
 
 
-def _form_params(form: FormData) -> dict[str, Any]:
+def _form_params(form: FormData, kind: str) -> dict[str, Any]:
     try:
-        return check_params(json.loads(form_text(form.get("params")) or "{}"))
+        return check_params(json.loads(form_text(form.get("params")) or "{}"), kind)
     except json.JSONDecodeError as exc:
-        raise HTTPException(422, f"params: not JSON ({exc})") from None
+        raise InputError("params", f"not JSON ({exc})") from None
 
 
 def _label(f: UploadFile) -> str:
@@ -182,8 +184,6 @@ class Intake:
     def make_job(self, key: ApiKey, kind: str, capture_ref: str, capture_key: str, name: str,
                  params: dict[str, Any], batch: str | None) -> Job:  # fmt: skip
         """Record the job and publish its ready stages."""
-        from workers.dispatch import publish_stages
-
         batch_id = self.store.batch_for(key.id, batch) if batch else None
         job, ready = self.store.create_job(
             key.id,
@@ -223,13 +223,13 @@ class Intake:
         kind = check_kind(str(form.get("kind") or "scan"))
         name = check_name(form_text(form.get("name")), "name")
         batch = check_name(form_text(form.get("batch")), "batch")
-        params = _form_params(form)
+        params = _form_params(form, kind)
         capture, rig = form.get("capture"), form.get("rig")
         ref = None if isinstance(capture, UploadFile) else form_text(form.get("capture_ref"))
         if isinstance(rig, UploadFile):
             params["rig"] = await run_in_threadpool(self.store_rig, await rig.read(1 << 20), rig.filename or "rig")
         elif rig is not None:
-            raise HTTPException(422, "rig: must be a file")
+            raise InputError("rig", "must be a file")
         if kind == "probe":
             cref, ckey = "none:", os.urandom(32).hex()
             name = name or "probe"
@@ -240,7 +240,7 @@ class Intake:
             cref, ckey = await run_in_threadpool(self.resolve_ref, ref)
             name = name or _ref_name(ref)
         else:
-            raise HTTPException(422, "capture: a zip or tar file is required in this multipart field")
+            raise InputError("capture", "a zip or tar file is required in this multipart field")
         return await run_in_threadpool(self.make_job, key, kind, cref, ckey, name or "", params, batch)
 
     async def job_from_json(self, body: JobCreate, key: ApiKey) -> Job:
@@ -248,7 +248,7 @@ class Intake:
         kind = check_kind(body.kind)
         name = check_name(body.name, "name")
         batch = check_name(body.batch, "batch")
-        params = check_params(body.params)
+        params = check_params(body.params, kind)
         if kind == "probe":
             cref, ckey = "none:", os.urandom(32).hex()
             name = name or "probe"
@@ -259,7 +259,7 @@ class Intake:
             cref, ckey = await run_in_threadpool(self.resolve_ref, body.capture_ref)
             name = name or _ref_name(body.capture_ref)
         else:
-            raise HTTPException(422, "body: give upload_id or capture_ref (or send multipart with a capture file)")
+            raise InputError("body", "give upload_id or capture_ref (or send multipart with a capture file)")
         return await run_in_threadpool(self.make_job, key, kind, cref, ckey, name or "", params, batch)
 
     async def batch_from_form(self, form: FormData, key: ApiKey) -> tuple[str, list[str], list[dict[str, str]]]:
@@ -267,14 +267,14 @@ class Intake:
         Returns the batch name, the ids of the jobs made and the captures refused."""
         name = check_name(form_text(form.get("name")), "name")
         if not name:
-            raise HTTPException(422, "name: a batch needs a name")
+            raise InputError("name", "a batch needs a name")
         kind = check_kind(str(form.get("kind") or "scan"))
-        params = _form_params(form)
+        params = _form_params(form, kind)
         jobs: list[str] = []
         rejected: list[dict[str, str]] = []
         for f in form.getlist("captures"):
             if not isinstance(f, UploadFile):
-                raise HTTPException(422, "captures: must be files")
+                raise InputError("captures", "must be files")
             try:
                 cref, ckey = await self._archive(f, kind)
             except InputError as exc:
@@ -288,14 +288,14 @@ class Intake:
         """``POST /v1/batches`` as JSON: storage references in ``captures`` and/or a ``manifest``."""
         name = check_name(body.name, "name")
         if not name:
-            raise HTTPException(422, "name: a batch needs a name")
+            raise InputError("name", "a batch needs a name")
         kind = check_kind(body.kind)
-        params = check_params(body.params)
+        params = check_params(body.params, kind)
         refs = list(body.captures)
         if body.manifest:
             refs += await run_in_threadpool(self.read_manifest, body.manifest)
         if len(refs) > MAX_BATCH_REFS:
-            raise HTTPException(422, f"captures: more than {MAX_BATCH_REFS} in one batch")
+            raise InputError("captures", f"more than {MAX_BATCH_REFS} in one batch")
         jobs: list[str] = []
         rejected: list[dict[str, str]] = []
         for ref in refs:

@@ -237,7 +237,7 @@ class Client:
             raise ServiceError(f"{self.url}{path}: {exc}") from None
         if r.status_code >= 400:
             try:
-                detail = r.json().get("detail")
+                detail = error_text(r.json().get("detail"))
             except ValueError:
                 detail = r.text[:300]
             raise ServiceError(f"{method} {path}: HTTP {r.status_code}: {detail}")
@@ -297,6 +297,19 @@ class Client:
 
     def job(self, job_id: str) -> dict[str, Any]:
         return self.request("GET", f"/v1/jobs/{job_id}")
+
+
+def error_text(detail: Any) -> str:
+    """One line of an API error's ``detail``: the text itself, or a 422's list of
+    ``{"loc", "msg"}`` as ``FIELD: MESSAGE; ...`` (the location without its ``body``/``query``)."""
+    if not isinstance(detail, list):
+        return str(detail)
+    parts = []
+    for item in detail:
+        loc = [str(p) for p in (item.get("loc") or [])[1:]] if isinstance(item, dict) else []
+        msg = item.get("msg", item) if isinstance(item, dict) else item
+        parts.append(f"{'.'.join(loc)}: {msg}" if loc else str(msg))
+    return "; ".join(parts)
 
 
 def _as_archive(path: Path, tmp: Path) -> Path:

@@ -15,7 +15,7 @@ from fastapi.testclient import TestClient
 
 from services.api.app import create_app
 from shared.service.jobstore import JobStore
-from tests.workers import jobsvc
+from tests.support import jobsvc
 from workers.runner import run_stage
 
 
@@ -33,6 +33,13 @@ def api(tmp_path: Path) -> Iterator[tuple[TestClient, jobsvc.ServiceEnv, dict[st
         _b, bob = store.create_key("bob")
         with TestClient(create_app(senv.settings)) as client:
             yield client, senv, {"Authorization": f"Bearer {alice}"}, {"Authorization": f"Bearer {bob}"}
+
+
+def problem(r) -> str:
+    """The one-line problem of a 422 answer (its list of errors), ``FIELD: MESSAGE``."""
+    items = r.json()["detail"]
+    assert isinstance(items, list) and items, items
+    return "; ".join(".".join(str(p) for p in i["loc"][1:]) + ": " + i["msg"] for i in items)
 
 
 def zip_of(capture: Path, tmp: Path, **kw) -> Path:
@@ -91,21 +98,21 @@ def test_archive_checks_before_anything_is_stored(api, capture: Path, tmp_path: 
         z.writestr("capture.json", "{}")
         z.writestr("../../evil.png", b"x")
     r = post_zip(client, alice, buf.getvalue(), name="evil.zip")
-    assert r.status_code == 422 and r.json()["detail"].startswith("evil.zip:../../evil.png: member name contains '..'")
+    assert r.status_code == 422 and problem(r).startswith("evil.zip:../../evil.png: member name contains '..'")
     r = post_zip(client, alice, b"just some bytes", name="junk.zip")
-    assert r.status_code == 422 and "junk.zip: not a zip or tar archive" in r.json()["detail"]
+    assert r.status_code == 422 and "junk.zip: not a zip or tar archive" in problem(r)
     buf = io.BytesIO()
     with zipfile.ZipFile(buf, "w") as z:
         z.writestr("capture.json", "{}")
         for i in range(250):
             z.writestr(f"f{i}.txt", "x")
     r = post_zip(client, alice, buf.getvalue(), name="many.zip")
-    assert r.status_code == 422 and "more than 200 members" in r.json()["detail"]
-    from tests.shared.test_archive import png_bytes
+    assert r.status_code == 422 and "more than 200 members" in problem(r)
+    from tests.support.images import png_bytes
 
     big = zip_of(capture, tmp_path, replace={"col_00.png": png_bytes(2000, 2000)})
     r = post_zip(client, alice, big, name="big.zip")
-    assert r.status_code == 422 and "big.zip:col_00.png: image is 2000x2000" in r.json()["detail"]
+    assert r.status_code == 422 and "big.zip:col_00.png: image is 2000x2000" in problem(r)
     assert not (store_root / "objects").exists()  # nothing was stored for any of them
     assert client.get("/v1/jobs", headers=alice).json()["total"] == 0
 
@@ -247,7 +254,7 @@ def test_uploaded_rig_replaces_a_missing_one(api, capture: Path, tmp_path: Path)
     assert client.get(f"/v1/jobs/{r.json()['id']}", headers=alice).json()["state"] == "succeeded"
     r = client.post("/v1/jobs", headers=alice, files={"capture": ("norig.zip", no_rig.read_bytes(), "application/zip"),
                                                       "rig": ("rig.json", b'{"units": "mm"}', "application/json")})  # fmt: skip
-    assert r.status_code == 422 and r.json()["detail"].startswith("rig.json: missing field")
+    assert r.status_code == 422 and problem(r).startswith("rig.json: missing field")
 
 
 @pytest.mark.slow
@@ -270,7 +277,7 @@ def test_calibrate_job(api, tmp_path: Path) -> None:
     assert load_rig(tmp_path / "rig.json").camera.width == 320
     # A calibration session is not a scan capture (it holds one capture per pose).
     r = post_zip(client, alice, archive, name="session.zip", kind="scan")
-    assert r.status_code == 422 and "one capture per archive" in r.json()["detail"]
+    assert r.status_code == 422 and "one capture per archive" in problem(r)
 
 
 @pytest.mark.slow

@@ -1,0 +1,92 @@
+"""Artifacts of a job: ``GET /v1/jobs/{id}/artifacts`` (every file of every finished stage)
+and ``GET /v1/jobs/{id}/artifacts/{name}`` (one file, with byte ranges from S3)."""
+
+from __future__ import annotations
+
+import mimetypes
+from pathlib import Path
+
+from fastapi import APIRouter, HTTPException, Request
+from fastapi.responses import FileResponse, Response, StreamingResponse
+
+from services.api.deps import Key, Svc, owned_job
+from services.api.http import byte_range
+from services.api.models import ArtifactList, ArtifactOut, errors
+from shared.service.artifacts import ArtifactStore
+from shared.service.jobs import StageState, stage_spec
+from shared.service.jobstore import Job
+
+router = APIRouter(tags=["artifacts"])
+
+
+def job_files(arts: ArtifactStore, job: Job) -> list[ArtifactOut]:
+    """Every file of the job's finished stages as ``STAGE/PATH``, and the published ones
+    (``cloud.ply``) also under their short name (the first stage publishing a name wins)."""
+    out: list[ArtifactOut] = []
+    published: set[str] = set()
+    for st in job.stages:
+        if st.state != StageState.SUCCEEDED or not st.output_key:
+            continue
+        m = arts.manifest(st.output_key)
+        if m is None:
+            continue
+        spec = stage_spec(job.kind, st.name)
+        for name, entry in sorted(m.files.items()):
+            if name.startswith("."):
+                continue  # the stage's own bookkeeping (its summary)
+            url = f"/v1/jobs/{job.id}/artifacts/{st.name}/{name}"
+            out.append(ArtifactOut(name=f"{st.name}/{name}", stage=st.name, size=entry.size, sha256=entry.sha256, url=url))
+            if name in spec.publish and name not in published:
+                published.add(name)
+                out.append(ArtifactOut(name=name, stage=st.name, size=entry.size, sha256=entry.sha256,
+                                       url=f"/v1/jobs/{job.id}/artifacts/{name}"))  # fmt: skip
+    return out
+
+
+@router.get("/v1/jobs/{job_id}/artifacts", response_model=ArtifactList, responses=errors(401, 404, 422))
+def list_artifacts(job_id: str, key: Key, svc: Svc) -> ArtifactList:
+    """Files of every finished stage: ``STAGE/PATH``, plus short names (``cloud.ply``)."""
+    job = owned_job(svc, job_id, key)
+    return ArtifactList(job=job.id, artifacts=job_files(svc.arts, job))
+
+
+@router.get("/v1/jobs/{job_id}/artifacts/{name:path}",
+            responses={200: {"content": {"application/octet-stream": {}}, "description": "the file"},
+                       206: {"content": {"application/octet-stream": {}}, "description": "the requested byte range"},
+                       **errors(401, 404, 416, 422)})  # fmt: skip
+def get_artifact(job_id: str, name: str, key: Key, svc: Svc, request: Request) -> Response:
+    """One file: a short name (``cloud.ply``, ``preview.mp4``) or ``STAGE/PATH``
+    (``tiles/metadata.json``: the viewer fetches tiles this way, with its Bearer key)."""
+    job = owned_job(svc, job_id, key)
+    stage_name, _, inner = name.partition("/")
+    target: tuple[str, str] | None = None
+    if inner:
+        st = next((s for s in job.stages if s.name == stage_name), None)
+        if st is not None and st.state == StageState.SUCCEEDED and st.output_key:
+            target = (st.output_key, inner)
+    else:
+        for st in job.stages:
+            if st.state == StageState.SUCCEEDED and st.output_key and name in stage_spec(job.kind, st.name).publish:
+                target = (st.output_key, name)
+                break
+    if target is None:
+        raise HTTPException(404, f"job {job.id} has no artifact {name!r} (yet)")
+    okey, fname = target
+    m = svc.arts.manifest(okey)
+    if m is None or fname not in m.files:
+        raise HTTPException(404, f"job {job.id} has no artifact {name!r}")
+    media = mimetypes.guess_type(fname)[0] or "application/octet-stream"
+    headers = {"ETag": f'"{m.files[fname].sha256}"', "X-Checksum-SHA256": m.files[fname].sha256}
+    local = svc.arts.local_file(okey, fname)
+    if local is not None:
+        return FileResponse(local, media_type=media, headers=headers, filename=Path(fname).name)
+    size = m.files[fname].size
+    headers["Accept-Ranges"] = "bytes"
+    span = byte_range(request.headers.get("range"), size)
+    if span is not None:
+        start, end = span
+        headers.update({"Content-Range": f"bytes {start}-{end}/{size}", "Content-Length": str(end - start + 1)})
+        return StreamingResponse(svc.arts.iter_range(okey, fname, start, end - start + 1), status_code=206,
+                                 media_type=media, headers=headers)  # fmt: skip
+    headers["Content-Length"] = str(size)
+    return StreamingResponse(svc.arts.iter_bytes(okey, fname), media_type=media, headers=headers)

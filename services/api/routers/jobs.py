@@ -1,0 +1,118 @@
+"""Jobs: ``POST /v1/jobs`` (submit), ``GET /v1/jobs`` (list), ``GET /v1/jobs/{id}``,
+``POST /v1/jobs/{id}/cancel`` and ``POST /v1/jobs/{id}/retry``."""
+
+from __future__ import annotations
+
+from typing import Annotated
+
+from fastapi import APIRouter, HTTPException, Query, Request
+
+from services.api.deps import Key, Svc, owned_job
+from services.api.http import is_form, parse_body, read_form
+from services.api.intake import NAME_PATTERN, JobCreate, check_params
+from services.api.models import JobList, JobOut, RetryIn, errors, job_out
+from shared.service.jobs import JobState, StageView, rows_to_rerun
+from shared.service.queue import publish_stages
+
+router = APIRouter(tags=["jobs"])
+
+_JOB_BODY = {
+    "requestBody": {
+        "required": True,
+        "content": {
+            "multipart/form-data": {
+                "schema": {
+                    "type": "object",
+                    "properties": {
+                        "capture": {"type": "string", "format": "binary", "description": "zip or tar of a capture folder"},
+                        "rig": {"type": "string", "format": "binary", "description": "rig.json to use instead of the capture's"},
+                        "kind": {"type": "string", "enum": ["scan", "calibrate", "probe"], "default": "scan"},
+                        "name": {"type": "string", "pattern": NAME_PATTERN},
+                        "batch": {"type": "string", "pattern": NAME_PATTERN},
+                        "params": {"type": "string", "description": "JSON object"},
+                        "capture_ref": {"type": "string", "description": "a path in storage, read when no capture file is sent"},
+                    },
+                    "required": ["capture"],
+                }
+            },
+            "application/json": {"schema": JobCreate.model_json_schema()},
+        },
+    }
+}
+
+
+@router.post("/v1/jobs", response_model=JobOut, status_code=201, openapi_extra=_JOB_BODY,
+             responses=errors(400, 401, 404, 409, 413, 422, 429, 507))  # fmt: skip
+async def submit_job(request: Request, key: Key, svc: Svc) -> JobOut:
+    """Submit a job: multipart (field ``capture``: zip or tar), or JSON (``upload_id`` of a
+    finished upload session, or ``capture_ref`` into storage)."""
+    if is_form(request):
+        form = await read_form(request, max_files=4)
+        try:
+            return job_out(await svc.intake.job_from_form(form, key))
+        finally:
+            await form.close()
+    return job_out(await svc.intake.job_from_json(await parse_body(request, JobCreate), key))
+
+
+@router.get("/v1/jobs", response_model=JobList, responses=errors(401, 422))
+def list_jobs(
+    key: Key,
+    svc: Svc,
+    state: Annotated[JobState | None, Query()] = None,
+    batch: Annotated[str | None, Query(max_length=200)] = None,
+    limit: Annotated[int, Query(ge=1, le=500)] = 50,
+    offset: Annotated[int, Query(ge=0, le=10_000_000)] = 0,
+) -> JobList:
+    """Your jobs, newest first; filter by state and by batch (id or name)."""
+    batch_id = None
+    if batch:
+        batch_id = svc.store.find_batch(key.id, batch)
+        if batch_id is None:
+            return JobList(jobs=[], total=0, limit=limit, offset=offset)
+    jobs, total = svc.store.list_jobs(key.id, state.value if state else None, batch_id, limit, offset)
+    nxt = offset + len(jobs) if offset + len(jobs) < total else None
+    return JobList(jobs=[job_out(j) for j in jobs], total=total, limit=limit, offset=offset, next_offset=nxt)
+
+
+@router.get("/v1/jobs/{job_id}", response_model=JobOut, responses=errors(401, 404, 422))
+def get_job(job_id: str, key: Key, svc: Svc) -> JobOut:
+    """A job: its state, and per stage its state, progress, timings and error."""
+    return job_out(owned_job(svc, job_id, key))
+
+
+@router.post("/v1/jobs/{job_id}/cancel", response_model=JobOut, responses=errors(401, 404, 409, 422))
+def cancel_job(job_id: str, key: Key, svc: Svc) -> JobOut:
+    """Cancel a queued or running job. A running stage stops at its next progress report
+    after its next heartbeat (decode, preview and calibration report often) and stores
+    nothing."""
+    job = owned_job(svc, job_id, key)
+    if svc.store.cancel_job(job.id) is None:
+        raise HTTPException(409, f"job {job.id} is already {job.state}")
+    return job_out(owned_job(svc, job_id, key))
+
+
+def retry(svc: Svc, job_id: str, key: Key, new_params: dict | None = None) -> JobOut:
+    """Re-run the job's stages that failed or were cancelled, and those whose inputs changed
+    (``new_params``, a new stage version); 409 when the job is not final or nothing would re-run."""
+    job = owned_job(svc, job_id, key)
+    if job.state in (JobState.QUEUED, JobState.RUNNING):
+        raise HTTPException(409, f"job {job.id} is {job.state}; cancel it first")
+    params = dict(job.params)
+    if new_params is not None:
+        new = check_params(new_params, job.kind)
+        params = {**new, **({"rig": job.params["rig"]} if "rig" in job.params else {})}
+    rows = [StageView(st.name, st.state, st.depends_on, st.output_key) for st in job.stages]  # graph order
+    rerun = rows_to_rerun(job.kind, rows, job.capture_key, params)
+    if not rerun:
+        raise HTTPException(409, f"job {job.id}: nothing to retry (every stage succeeded with unchanged inputs)")
+    newly = svc.store.reset_stages(job.id, rerun, params=params)
+    publish_stages(newly, svc.settings)
+    return job_out(owned_job(svc, job_id, key))
+
+
+@router.post("/v1/jobs/{job_id}/retry", response_model=JobOut, responses=errors(401, 404, 409, 422))
+def retry_job(job_id: str, key: Key, svc: Svc, body: RetryIn | None = None) -> JobOut:
+    """Re-run the stages that failed or were cancelled, and those whose inputs changed
+    (new parameters, a new stage version); finished stages with unchanged inputs are kept."""
+    return retry(svc, job_id, key, body.params if body is not None else None)
