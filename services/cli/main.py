@@ -20,6 +20,8 @@ COMMAND_MODULES = [
     "services.cli.jobs",
     "services.cli.render",
     "services.cli.calibrate",
+    "services.cli.export",
+    "services.cli.rig",
 ]
 
 

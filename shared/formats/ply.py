@@ -230,6 +230,39 @@ def read_ply(path: str | os.PathLike[str]) -> PointCloud:
     return _to_cloud(np.asarray(_records(path, header)))
 
 
+def iter_ply_records(path: str | os.PathLike[str], chunk: int = CHUNK) -> Iterator[np.ndarray]:
+    """Yield a PLY's vertex records as they are stored (every property, the header's dtype), in
+    chunks of at most ``chunk`` points (views of a memory map for binary files)."""
+    path = Path(path)
+    header = read_header(path)
+    rec = _records(path, header)
+    for start in range(0, header.count, chunk):
+        yield rec[start : start + chunk]
+
+
+def write_ply_records(
+    path: str | os.PathLike[str],
+    chunks: Iterator[np.ndarray],
+    count: int,
+    dtype: np.dtype,
+    comments: tuple[str, ...] = (),
+) -> Path:
+    """Write ``count`` records of the structured ``dtype`` (PLY scalar types only), given chunk
+    after chunk, as a binary little-endian PLY, atomically. Raises ValueError when the chunks
+    do not add up to ``count``."""
+    path = Path(path)
+    out = np.dtype([(name, dtype[name].newbyteorder("<")) for name in dtype.names or ()])
+    written = 0
+    with atomic_file(path) as tmp, open(tmp, "wb") as f:
+        f.write(_header_text(count, out, comments))
+        for rec in chunks:
+            f.write(np.asarray(rec).astype(out, copy=False).tobytes())
+            written += len(rec)
+        if written != count:
+            raise ValueError(f"{written} records written, the header says {count}")
+    return path
+
+
 def iter_ply_chunks(path: str | os.PathLike[str], chunk: int = CHUNK) -> Iterator[PointCloud]:
     """Yield a PLY's points in chunks of at most ``chunk`` points (memory-mapped for binary files)."""
     path = Path(path)
