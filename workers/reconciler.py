@@ -27,9 +27,9 @@ from dataclasses import asdict, dataclass
 
 from shared.service.artifacts import ArtifactError, ArtifactStore
 from shared.service.config import Settings
-from shared.service.jobs import JobState, StageState, stage_key, stage_spec
+from shared.service.jobs import JobState, StageState, row_key
 from shared.service.jobstore import JobStore, Stage
-from workers.dispatch import publish_stages
+from shared.service.queue import publish_stages
 
 log = logging.getLogger(__name__)
 
@@ -156,12 +156,11 @@ def enqueue_preview_rerender(settings: Settings, mode: str = "changed", store: J
     count = 0
     for job in finished:
         preview = job.stage("preview")
-        spec = stage_spec(job.kind, "preview")
         params = dict(job.params)
         if mode == "all":
             params["preview_epoch"] = epoch
         upstream = {d: job.stage(d).output_key or "" for d in preview.depends_on}
-        if stage_key(spec, job.capture_key, params, upstream) == preview.output_key:
+        if row_key(job.kind, "preview", job.capture_key, params, upstream) == preview.output_key:
             continue
         newly = store.reset_stages(job.id, ["preview"], params=params)
         publish_stages(newly, settings)

@@ -34,8 +34,9 @@ from shared.core.errors import InputError
 from shared.service.archive import ArchiveLimits, extract_archive
 from shared.service.artifacts import ArtifactError, ArtifactStore
 from shared.service.config import Settings
-from shared.service.jobs import CAPTURE, GRAPHS, base_name, fanout_index, root_file, stage_key, stage_spec
+from shared.service.jobs import CAPTURE, GRAPHS, base_name, fanout_index, root_file, row_key, stage_spec
 from shared.service.jobstore import Job, JobStore, Stage
+from shared.service.queue import publish_stages
 from workers.stages import STAGE_FUNCS, StageContext
 
 log = logging.getLogger(__name__)
@@ -187,8 +188,6 @@ def _capture_root(folder: Path, require: str | None) -> Path:
 def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publish: bool = True) -> Outcome:
     """Run one stage (see the module docstring). Transient faults are re-raised after the
     stage is given back to the queue, when ``retries_left``; otherwise they fail it."""
-    from workers.dispatch import publish_stages
-
     store = JobStore(settings.database_url)
     claim = store.claim_stage(stage_id, worker_name())
     if claim is None:
@@ -204,7 +203,7 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
     try:
         # The row's own dependencies: for a fan-in stage, every instance of the map stage.
         upstream = {d: _output_key(job, d) for d in stage.depends_on}
-        key = stage_key(spec, job.capture_key, job.params, upstream, fanout_index(stage.name))
+        key = row_key(job.kind, stage.name, job.capture_key, job.params, upstream)
         store.set_input_key(stage_id, token, key)
         reused = arts.exists(key)
         if reused:

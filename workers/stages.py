@@ -12,12 +12,16 @@ import json
 import logging
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
 from shared.core.errors import InputError
-from shared.formats.capture import load_capture, write_json_atomic
+from shared.core.files import write_json_atomic
+from shared.formats.capture import load_capture
+from shared.render.options import PreviewOptions
+from shared.service.jobs import base_name
+from shared.service.params import check_job_params, tiles_options
 
 log = logging.getLogger(__name__)
 
@@ -59,7 +63,8 @@ def run_ingest(ctx: StageContext) -> dict[str, Any]:
 
     assert ctx.capture_dir is not None
     capture = ingest_stage(ctx.capture_dir, rig=ctx.rig_path)
-    doc = capture.to_json()
+    # An uploaded rig lives beside the capture, not in it: the summary's "rig" says it was used.
+    doc = (replace(capture, rig=None) if ctx.rig_path is not None else capture).to_json()
     write_json_atomic(ctx.out_dir / "capture.json", doc)
     return {
         "projector": [capture.projector_width, capture.projector_height],
@@ -88,12 +93,7 @@ def run_tiles_plan(ctx: StageContext) -> dict[str, Any]:
     """Tiles pass 1: bounds and chunks; the summary's ``fanout`` is the number of chunks."""
     from shared.render.octree import plan_tiles
 
-    options = ctx.params.get("tiles") or {}
-    if not isinstance(options, dict) or set(options) - {"max_chunk", "max_leaf"}:
-        raise InputError("params.tiles", f"must be an object with max_chunk and/or max_leaf, got {options!r}")
-    for k, v in options.items():
-        if not isinstance(v, int) or isinstance(v, bool) or v < 100:
-            raise InputError(f"params.tiles.{k}", f"must be an integer of at least 100, got {v!r}")
+    options = tiles_options(ctx.params.get("tiles"))
     plan = plan_tiles(ctx.inputs["triangulate"] / "cloud.ply", ctx.out_dir, **options)
     return {"fanout": len(plan.chunks), "points": plan.points}
 
@@ -124,35 +124,21 @@ def run_tiles(ctx: StageContext) -> dict[str, Any]:
     work.mkdir()
     _link(ctx.inputs["tiles_plan"] / PLAN_FILE, work / PLAN_FILE)
     for name, folder in ctx.inputs.items():
-        if name.startswith("tiles_chunk#"):
+        if base_name(name) == "tiles_chunk":
             for p in folder.glob("chunk_*.nodes.*"):
                 _link(p, work / p.name)
     return _jsonable(merge_tiles(work, ctx.out_dir))
 
 
-#: Options a job may pass to the preview stage in ``params.preview``.
-PREVIEW_OPTIONS = frozenset({"path", "size", "seconds", "fps"})
-
-
 def run_preview(ctx: StageContext) -> dict[str, Any]:
-    from shared.render.stages import preview_stage  # type: ignore[import-not-found]
+    from shared.render.stages import preview_stage
 
-    options = dict(ctx.params.get("preview") or {})
-    if not isinstance(ctx.params.get("preview") or {}, dict):
-        raise InputError("params.preview", "must be an object of preview options")
-    unknown = set(options) - PREVIEW_OPTIONS
-    if unknown:
-        raise InputError("params.preview", f"unknown option(s) {sorted(unknown)} (allowed: {sorted(PREVIEW_OPTIONS)})")
-    if "size" in options:
-        size = options["size"]
-        if not (isinstance(size, list | tuple) and len(size) == 2 and all(isinstance(v, int) for v in size)):
-            raise InputError("params.preview.size", f"must be [width, height] in pixels, got {size!r}")
-        options["size"] = (int(size[0]), int(size[1]))
-    return _jsonable(preview_stage(ctx.inputs["tiles"], ctx.out_dir / "preview.mp4", progress=ctx.progress, **options))
+    options = PreviewOptions.from_mapping(ctx.params.get("preview"))
+    return _jsonable(preview_stage(ctx.inputs["tiles"], ctx.out_dir / "preview.mp4", options, progress=ctx.progress))
 
 
 def run_calibrate(ctx: StageContext) -> dict[str, Any]:
-    from shared.calib.calibrate import calibrate_session  # type: ignore[attr-defined]
+    from shared.calib.session import calibrate_session
 
     assert ctx.capture_dir is not None
     return _jsonable(
@@ -160,15 +146,9 @@ def run_calibrate(ctx: StageContext) -> dict[str, Any]:
     )
 
 
-#: Longest a probe stage may sleep, seconds.
-MAX_PROBE_SECONDS = 60.0
-
-
 def run_probe(ctx: StageContext) -> dict[str, Any]:
     """The self-test stage: sleep ``params.seconds`` (reporting progress), write probe.json."""
-    seconds = ctx.params.get("seconds", 0.0)
-    if not isinstance(seconds, int | float) or isinstance(seconds, bool) or not 0 <= seconds <= MAX_PROBE_SECONDS:
-        raise InputError("params.seconds", f"must be a number of seconds in 0..{MAX_PROBE_SECONDS:g}, got {seconds!r}")
+    seconds = float(check_job_params("probe", {"seconds": ctx.params.get("seconds", 0.0)})["seconds"])
     start = time.time()
     end = start + float(seconds)
     while (now := time.time()) < end:

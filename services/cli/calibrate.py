@@ -82,7 +82,7 @@ def _camera_only(args: argparse.Namespace, out: Path) -> int:
     from shared.calib.board import load_board
     from shared.calib.session import calibrate_camera_images, write_opencv_yaml
     from shared.core.errors import InputError
-    from shared.formats.capture import write_json_atomic
+    from shared.core.files import write_json_atomic
 
     if not args.board:
         raise InputError("--board", "--camera-only needs --board board.json")

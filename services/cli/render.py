@@ -7,6 +7,7 @@ from pathlib import Path
 
 from services.cli.args import parse_size
 from shared.core.errors import InputError
+from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
 
 
 def _tiles(args: argparse.Namespace) -> int:
@@ -26,15 +27,8 @@ def _tiles(args: argparse.Namespace) -> int:
 def _preview(args: argparse.Namespace) -> int:
     from shared.render.stages import preview_stage
 
-    report = preview_stage(
-        Path(args.tiles),
-        Path(args.out),
-        path=args.path,
-        size=parse_size(args.size, "--size"),
-        seconds=args.seconds,
-        fps=args.fps,
-        renderer=args.renderer,
-    )
+    options = PreviewOptions(path=args.path, size=parse_size(args.size, "--size"), seconds=args.seconds, fps=args.fps)
+    report = preview_stage(Path(args.tiles), Path(args.out), options.checked("--"), renderer=args.renderer)
     print(
         f"{report['frames']} frames {report['width']}x{report['height']} at {report['fps']} fps "
         f"({report['renderer']} renderer, {report['render_fps']:.1f} frames/s) in {report['elapsed_seconds']:.1f} s"
@@ -54,10 +48,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("preview", help="render a flythrough MP4 and poster PNG of tiles")
     p.add_argument("tiles", help="tiles folder written by 'graylight tiles'")
     p.add_argument("--out", required=True, help="output MP4 (the poster is written beside it as .png)")
-    p.add_argument("--path", default="orbit", help="orbit, dolly or a JSON keyframe file (default orbit)")
-    p.add_argument("--size", default="1280x720", help="WIDTHxHEIGHT (default 1280x720)")
-    p.add_argument("--seconds", type=float, default=10.0, help="duration (default 10)")
-    p.add_argument("--fps", type=int, default=30, help="frames per second (default 30)")
+    w, h = PREVIEW_DEFAULTS.size
+    p.add_argument("--path", default=PREVIEW_DEFAULTS.path, help=f"orbit, dolly or a JSON keyframe file (default {PREVIEW_DEFAULTS.path})")
+    p.add_argument("--size", default=f"{w}x{h}", help=f"WIDTHxHEIGHT (default {w}x{h})")
+    p.add_argument("--seconds", type=float, default=PREVIEW_DEFAULTS.seconds, help=f"duration (default {PREVIEW_DEFAULTS.seconds:g})")
+    p.add_argument("--fps", type=float, default=PREVIEW_DEFAULTS.fps, help=f"frames per second (default {PREVIEW_DEFAULTS.fps:g})")
     p.add_argument(
         "--renderer",
         choices=["auto", "cpu", "gl"],

@@ -13,7 +13,7 @@ camera, and ``cv2.stereoCalibrate`` refines both devices and their pose together
 Views and corners that fit badly (a shiny patch, a misdetected board) are dropped and the
 fit repeated.
 
-:func:`calibrate_session` runs a whole session folder (see :mod:`shared.calib.session`)
+:func:`shared.calib.session.calibrate_session` runs a whole session folder
 and writes ``rig.json`` with its report: it is the stage the CLI and the job service call.
 """
 
@@ -694,31 +694,3 @@ def plane_fit_rms(points: np.ndarray) -> float:
     pts = np.asarray(points, np.float64)
     centred = pts - pts.mean(axis=0)
     return float(np.linalg.svd(centred, compute_uv=False)[-1] / np.sqrt(len(pts)))
-
-
-def calibrate_session(session_dir: Path, out_dir: Path, **kwargs: Any) -> dict[str, Any]:
-    """The calibration stage: calibrate a session folder and write ``rig.json`` and its report.
-
-    Parameters
-    ----------
-    session_dir : a folder with ``board.json`` and one capture folder per pose.
-    out_dir : receives ``rig.json``, ``calibration.json`` (report), ``calibration.yaml``
-        (OpenCV FileStorage) and ``residuals.png``.
-    kwargs : passed to :func:`shared.calib.session.run_session` (``decode``, ``progress``).
-
-    Returns
-    -------
-    The report document (also written to ``calibration.json``). Raises :class:`InputError`
-    on bad input, leaving no ``rig.json`` behind.
-    """
-    from shared.calib.session import run_session, write_outputs
-
-    out_dir = Path(out_dir)
-    result = run_session(Path(session_dir), **kwargs)
-    return write_outputs(
-        result,
-        rig_path=out_dir / "rig.json",
-        report_path=out_dir / "calibration.json",
-        yaml_path=out_dir / "calibration.yaml",
-        plot_path=out_dir / "residuals.png",
-    )

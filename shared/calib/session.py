@@ -43,10 +43,11 @@ from shared.calib.calibrate import (
     triangulate_corners,
 )
 from shared.core.errors import InputError
-from shared.core.files import atomic_file
-from shared.formats.capture import CAPTURE_FILE, Capture, load_capture, write_json_atomic
+from shared.core.files import atomic_file, write_json_atomic
+from shared.formats.capture import CAPTURE_FILE, Capture, load_capture
 from shared.formats.images import read_grey
 from shared.formats.rig import Device, Rig, save_rig
+from shared.scan.decode import decode_capture
 
 log = logging.getLogger(__name__)
 
@@ -60,7 +61,6 @@ ProgressFn = Callable[[int, int, str], None]
 
 def default_decode(capture: Capture) -> tuple[np.ndarray, np.ndarray]:
     """Decode with the scanner's own decoder (``shared.scan.decode``), sub-pixel projector coordinates."""
-    from shared.scan.decode import decode_capture
 
     decoded = decode_capture(capture, subpixel=True)
     return np.asarray(decoded.column, np.float32), np.asarray(decoded.row, np.float32)
@@ -449,3 +449,29 @@ def calibrate_camera_images(paths: Sequence[Path], board: Board, *, k3: bool = F
     where = Path(paths[0]).parent
     calibration = calibrate_camera(views, size, where=where, what="camera", flags=distortion_flags(k3))
     return CameraOnlyResult(calibration=calibration, board=board, images=images)
+
+
+def calibrate_session(session_dir: Path, out_dir: Path, **kwargs: Any) -> dict[str, Any]:
+    """The calibration stage: calibrate a session folder and write ``rig.json`` and its report.
+
+    Parameters
+    ----------
+    session_dir : a folder with ``board.json`` and one capture folder per pose.
+    out_dir : receives ``rig.json``, ``calibration.json`` (report), ``calibration.yaml``
+        (OpenCV FileStorage) and ``residuals.png``.
+    kwargs : passed to :func:`run_session` (``decode``, ``progress``).
+
+    Returns
+    -------
+    The report document (also written to ``calibration.json``). Raises :class:`InputError`
+    on bad input, leaving no ``rig.json`` behind.
+    """
+    out_dir = Path(out_dir)
+    result = run_session(Path(session_dir), **kwargs)
+    return write_outputs(
+        result,
+        rig_path=out_dir / "rig.json",
+        report_path=out_dir / "calibration.json",
+        yaml_path=out_dir / "calibration.yaml",
+        plot_path=out_dir / "residuals.png",
+    )

@@ -15,4 +15,5 @@ def shared_data_dir() -> Path:
     env = os.environ.get("GRAYLIGHT_SHARED_DATA")
     if env:
         return Path(env)
-    return (Path(__file__).resolve().parents[1] / ".." / "shared" / "data").resolve()
+    # shared/core/datapaths.py: parents[2] is the repository root.
+    return (Path(__file__).resolve().parents[2] / ".." / "shared" / "data").resolve()

@@ -32,8 +32,6 @@ from typing import Any
 from shared.core.errors import InputError
 from shared.core.files import read_json, write_json_atomic
 
-__all__ = ["write_json_atomic"]  # re-exported: stages import it from here
-
 FORMAT = "graycode-v1"
 CAPTURE_FILE = "capture.json"
 IMAGE_SUFFIXES = (".png", ".tif", ".tiff", ".jpg", ".jpeg", ".bmp")
@@ -100,13 +98,15 @@ class Capture:
         return paths
 
     def to_json(self) -> dict[str, Any]:
-        """The ``capture.json`` document, with paths relative to ``root`` where they lie inside it."""
+        """The ``capture.json`` document. Its paths are relative to ``root``, always (that is
+        how :func:`parse_capture` reads them); a file outside ``root`` is an :class:`InputError`."""
+        root = Path(self.root).absolute()
 
         def rel(p: Path) -> str:
             try:
-                return p.relative_to(self.root).as_posix()
+                return Path(p).absolute().relative_to(root).as_posix()
             except ValueError:
-                return str(p)
+                raise InputError(p, f"lies outside the capture folder {root}: capture.json paths are relative to it") from None
 
         def entries(es: Sequence[CodeImage]) -> list[dict[str, Any]]:
             out = []
@@ -289,6 +289,10 @@ def opencv_order_capture(
             f"{len(frames)} frames, but a {projector_width}x{projector_height} projector in OpenCV order needs "
             f"{n_patterns} pattern frames plus white and black ({needed} in all)",
         )
+    # Absolute, so that capture.json (relative to the capture folder) comes out right whatever
+    # the working directory: `import-sequence c0` must not write "c0/graycode_40.png".
+    frames = [Path(f).absolute() for f in frames]
+    rig = Path(rig).absolute() if rig is not None else None
     pattern_frames = [f for i, f in enumerate(frames) if i not in (white_index, black_index)][:n_patterns]
     cols = tuple(
         CodeImage(bit=cb - 1 - k, pattern=pattern_frames[2 * k], inverse=pattern_frames[2 * k + 1]) for k in range(cb)

@@ -20,7 +20,13 @@ _TYPES = {
     "int8": "i1", "uint8": "u1", "int16": "<i2", "uint16": "<u2", "int32": "<i4", "uint32": "<u4",
     "int64": "<i8", "uint64": "<u8", "float": "<f4", "double": "<f8",
 }  # fmt: skip
-_HIER = np.dtype([("type", "u1"), ("mask", "u1"), ("points", "<u4"), ("offset", "<i8"), ("size", "<i8")])
+#: One node record of ``hierarchy.bin`` (22 bytes): type (0 normal, 1 leaf, 2 proxy for the
+#: next hierarchy chunk), child mask, point count, byte offset and byte size (into
+#: ``octree.bin``, or into ``hierarchy.bin`` for a proxy). The writer in
+#: :mod:`shared.render.octree` and this reader share it.
+HIERARCHY_DTYPE = np.dtype([("type", "u1"), ("mask", "u1"), ("points", "<u4"), ("offset", "<i8"), ("size", "<i8")])
+#: Levels per hierarchy chunk (PotreeConverter's ``stepSize``).
+HIERARCHY_STEP = 4
 
 
 @dataclass
@@ -158,9 +164,9 @@ def open_tiles(root: Path) -> PotreeTiles:
     pending = [(root_node, 0, first)]  # proxies to expand: (node, hierarchy offset, size)
     while pending:
         start, h_off, h_size = pending.pop()
-        if h_size % _HIER.itemsize or h_off + h_size > hier.size:
+        if h_size % HIERARCHY_DTYPE.itemsize or h_off + h_size > hier.size:
             raise InputError(hpath, f"hierarchy chunk at {h_off}+{h_size} is out of range")
-        recs = np.frombuffer(hier[h_off : h_off + h_size].tobytes(), _HIER)
+        recs = np.frombuffer(hier[h_off : h_off + h_size].tobytes(), HIERARCHY_DTYPE)
         queue = [start]
         for i, r in enumerate(recs):
             if i >= len(queue):

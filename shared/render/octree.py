@@ -59,6 +59,7 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.formats.ply import CLOUD_DTYPE, iter_ply_chunks, read_header
+from shared.formats.potree import HIERARCHY_DTYPE, HIERARCHY_STEP
 
 log = logging.getLogger(__name__)
 
@@ -69,8 +70,7 @@ POINT_DTYPE = np.dtype(
 MORTON_BITS = 21  # bits an axis in a 63-bit Morton code
 GRID_LEVELS = 7  # 2**7 = 128 cells a side: node spacing = node cube / 128
 COUNT_LEVEL = 7  # level of the counting grid; chunks are never deeper than this
-HIERARCHY_STEP = 4  # levels per hierarchy chunk (PotreeConverter's stepSize)
-BYTES_PER_NODE = 22
+BYTES_PER_NODE = HIERARCHY_DTYPE.itemsize  # 22
 MAX_DEPTH = MORTON_BITS - GRID_LEVELS  # deepest level whose sampling grid the codes resolve
 READ_CHUNK = 1 << 20  # points a slice of the passes over the cloud
 MIN_PART_POINTS = 1 << 20  # smallest range of the cloud a pass hands to a worker process
@@ -548,12 +548,16 @@ def plan_tiles(
     max_leaf: int = 10_000,
     pool: Executor | None = None,
     workers: int = 1,
+    scale: float | None = None,
 ) -> TilePlan:
     """Pass 1: bounds, counts, chunk choice and distribution of points into chunk files.
 
     Writes ``work_dir/chunk_*.bin`` (raw :data:`POINT_DTYPE` records) and ``work_dir/plan.json``.
     With a process ``pool`` of ``workers`` processes, each pass over a little-endian binary
     PLY splits into that many contiguous ranges run in the pool (same files, byte for byte).
+    ``scale`` (world units per integer step) overrides the default power of ten that spreads
+    the cube over about 2**30 steps (a COPC export picks its own, see
+    :func:`shared.formats.las.coordinate_scale`); it must keep the cube within int32.
     Raises :class:`InputError` for an empty cloud or NaN / infinite coordinates.
     """
     cloud_ply = Path(cloud_ply)
@@ -584,7 +588,10 @@ def plan_tiles(
     extent = float((hi - lo).max())
     cube = max(extent * (1 + 1e-6), 1e-6 * max(1.0, float(np.abs(np.concatenate([lo, hi])).max())))
     # A power-of-ten step that keeps cube / scale well inside int32.
-    scale = 10.0 ** math.ceil(math.log10(cube / 2**30))
+    if scale is None:
+        scale = 10.0 ** math.ceil(math.log10(cube / 2**30))
+    elif not (scale > 0 and math.isfinite(scale)) or cube / scale > 2**31 - 2:
+        raise InputError("scale", f"{scale!r} cannot hold the cloud's extent {cube:.6g} in int32 steps")
     qsize = int(math.ceil(cube / scale)) + 1
     cube = qsize * scale
     offset = lo.astype(np.float64)
@@ -896,9 +903,7 @@ def _hierarchy(nodes: dict[str, dict]) -> tuple[bytes, int, int]:
         stack.extend(m for m in members if len(m) - 1 == len(root) - 1 + HIERARCHY_STEP)
     chunk_index = {members[0]: i for i, members in enumerate(chunk_list)}
     chunk_offsets = np.concatenate([[0], np.cumsum([len(m) * BYTES_PER_NODE for m in chunk_list])])
-    rec_dtype = np.dtype(
-        [("type", "u1"), ("mask", "u1"), ("points", "<u4"), ("offset", "<i8"), ("size", "<i8")]
-    )
+    rec_dtype = HIERARCHY_DTYPE
     parts = []
     for members in chunk_list:
         root_level = len(members[0]) - 1
@@ -1097,6 +1102,7 @@ def build_tiles(
     workers: int | None = None,
     max_chunk: int = 2_000_000,
     max_leaf: int = 10_000,
+    scale: float | None = None,
 ) -> dict:
     """Build Potree 2.0 tiles from ``cloud_ply`` into ``out_dir`` (all passes, in-process).
 
@@ -1121,7 +1127,8 @@ def build_tiles(
                 else None
             )
             plan = plan_tiles(
-                Path(cloud_ply), work, max_chunk=max_chunk, max_leaf=max_leaf, pool=pool, workers=workers
+                Path(cloud_ply), work, max_chunk=max_chunk, max_leaf=max_leaf, pool=pool, workers=workers,
+                scale=scale,
             )
             nchunks = len(plan.chunks)
             # Largest chunks first keeps the pool busy to the end.

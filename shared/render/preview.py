@@ -16,7 +16,6 @@ close up as well. Encoding runs in ffmpeg's own process, overlapping the renderi
 from __future__ import annotations
 
 import logging
-import math
 import os
 import time
 from collections.abc import Callable
@@ -29,19 +28,21 @@ import numpy as np
 from shared.core.errors import InputError
 from shared.formats.potree import PotreeTiles, open_tiles, tight_bounds
 from shared.render.camera_path import CameraPose, make_path
+from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
 from shared.render.raster import Camera, GLRasterizer, NodeTable, Rasterizer, select_nodes
 
 log = logging.getLogger(__name__)
 
-MAX_WIDTH, MAX_HEIGHT = 3840, 2160
-MIN_SIDE = 16
-MAX_SECONDS = 600.0
-MAX_FPS = 120
 #: Points drawn a frame: 1.5 M covers a 1280x720 frame about 1.6 times over.
 DEFAULT_BUDGET = 1_500_000
 #: Points held in memory for a preview; deeper nodes of a bigger cloud are left out.
 MAX_LOADED = 40_000_000
 BACKGROUND = (18, 18, 24)
+#: Points the camera path frames (the coarse levels' sample of the object).
+FRAMING_POINTS = 60_000
+#: Eye-dome lighting strength of the CPU renderer's frames: outlines and depth steps darken,
+#: so a grey or white object reads as a shape (the viewer's EDL does the same).
+DEFAULT_EDL = 1.0
 
 
 @dataclass
@@ -126,6 +127,12 @@ def load_scene(tiles: PotreeTiles, max_points: int = MAX_LOADED) -> LoadedScene:
                        names=[nd.name for nd in chosen], bounds_min=lo, bounds_max=hi)  # fmt: skip
 
 
+def frame_sample(scene: LoadedScene, points: int = FRAMING_POINTS) -> np.ndarray:
+    """(M, 3) float64 world positions for framing the camera path: the first ``points`` of the
+    loaded nodes, breadth first, so the coarse levels' even grid sample of the whole object."""
+    return scene.xyz[: min(points, scene.points)].astype(np.float64) + scene.origin
+
+
 def frame_camera(pose: CameraPose, scene: LoadedScene, width: int, height: int) -> Camera:
     """The rasteriser camera of a pose (moved into the scene's local frame)."""
     diag = float(np.linalg.norm(scene.bounds_max - scene.bounds_min)) or 1.0
@@ -195,34 +202,20 @@ def render_frames(
 
 def check_video_args(size: tuple[int, int], seconds: float, fps: float) -> tuple[int, int, int]:
     """Validate the video request; returns (width, height, frames). InputError names the field."""
-    try:
-        width, height = (int(v) for v in size)
-    except (TypeError, ValueError):
-        raise InputError("size", f"must be two integers WIDTHxHEIGHT, got {size!r}") from None
-    if width > MAX_WIDTH or height > MAX_HEIGHT:
-        raise InputError("size", f"{width}x{height} is too large (at most {MAX_WIDTH}x{MAX_HEIGHT})")
-    if width < MIN_SIDE or height < MIN_SIDE:
-        raise InputError("size", f"{width}x{height} is too small (at least {MIN_SIDE}x{MIN_SIDE})")
-    if width % 2 or height % 2:
-        raise InputError("size", f"{width}x{height}: H.264 needs even width and height")
-    if not (isinstance(seconds, int | float) and math.isfinite(seconds) and 0 < seconds <= MAX_SECONDS):
-        raise InputError("seconds", f"must be in (0, {MAX_SECONDS:g}], got {seconds!r}")
-    if not (isinstance(fps, int | float) and math.isfinite(fps) and 1 <= fps <= MAX_FPS):
-        raise InputError("fps", f"must be in [1, {MAX_FPS}], got {fps!r}")
-    frames = max(1, int(round(seconds * fps)))
-    return width, height, frames
+    opts = PreviewOptions(size=size, seconds=seconds, fps=fps).checked()
+    return opts.size[0], opts.size[1], opts.frames
 
 
 def render_preview(
     tiles_dir: Path,
     out_path: Path,
     *,
-    path: str | Path = "orbit",
-    size: tuple[int, int] = (1280, 720),
-    seconds: float = 10.0,
-    fps: float = 30,
+    path: str | Path = PREVIEW_DEFAULTS.path,
+    size: tuple[int, int] = PREVIEW_DEFAULTS.size,
+    seconds: float = PREVIEW_DEFAULTS.seconds,
+    fps: float = PREVIEW_DEFAULTS.fps,
     budget: int = DEFAULT_BUDGET,
-    edl: float = 0.0,
+    edl: float = DEFAULT_EDL,
     renderer: str = "auto",
     progress: Callable[[float], None] | None = None,
 ) -> dict:
@@ -243,7 +236,8 @@ def render_preview(
     out_path = Path(out_path)
     tiles = open_tiles(Path(tiles_dir))
     scene = load_scene(tiles)
-    poses = make_path(path, scene.bounds_min, scene.bounds_max, frames)
+    poses = make_path(path, scene.bounds_min, scene.bounds_max, frames, points=frame_sample(scene),
+                      aspect=width / height)  # fmt: skip
     out_path.parent.mkdir(parents=True, exist_ok=True)
     poster_path = out_path.with_suffix(".png")
     tmp_video = out_path.with_name(f".{out_path.stem}.{os.getpid()}.tmp.mp4")

@@ -18,6 +18,7 @@ from collections.abc import Callable
 from pathlib import Path
 
 from shared.render.octree import build_tiles
+from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
 from shared.render.preview import render_preview
 
 
@@ -32,20 +33,19 @@ def tiles_stage(cloud_ply: Path, out_dir: Path, *, workers: int | None = None) -
 def preview_stage(
     tiles_dir: Path,
     out_path: Path,
+    options: PreviewOptions = PREVIEW_DEFAULTS,
     *,
-    path: str = "orbit",
-    size: tuple[int, int] = (1280, 720),
-    seconds: float = 10.0,
-    fps: int = 30,
     renderer: str = "auto",
     progress: Callable[[float], None] | None = None,
 ) -> dict:
     """Render a preview flythrough of ``tiles_dir`` to ``out_path`` (MP4) plus a poster PNG.
 
+    ``options``: path, size, seconds and fps (:class:`~shared.render.options.PreviewOptions`);
     ``renderer``: "auto" (OpenGL on a hardware GPU, else the CPU rasteriser), "cpu" or "gl";
     ``progress`` is called with the fraction of frames written.
     """
     return render_preview(
-        Path(tiles_dir), Path(out_path), path=path, size=size, seconds=seconds, fps=fps, renderer=renderer,
+        Path(tiles_dir), Path(out_path), path=options.path, size=options.size, seconds=options.seconds,
+        fps=options.fps, renderer=renderer,
         progress=progress,
     )  # fmt: skip

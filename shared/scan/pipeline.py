@@ -26,8 +26,8 @@ from typing import Any
 import numpy as np
 
 from shared.core.errors import InputError
-from shared.core.files import atomic_file
-from shared.formats.capture import Capture, load_capture, write_json_atomic
+from shared.core.files import atomic_file, write_json_atomic
+from shared.formats.capture import Capture, load_capture
 from shared.formats.images import probe_image
 from shared.formats.ply import write_ply
 from shared.formats.rig import Rig, check_rig_matches, load_rig

@@ -37,6 +37,7 @@ from typing import IO, Any
 import fsspec
 
 from shared.core.errors import GraylightError
+from shared.service.config import get_settings
 
 log = logging.getLogger(__name__)
 
@@ -417,7 +418,6 @@ class ArtifactStore:
 def open_artifacts(url: str | None = None, s3_endpoint: str | None = None) -> ArtifactStore:
     """The configured artifact store (``GRAYLIGHT_STORAGE_URL``, ``GRAYLIGHT_S3_ENDPOINT``)."""
     if url is None:
-        from shared.service.config import get_settings
 
         cfg = get_settings()
         url, s3_endpoint = cfg.storage_url, cfg.s3_endpoint

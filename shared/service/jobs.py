@@ -61,7 +61,8 @@ JOB_TRANSITIONS: dict[JobState, frozenset[JobState]] = {
 #: that the stage's inputs changed.
 STAGE_TRANSITIONS: dict[StageState, frozenset[StageState]] = {
     StageState.PENDING: frozenset({StageState.QUEUED, StageState.CANCELLED}),
-    StageState.QUEUED: frozenset({StageState.RUNNING, StageState.CANCELLED, StageState.SUCCEEDED}),
+    # queued -> failed: the reconciler's verdict on a stage whose messages keep killing workers.
+    StageState.QUEUED: frozenset({StageState.RUNNING, StageState.CANCELLED, StageState.SUCCEEDED, StageState.FAILED}),
     StageState.RUNNING: frozenset(
         {StageState.SUCCEEDED, StageState.FAILED, StageState.QUEUED, StageState.CANCELLED}
     ),
@@ -80,6 +81,37 @@ def can_move_stage(old: str, new: str) -> bool:
     """Whether a stage may go from state ``old`` to ``new``."""
     return StageState(new) in STAGE_TRANSITIONS[StageState(old)]
 
+
+def stage_sources(new: str) -> frozenset[StageState]:
+    """The stage states from which a stage may move to ``new`` (the job store's WHERE clauses)."""
+    return frozenset(old for old, targets in STAGE_TRANSITIONS.items() if StageState(new) in targets)
+
+
+#: Jobs that are not final: the reconciler re-derives their state.
+JOB_ACTIVE = frozenset(JobState) - JOB_TERMINAL
+#: Stages that wait for their turn; a failed stage cancels these downstream.
+STAGE_WAITING = frozenset({StageState.PENDING, StageState.QUEUED})
+
+
+class IllegalTransition(RuntimeError):
+    """A state change that :data:`JOB_TRANSITIONS` / :data:`STAGE_TRANSITIONS` do not allow:
+    a bug in the job service, never a user error."""
+
+
+def check_transition(stage: str | None, old: str | None, new: str) -> None:
+    """Raise :class:`IllegalTransition` unless a job (``stage`` None) or a stage may move from
+    ``old`` to ``new``; ``old`` None is a creation."""
+    if old is None:
+        return
+    ok = can_move_job(old, new) if stage is None else can_move_stage(old, new)
+    if not ok:
+        what = "job" if stage is None else f"stage {stage}"
+        raise IllegalTransition(f"{what}: {old} -> {new} is not a declared transition")
+
+
+#: The logical queues a stage runs on (``control`` carries the reconciler and beat's tasks);
+#: the broker's names carry ``GRAYLIGHT_QUEUE_PREFIX`` in front.
+QUEUES: tuple[str, ...] = ("cpu", "render", "control")
 
 #: The input name that refers to the job's submitted capture (or calibration session).
 CAPTURE = "capture"
@@ -221,6 +253,14 @@ def stage_key(
     return hashlib.sha256(blob).hexdigest()
 
 
+def row_key(
+    kind: str, row: str, capture_key: str, params: Mapping[str, Any], upstream: Mapping[str, str]
+) -> str:
+    """:func:`stage_key` of the job row ``row`` (a stage, or a map stage's instance ``name#i``)
+    of a ``kind`` job: the one place the runner, the retry route and the reconciler compute it."""
+    return stage_key(stage_spec(kind, row), capture_key, params, upstream, fanout_index(row))
+
+
 @dataclass
 class StageView:
     """What the graph logic needs of a stage row: its name, state and dependencies."""
@@ -228,6 +268,7 @@ class StageView:
     name: str
     state: str
     depends_on: tuple[str, ...] = field(default_factory=tuple)
+    output_key: str | None = None
 
 
 def ready_to_queue(stages: Iterable[StageView]) -> list[str]:
@@ -249,3 +290,20 @@ def job_state_from_stages(states: Iterable[str], cancelled: bool = False) -> Job
     if any(s in (StageState.RUNNING, StageState.SUCCEEDED) for s in states):
         return JobState.RUNNING
     return JobState.QUEUED
+
+
+def rows_to_rerun(
+    kind: str, rows: Iterable[StageView], capture_key: str, params: Mapping[str, Any]
+) -> set[str]:
+    """The rows a retry with ``params`` re-runs: those not succeeded, those whose key under
+    ``params`` differs from the output they hold (new parameters, a new stage version), and
+    everything downstream of either. ``rows`` in graph order, so upstream keys come first."""
+    rerun: set[str] = set()
+    keys: dict[str, str] = {}
+    for st in rows:
+        upstream = {d: keys.get(d, "") for d in st.depends_on}
+        keys[st.name] = row_key(kind, st.name, capture_key, params, upstream)
+        changed = st.output_key != keys[st.name]
+        if st.state != StageState.SUCCEEDED or changed or any(d in rerun for d in st.depends_on):
+            rerun.add(st.name)
+    return rerun

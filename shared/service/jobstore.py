@@ -43,14 +43,21 @@ from sqlalchemy.engine import Engine
 from sqlalchemy.exc import IntegrityError, OperationalError, ProgrammingError
 from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sessionmaker
 
+from shared.service.config import get_settings
 from shared.service.jobs import (
     FANOUT_SEP,
+    JOB_ACTIVE,
+    STAGE_WAITING,
     JobState,
     StageSpec,
     StageState,
     StageView,
+    can_move_job,
+    can_move_stage,
+    check_transition,
     job_state_from_stages,
     ready_to_queue,
+    stage_sources,
 )
 
 log = logging.getLogger(__name__)
@@ -368,6 +375,8 @@ class JobStore:
     # ---- events ----------------------------------------------------------------------
     @staticmethod
     def _event(s: Session, job_id: str, stage: str | None, old: str | None, new: str, detail: str | None = None) -> None:
+        # Every state change is recorded here, so this is where the declared transitions hold.
+        check_transition(stage, old, new)
         s.add(EventRow(job_id=job_id, stage=stage, old=old, new=new, at=time.time(), detail=detail))
 
     def events(self, job_id: str) -> list[tuple[str | None, str | None, str, str | None]]:
@@ -539,7 +548,7 @@ class JobStore:
             if any(r.state == StageState.FAILED for r in stages):
                 # A failed stage ends the job: what waits downstream will never run.
                 for r in stages:
-                    if r.state in (StageState.PENDING, StageState.QUEUED):
+                    if r.state in STAGE_WAITING:
                         s.execute(update(StageRow).where(StageRow.id == r.id).values(state=StageState.CANCELLED))
                         self._event(s, job_id, r.name, r.state, StageState.CANCELLED, "an earlier stage failed")
                         r.state = StageState.CANCELLED
@@ -700,7 +709,7 @@ class JobStore:
         with self.session() as s, s.begin():
             res = s.execute(
                 update(StageRow)
-                .where(StageRow.id == stage_id, StageRow.state.in_([StageState.QUEUED, StageState.RUNNING]))
+                .where(StageRow.id == stage_id, StageRow.state.in_(stage_sources(StageState.FAILED)))
                 .values(state=StageState.FAILED, error=error[:2000], finished_at=time.time(), lease_token=None)
             )
             if not res.rowcount:
@@ -757,7 +766,7 @@ class JobStore:
         """Ids of jobs not in a final state (the reconciler re-derives their state)."""
         with self.session() as s:
             return list(
-                s.scalars(select(JobRow.id).where(JobRow.state.in_([JobState.QUEUED, JobState.RUNNING]))).all()
+                s.scalars(select(JobRow.id).where(JobRow.state.in_(JOB_ACTIVE))).all()
             )
 
     def settle(self, job_id: str) -> list[Stage]:
@@ -772,10 +781,10 @@ class JobStore:
         now = time.time()
         with self.session() as s, s.begin():
             job = s.get(JobRow, job_id)
-            if job is None or job.state not in (JobState.QUEUED, JobState.RUNNING):
+            if job is None or not can_move_job(job.state, JobState.CANCELLED):
                 return None
             for r in s.scalars(select(StageRow).where(StageRow.job_id == job_id)).all():
-                if r.state in (StageState.PENDING, StageState.QUEUED, StageState.RUNNING):
+                if can_move_stage(r.state, StageState.CANCELLED):
                     self._event(s, job_id, r.name, r.state, StageState.CANCELLED)
                     r.state = StageState.CANCELLED
                     r.lease_token = None
@@ -794,7 +803,7 @@ class JobStore:
             if job is None:
                 return []
             for r in s.scalars(select(StageRow).where(StageRow.job_id == job_id)).all():
-                if r.name in names and r.state in (StageState.SUCCEEDED, StageState.FAILED, StageState.CANCELLED):
+                if r.name in names and can_move_stage(r.state, StageState.PENDING):
                     self._event(s, job_id, r.name, r.state, StageState.PENDING, "retry")
                     r.state = StageState.PENDING
                     r.error = None
@@ -860,7 +869,6 @@ class JobStore:
 def open_store(url: str | None = None) -> JobStore:
     """The job store at ``url`` (default: the configured ``GRAYLIGHT_DATABASE_URL``)."""
     if url is None:
-        from shared.service.config import get_settings
 
         url = get_settings().database_url
     return JobStore(url)

@@ -23,8 +23,8 @@ from typing import Any
 
 import numpy as np
 
-from shared.calib.board import BOARD_FILE, Board
-from shared.formats.capture import write_json_atomic
+from shared.calib.board import BOARD_FILE, Board, load_board
+from shared.core.files import write_json_atomic
 from shared.formats.rig import Rig, parse_rig
 from shared.sim.scenes import Scene, TexturedPlane, rotation_about
 from shared.sim.simulate import ImagingParams, make_rig, simulate_capture
@@ -212,7 +212,6 @@ def simulate_session(
 
 def load_simulated_session(path: str | os.PathLike[str]) -> SimulatedSession:
     """Read back a session written by :func:`simulate_session` (its ``truth.json`` and ``board.json``)."""
-    from shared.calib.board import load_board
 
     root = Path(path).absolute()
     doc = json.loads((root / TRUTH_FILE).read_text(encoding="utf-8"))

@@ -27,6 +27,7 @@ import numpy as np
 from shared.core.datapaths import shared_data_dir
 from shared.core.errors import InputError
 from shared.formats.mesh import TriangleMesh, load_obj
+from shared.sim.raycast import texture_filtered
 
 
 @dataclass(frozen=True)
@@ -188,7 +189,6 @@ class TexturedPlane:
         larger than a texel use a downsampled copy of the texture (mip level), so the cost per
         sample stays bounded.
         """
-        from shared.sim.raycast import texture_filtered
 
         fp = np.asarray(footprint_mm, np.float64) / self.mm_per_texel
         h0, w0 = self._tex.shape[:2]

@@ -22,8 +22,8 @@ from pathlib import Path
 from shared.service.artifacts import ArtifactStore, sha256_file
 from shared.service.jobs import graph_for
 from shared.service.jobstore import JobStore, NewJob
-from tests.workers import jobsvc
-from workers.dispatch import publish_stages
+from shared.service.queue import publish_stages
+from tests.support import jobsvc
 
 N_PROBES = 30
 N_CAPTURES = 10

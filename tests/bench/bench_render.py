@@ -2,14 +2,13 @@
 scan), the CPU point rasteriser against moderngl GL_POINTS on llvmpipe, and the whole preview
 stage on a 15 M-point scan.
 
-The clouds are synthetic single-view scans (:func:`synthetic_scan`): a camera at the origin
-ray-casts a wall, a floor and a sphere, one point a pixel, with ``size`` = Z / f like the
-scanner writes. Tests import :func:`synthetic_scan` for their small clouds too.
+The clouds are synthetic single-view scans (:func:`tests.support.clouds.synthetic_scan`): a
+camera at the origin ray-casts a wall, a floor and a sphere, one point a pixel, with ``size`` =
+Z / f like the scanner writes; the tests make their small clouds with the same function.
 """
 
 from __future__ import annotations
 
-import math
 import os
 import resource
 import shutil
@@ -21,80 +20,15 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.formats.ply import CLOUD_DTYPE, read_header
+from shared.formats.ply import read_header
 from shared.formats.potree import open_tiles
 from shared.render.camera_path import make_path
 from shared.render.octree import build_tiles
+from shared.render.options import PreviewOptions
 from shared.render.preview import DEFAULT_BUDGET, LoadedScene, frame_camera, frame_selection, load_scene
 from shared.render.raster import GLRasterizer, Rasterizer
 from shared.render.stages import preview_stage
-
-F_SCAN = 1400.0  # focal length (px) of the simulated scanner camera
-
-
-def _scan_rows(width: int, height: int, v0: int, v1: int, rng: np.random.Generator) -> np.ndarray:
-    """Ray-cast image rows [v0, v1) of the synthetic scene; returns CLOUD_DTYPE records."""
-    f = F_SCAN * width / 3000.0
-    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(v0, v1, dtype=np.float64))
-    u = u.ravel() + rng.uniform(-0.5, 0.5, u.size)
-    v = v.ravel() + rng.uniform(-0.5, 0.5, v.size)
-    d = np.stack([(u - width / 2) / f, (v - height / 2) / f, np.ones_like(u)], axis=1)
-    t = np.full(u.size, 1500.0)  # wall at z = 1500 mm
-    normal = np.tile([0.0, 0.0, -1.0], (u.size, 1))
-    kind = np.zeros(u.size, np.int8)
-    floor_t = np.where(d[:, 1] > 1e-9, 350.0 / np.maximum(d[:, 1], 1e-9), np.inf)  # floor y = 350
-    hit = floor_t < t
-    t[hit] = floor_t[hit]
-    normal[hit] = [0.0, -1.0, 0.0]
-    kind[hit] = 1
-    c = np.array([80.0, 50.0, 1100.0])  # sphere
-    r = 280.0
-    b = d @ c
-    dd = np.einsum("ij,ij->i", d, d)
-    disc = b * b - dd * (c @ c - r * r)
-    ts = np.where(disc > 0, (b - np.sqrt(np.maximum(disc, 0))) / dd, np.inf)
-    hit = (ts > 0) & (ts < t)
-    t[hit] = ts[hit]
-    kind[hit] = 2
-    xyz = d * t[:, None]
-    normal[hit] = (xyz[hit] - c) / r
-    rec = np.empty(u.size, CLOUD_DTYPE)
-    rec["x"], rec["y"], rec["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    checker = ((np.floor(xyz[:, 0] / 100) + np.floor(xyz[:, 1] / 100)) % 2).astype(np.float64)
-    shade = np.clip(-normal[:, 2] * 0.7 + 0.3, 0, 1)
-    col = np.empty((u.size, 3))
-    col[:] = np.where(checker[:, None] > 0, [200, 190, 170], [90, 110, 160])
-    col[kind == 1] = [120, 90, 60]
-    col[kind == 2] = np.array([220, 60, 50]) * shade[kind == 2, None]
-    rec["red"], rec["green"], rec["blue"] = col[:, 0], col[:, 1], col[:, 2]
-    rec["nx"], rec["ny"], rec["nz"] = normal[:, 0], normal[:, 1], normal[:, 2]
-    rec["size"] = xyz[:, 2] / f
-    return rec
-
-
-def synthetic_scan(path: Path, points: int, seed: int = 0) -> Path:
-    """Write a synthetic single-view scan of about ``points`` points (4:3 image) as a cloud PLY,
-    built in bands of rows so memory stays small. Returns ``path``."""
-    width = max(4, int(round(math.sqrt(points * 4 / 3))))
-    height = max(3, int(round(points / width)))
-    rng = np.random.default_rng(seed)
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {width * height}"]
-    names = {"u1": "uchar", "<f4": "float"}
-    for name in CLOUD_DTYPE.names or ():
-        header.append(
-            f"property {names[CLOUD_DTYPE[name].str if CLOUD_DTYPE[name].str != '|u1' else 'u1']} {name}"
-        )
-    header.append("end_header")
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode("ascii"))
-        band = max(1, (1 << 20) // width)
-        for v0 in range(0, height, band):
-            f.write(_scan_rows(width, height, v0, min(height, v0 + band), rng).tobytes())
-    tmp.replace(path)
-    return path
-
+from tests.support.clouds import synthetic_scan
 
 # --------------------------------------------------------------------------- bench sections
 
@@ -262,7 +196,7 @@ def bench_preview(work: Path) -> None:
     )
     del scene
 
-    rep = preview_stage(work / "scan15m_tiles", work / "preview.mp4", size=SIZE, seconds=10.0, fps=30)
+    rep = preview_stage(work / "scan15m_tiles", work / "preview.mp4", PreviewOptions(size=SIZE, seconds=10.0, fps=30))
     print(f"whole preview stage, {rep['frames']} frames {width}x{height} H.264: {rep['elapsed_seconds']:.1f} s "
           f"(rendering {rep['render_fps']:.1f} fps)   (target < 120 s)")  # fmt: skip
 

@@ -16,6 +16,7 @@ from fastapi.testclient import TestClient
 from services.api.app import create_app
 from shared.service.jobstore import JobStore
 from tests.support import jobsvc
+from tests.support.images import png_bytes
 from workers.runner import run_stage
 
 
@@ -108,7 +109,7 @@ def test_archive_checks_before_anything_is_stored(api, capture: Path, tmp_path: 
             z.writestr(f"f{i}.txt", "x")
     r = post_zip(client, alice, buf.getvalue(), name="many.zip")
     assert r.status_code == 422 and "more than 200 members" in problem(r)
-    from tests.support.images import png_bytes
+
 
     big = zip_of(capture, tmp_path, replace={"col_00.png": png_bytes(2000, 2000)})
     r = post_zip(client, alice, big, name="big.zip")

@@ -15,7 +15,7 @@ from schemathesis.checks import not_a_server_error
 
 from services.api.app import create_app
 from shared.service.jobstore import JobStore
-from tests.workers import jobsvc
+from tests.support import jobsvc
 
 # Schemathesis reads the schema when the module is collected, so the app is built here, in
 # a temporary service environment of its own, removed when the module's tests end.

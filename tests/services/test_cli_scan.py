@@ -17,7 +17,7 @@ from services.cli.main import main
 from shared.core.datapaths import shared_data_dir
 from shared.formats.capture import load_capture
 from shared.formats.ply import read_ply
-from tests.shared.synthetic_plane import render_plane_capture
+from tests.support.synthetic_plane import render_plane_capture
 
 REPO = Path(__file__).resolve().parents[2]
 REAL = shared_data_dir() / "procam-kamino410"

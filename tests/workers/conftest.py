@@ -1,4 +1,4 @@
-"""Fixtures of the job-service tests (helpers in :mod:`tests.workers.jobsvc`)."""
+"""Fixtures of the job-service tests (helpers in :mod:`tests.support.jobsvc`)."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ from typing import Any
 
 import pytest
 
-from tests.workers import jobsvc
+from tests.support import jobsvc
 
 
 @pytest.fixture(scope="session")

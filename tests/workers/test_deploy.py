@@ -25,7 +25,7 @@ def test_compose_and_k8s_cover_every_service() -> None:
 
 
 def test_every_setting_is_documented() -> None:
-    source = (Path(__file__).resolve().parents[2] / "shared" / "config.py").read_text()
+    source = (Path(__file__).resolve().parents[2] / "shared" / "service" / "config.py").read_text()
     read = set(re.findall(r'"(GRAYLIGHT_[A-Z0-9_]+)"', source))
     readme = (DEPLOY / "README.md").read_text()
     missing = sorted(v for v in read if v not in readme)

@@ -11,7 +11,7 @@ import redis
 
 from shared.service.jobs import StageSpec, fanout_index, graph_for, stage_key, stage_spec
 from shared.service.jobstore import JobStore, NewJob
-from tests.workers.jobsvc import ServiceEnv
+from tests.support.jobsvc import ServiceEnv
 from workers.reconciler import enqueue_preview_rerender, reconcile_once
 
 

@@ -14,7 +14,7 @@ from shared.formats.ply import read_ply
 from shared.service.artifacts import ArtifactStore, sha256_file
 from shared.service.jobs import graph_for
 from shared.service.jobstore import Job, JobStore, NewJob
-from tests.workers.jobsvc import capture_zip, make_env
+from tests.support.jobsvc import capture_zip, make_env
 from workers.runner import run_stage
 
 #: Tiny previews keep the render stages quick in tests.

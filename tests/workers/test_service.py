@@ -25,7 +25,7 @@ from services.api.app import create_app
 from shared.formats.ply import read_ply
 from shared.service.artifacts import ArtifactStore
 from shared.service.jobstore import JobStore
-from tests.workers.jobsvc import (
+from tests.support.jobsvc import (
     GRAYLIGHT,
     ServiceEnv,
     capture_zip,
@@ -171,7 +171,7 @@ def test_restarting_api_and_workers_loses_no_job(svc_env: ServiceEnv, small_capt
 
 
 def test_redis_restart_strands_nothing(tmp_path: Path, redis_server, small_capture: Path) -> None:
-    from tests.workers.jobsvc import service_env
+    from tests.support.jobsvc import service_env
 
     with service_env(tmp_path, GRAYLIGHT_BROKER_URL=redis_server.url) as senv:
         worker = start_worker(senv, "cpu", concurrency=1)

@@ -14,7 +14,7 @@ from shared.core.errors import InputError
 from shared.formats.ply import read_header, read_ply
 from shared.formats.rig import load_rig, save_rig
 from shared.scan.pipeline import decode_stage, ingest_stage, scan, triangulate_stage
-from tests.shared.synthetic_plane import PlaneTruth, render_plane_capture
+from tests.support.synthetic_plane import PlaneTruth, render_plane_capture
 
 
 @pytest.fixture(scope="module")

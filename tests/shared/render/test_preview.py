@@ -15,9 +15,10 @@ from shared.core.errors import InputError
 from shared.formats.ply import read_header
 from shared.render.camera_path import dolly_path, load_path_file, orbit_path
 from shared.render.octree import build_tiles
+from shared.render.options import PreviewOptions
 from shared.render.preview import BACKGROUND, render_preview
 from shared.render.stages import preview_stage, tiles_stage
-from tests.bench.bench_render import synthetic_scan
+from tests.support.clouds import synthetic_scan
 
 # One worker builds the module's tiles once and runs every test on them.
 pytestmark = pytest.mark.xdist_group("preview")
@@ -142,7 +143,7 @@ def test_stages_and_cli(tmp_path: Path) -> None:
     cloud = synthetic_scan(tmp_path / "c.ply", 8_000, seed=1)
     rep = tiles_stage(cloud, tmp_path / "t", workers=1)
     assert rep["points"] == read_header(cloud).count
-    rep = preview_stage(tmp_path / "t", tmp_path / "p.mp4", size=(64, 48), seconds=0.5, fps=8)
+    rep = preview_stage(tmp_path / "t", tmp_path / "p.mp4", PreviewOptions(size=(64, 48), seconds=0.5, fps=8))
     assert rep["frames"] == 4 and Path(rep["poster"]).is_file()
     assert cli_main(["tiles", str(cloud), "--out", str(tmp_path / "t2"), "--workers", "1"]) == 0
     assert (tmp_path / "t2" / "octree.bin").is_file()

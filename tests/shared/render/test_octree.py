@@ -13,7 +13,7 @@ from shared.formats.ply import read_ply, write_ply
 from shared.formats.potree import open_tiles
 from shared.render import octree
 from shared.render.octree import HIERARCHY_STEP, POINT_DTYPE, build_tiles, quantise
-from tests.bench.bench_render import synthetic_scan
+from tests.support.clouds import synthetic_scan
 
 # One worker builds the module's tiles once and runs every test on them.
 pytestmark = pytest.mark.xdist_group("octree")

@@ -12,7 +12,7 @@ import pytest
 
 from shared.service.jobs import CAPTURE, JOB_TRANSITIONS, STAGE_TRANSITIONS, StageSpec, graph_for, stage_key
 from shared.service.jobstore import JobStore, NewJob
-from tests.workers.jobsvc import pg_database
+from tests.support.jobsvc import pg_database
 
 DIAMOND = (
     StageSpec("a", "cpu", (CAPTURE,), 10),

@@ -15,7 +15,7 @@ from shared.core.errors import InputError
 from shared.formats.capture import load_capture, numbered_frames, opencv_order_capture
 from shared.scan.decode import Decoded, decode_capture, decode_stack, load_decoded, save_decoded
 from shared.scan.graycode import pattern_sequence
-from tests.shared.synthetic_plane import PlaneTruth, render_plane_capture
+from tests.support.synthetic_plane import PlaneTruth, render_plane_capture
 
 REAL = shared_data_dir() / "procam-kamino410"
 CAM, PROJ = (480, 360), (128, 96)

@@ -22,7 +22,7 @@ import pytest
 
 import shared
 from shared.calib.board import Board, parse_board
-from shared.calib.calibrate import calibrate_session
+from shared.calib.session import calibrate_session
 from shared.formats.capture import load_capture
 from shared.formats.rig import Rig, load_rig
 from shared.scan.decode import decode_capture

@@ -4,10 +4,8 @@ are refused before anything is written; a good capture unpacks whole."""
 from __future__ import annotations
 
 import io
-import struct
 import tarfile
 import zipfile
-import zlib
 from pathlib import Path
 
 import numpy as np
@@ -15,24 +13,10 @@ import pytest
 
 from shared.core.errors import InputError
 from shared.service.archive import ArchiveLimits, extract_archive, inspect_archive, pack_folder
+from tests.support.images import png_bytes
 
 LIMITS = ArchiveLimits(max_files=50, max_unpacked_bytes=20 << 20, max_compression_ratio=100,
                        max_image_pixels=4_000_000, max_image_side=4096)  # fmt: skip
-
-
-def png_bytes(w: int, h: int) -> bytes:
-    """A valid PNG header claiming ``w`` x ``h`` (8-bit grey) with a tiny IDAT: no pixels needed."""
-
-    def chunk(kind: bytes, data: bytes) -> bytes:
-        return (
-            struct.pack(">I", len(data))
-            + kind
-            + data
-            + struct.pack(">I", zlib.crc32(kind + data) & 0xFFFFFFFF)
-        )
-
-    return (b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", struct.pack(">IIBBBBB", w, h, 8, 0, 0, 0, 0))
-            + chunk(b"IDAT", zlib.compress(b"\0")) + chunk(b"IEND", b""))  # fmt: skip
 
 
 def real_png(w: int = 8, h: int = 6) -> bytes:

@@ -19,12 +19,17 @@ from shared.calib.board import Board, parse_board
 from shared.calib.calibrate import (
     ViewPoints,
     calibrate_camera,
-    calibrate_session,
     nearest_code_corners,
     projector_corners,
     triangulate_corners,
 )
-from shared.calib.session import calibrate_camera_images, default_decode, run_session, write_outputs
+from shared.calib.session import (
+    calibrate_camera_images,
+    calibrate_session,
+    default_decode,
+    run_session,
+    write_outputs,
+)
 from shared.core.datapaths import shared_data_dir
 from shared.core.errors import InputError
 from shared.formats.capture import Capture, numbered_frames, opencv_order_capture, write_capture

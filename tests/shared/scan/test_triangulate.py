@@ -12,7 +12,7 @@ from shared.formats.capture import load_capture
 from shared.formats.rig import Device, load_rig
 from shared.scan.decode import Decoded, decode_capture
 from shared.scan.triangulate import Triangulated, triangulate
-from tests.shared.synthetic_plane import PlaneTruth, render_plane_capture
+from tests.support.synthetic_plane import PlaneTruth, render_plane_capture
 
 CAM, PROJ = (480, 360), (128, 96)
 

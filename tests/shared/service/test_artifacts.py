@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from shared.service.artifacts import ArtifactError, ArtifactStore
-from tests.workers.jobsvc import moto_server
+from tests.support.jobsvc import moto_server
 
 
 @pytest.fixture(scope="module")

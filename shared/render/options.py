@@ -1,0 +1,88 @@
+"""Preview options: the one place their defaults and limits are written.
+
+The CLI (``graylight preview``), the job service's preview stage and the API's parameter
+schema (:mod:`shared.service.params`) all read :data:`PREVIEW_DEFAULTS` and the limits
+here. Importing this module costs nothing (no numba, no OpenCV), so the API can check a
+job's ``params.preview`` before anything runs.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, fields, replace
+from typing import Any
+
+from shared.core.errors import InputError
+
+__all__ = ["MAX_FPS", "MAX_HEIGHT", "MAX_SECONDS", "MAX_WIDTH", "MIN_SIDE", "PREVIEW_DEFAULTS", "PreviewOptions"]
+
+MAX_WIDTH, MAX_HEIGHT = 3840, 2160
+MIN_SIDE = 16
+MAX_SECONDS = 600.0
+MAX_FPS = 120
+
+
+@dataclass(frozen=True)
+class PreviewOptions:
+    """What a preview video shows and how long it runs.
+
+    ``path``: ``"orbit"``, ``"dolly"`` or the path of a JSON keyframe file; ``size``:
+    (width, height) in pixels, even, 16..3840 x 16..2160; ``seconds`` in (0, 600];
+    ``fps`` frames per second in [1, 120].
+    """
+
+    path: str = "orbit"
+    size: tuple[int, int] = (1280, 720)
+    seconds: float = 10.0
+    fps: float = 30.0
+
+    @property
+    def frames(self) -> int:
+        return max(1, int(round(self.seconds * self.fps)))
+
+    def checked(self, prefix: str = "") -> PreviewOptions:
+        """These options, validated; :class:`InputError` names the field (``prefix`` + name)."""
+        try:
+            width, height = (int(v) for v in self.size)
+            if isinstance(self.size, str | bytes) or any(isinstance(v, bool) for v in self.size):
+                raise TypeError
+        except (TypeError, ValueError):
+            raise InputError(f"{prefix}size", f"must be [width, height] in pixels, got {self.size!r}") from None
+        if width > MAX_WIDTH or height > MAX_HEIGHT:
+            raise InputError(f"{prefix}size", f"{width}x{height} is too large (at most {MAX_WIDTH}x{MAX_HEIGHT})")
+        if width < MIN_SIDE or height < MIN_SIDE:
+            raise InputError(f"{prefix}size", f"{width}x{height} is too small (at least {MIN_SIDE}x{MIN_SIDE})")
+        if width % 2 or height % 2:
+            raise InputError(f"{prefix}size", f"{width}x{height}: H.264 needs even width and height")
+        s, f = self.seconds, self.fps
+        if isinstance(s, bool) or not (isinstance(s, int | float) and math.isfinite(s) and 0 < s <= MAX_SECONDS):
+            raise InputError(f"{prefix}seconds", f"must be in (0, {MAX_SECONDS:g}], got {s!r}")
+        if isinstance(f, bool) or not (isinstance(f, int | float) and math.isfinite(f) and 1 <= f <= MAX_FPS):
+            raise InputError(f"{prefix}fps", f"must be in [1, {MAX_FPS}], got {f!r}")
+        if not isinstance(self.path, str) or not self.path:
+            raise InputError(f"{prefix}path", f"must be orbit, dolly or a keyframe file, got {self.path!r}")
+        return replace(self, size=(width, height), seconds=float(s), fps=float(f))
+
+    @classmethod
+    def from_mapping(cls, doc: Mapping[str, Any] | None, prefix: str = "params.preview.") -> PreviewOptions:
+        """Options from a JSON object (a job's ``params.preview``), validated; unknown keys
+        are an error naming them."""
+        if doc is None:
+            return PREVIEW_DEFAULTS
+        if not isinstance(doc, Mapping):
+            raise InputError(prefix.rstrip("."), f"must be an object of preview options, got {doc!r}")
+        known = {f.name for f in fields(cls)}
+        unknown = sorted(set(doc) - known)
+        if unknown:
+            raise InputError(prefix.rstrip("."), f"unknown option(s) {unknown} (allowed: {sorted(known)})")
+        size = doc.get("size", PREVIEW_DEFAULTS.size)
+        if isinstance(size, list):
+            size = tuple(size)
+        if not (isinstance(size, tuple) and len(size) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in size)):
+            raise InputError(f"{prefix}size", f"must be [width, height] in pixels, got {doc.get('size')!r}")
+        return replace(PREVIEW_DEFAULTS, **{**doc, "size": size}).checked(prefix)
+
+
+#: The defaults every entry point uses.
+PREVIEW_DEFAULTS = PreviewOptions()

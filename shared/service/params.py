@@ -1,0 +1,105 @@
+"""Job parameters: the schema every job's ``params`` object is checked against, in one place.
+
+``POST /v1/jobs``, ``POST /v1/batches`` and ``POST /v1/jobs/{id}/retry`` call
+:func:`check_job_params` before anything is stored or queued, so a bad ``preview`` size is a
+422 naming ``params.preview.size`` instead of a job that fails after decode, triangulation
+and tiles have run. The stage adapters read the same checked values.
+
+========================  =========  =============================================================
+key                       kinds      meaning
+========================  =========  =============================================================
+``render``                scan       ``false`` leaves out tiles and preview (and what follows them)
+``tiles``                 scan       ``{"max_chunk": int >= 100, "max_leaf": int >= 100}``
+``preview``               scan       ``{"path", "size": [w, h], "seconds", "fps"}``
+                                     (:class:`shared.render.options.PreviewOptions`)
+``seconds``               probe      how long the self-test stage sleeps, 0..60
+========================  =========  =============================================================
+
+``rig`` and ``preview_epoch`` are set by the service itself (an uploaded rig, the nightly
+re-render) and refused from clients.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Callable, Mapping
+from typing import Any
+
+from shared.core.errors import InputError
+from shared.render.options import PreviewOptions
+
+__all__ = ["MAX_PARAMS_BYTES", "MAX_PROBE_SECONDS", "PARAMS", "SERVICE_PARAMS", "check_job_params", "tiles_options"]
+
+#: Largest ``params`` object accepted, as JSON.
+MAX_PARAMS_BYTES = 16384
+#: Longest a probe stage may sleep, seconds.
+MAX_PROBE_SECONDS = 60.0
+#: Parameters the service sets itself; a client may not send them.
+SERVICE_PARAMS = frozenset({"rig", "preview_epoch"})
+
+_TILE_OPTIONS = ("max_chunk", "max_leaf")
+
+
+def tiles_options(value: Any, field: str = "params.tiles") -> dict[str, int]:
+    """``params.tiles`` checked: an object with integer ``max_chunk`` and/or ``max_leaf`` >= 100."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping) or set(value) - set(_TILE_OPTIONS):
+        raise InputError(field, f"must be an object with max_chunk and/or max_leaf, got {value!r}")
+    for k, v in value.items():
+        if not isinstance(v, int) or isinstance(v, bool) or v < 100:
+            raise InputError(f"{field}.{k}", f"must be an integer of at least 100, got {v!r}")
+    return dict(value)
+
+
+def _render(value: Any, field: str) -> bool:
+    if not isinstance(value, bool):
+        raise InputError(field, f"must be true or false, got {value!r}")
+    return value
+
+
+def _preview(value: Any, field: str) -> dict[str, Any]:
+    PreviewOptions.from_mapping(value, prefix=f"{field}.")
+    return dict(value)
+
+
+def _seconds(value: Any, field: str) -> float:
+    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    if not ok or not 0 <= value <= MAX_PROBE_SECONDS:
+        raise InputError(field, f"must be a number of seconds in 0..{MAX_PROBE_SECONDS:g}, got {value!r}")
+    return value
+
+
+#: What each job kind accepts: key -> checker(value, field name) that raises InputError.
+PARAMS: dict[str, dict[str, Callable[[Any, str], Any]]] = {
+    "scan": {"render": _render, "tiles": lambda v, f: tiles_options(v, f), "preview": _preview},
+    "calibrate": {},
+    "probe": {"seconds": _seconds},
+}
+
+
+def check_job_params(kind: str, params: Any, *, allow_service: bool = False) -> dict[str, Any]:
+    """``params`` of a ``kind`` job, checked against :data:`PARAMS`; :class:`InputError`
+    names the field (``params.preview.size``). ``allow_service`` lets the service's own keys
+    (``rig``, ``preview_epoch``) through, for parameters read back from the job store."""
+    if not isinstance(params, Mapping):
+        raise InputError("params", f"must be a JSON object, got {type(params).__name__}")
+    if len(json.dumps(params, default=str)) > MAX_PARAMS_BYTES:
+        raise InputError("params", f"larger than {MAX_PARAMS_BYTES // 1024} KiB")
+    accepted = PARAMS.get(kind, {})
+    out: dict[str, Any] = {}
+    for key, value in params.items():
+        field = f"params.{key}"
+        if key in SERVICE_PARAMS:
+            if not allow_service:
+                hint = "upload a rig in the multipart field 'rig' instead" if key == "rig" else "set by the service"
+                raise InputError(field, hint)
+            out[key] = value
+        elif key in accepted:
+            accepted[key](value, field)
+            out[key] = value
+        else:
+            allowed = ", ".join(sorted(accepted)) or "none"
+            raise InputError(field, f"unknown parameter for a {kind} job (accepted: {allowed})")
+    return out

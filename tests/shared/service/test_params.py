@@ -1,0 +1,43 @@
+"""Job parameters are checked at the edge, naming the field."""
+
+from __future__ import annotations
+
+import pytest
+
+from shared.core.errors import InputError
+from shared.service.params import check_job_params
+
+
+def test_good_params_pass_through() -> None:
+    params = {"render": True, "tiles": {"max_leaf": 5000}, "preview": {"size": [640, 480], "seconds": 2, "path": "dolly"}}
+    assert check_job_params("scan", params) == params
+    assert check_job_params("probe", {"seconds": 0.5}) == {"seconds": 0.5}
+    assert check_job_params("scan", {}) == {}
+
+
+@pytest.mark.parametrize(
+    ("kind", "params", "field", "problem"),
+    [
+        ("scan", {"preview": {"size": [641, 480]}}, "params.preview.size", "even"),
+        ("scan", {"preview": {"size": "big"}}, "params.preview.size", "[width, height]"),
+        ("scan", {"preview": {"seconds": 0}}, "params.preview.seconds", "(0, 600]"),
+        ("scan", {"preview": {"fps": 1000}}, "params.preview.fps", "[1, 120]"),
+        ("scan", {"preview": {"colour": "red"}}, "params.preview", "unknown option"),
+        ("scan", {"tiles": {"max_leaf": 10}}, "params.tiles.max_leaf", "at least 100"),
+        ("scan", {"render": "yes"}, "params.render", "true or false"),
+        ("scan", {"preveiw": {}}, "params.preveiw", "unknown parameter"),
+        ("scan", {"rig": "x"}, "params.rig", "multipart field 'rig'"),
+        ("scan", {"preview_epoch": 3}, "params.preview_epoch", "set by the service"),
+        ("probe", {"seconds": 61}, "params.seconds", "0..60"),
+        ("calibrate", {"render": False}, "params.render", "accepted: none"),
+        ("scan", [], "params", "JSON object"),
+    ],
+)
+def test_bad_params_name_the_field(kind: str, params: object, field: str, problem: str) -> None:
+    with pytest.raises(InputError) as err:
+        check_job_params(kind, params)
+    assert str(err.value).startswith(f"{field}: ") and problem in str(err.value), str(err.value)
+
+
+def test_service_params_from_the_store_are_allowed() -> None:
+    assert check_job_params("scan", {"rig": "object:abc", "preview_epoch": 2}, allow_service=True)["rig"] == "object:abc"
