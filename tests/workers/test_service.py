@@ -67,7 +67,10 @@ def wait_final(client: TestClient, auth: dict[str, str], ids: list[str], timeout
                     final[j] = doc
         return len(final) == len(ids)
 
-    wait_for(done, timeout, f"{len(ids)} jobs final ({len(final)} so far)", proc, interval=0.2)
+    try:
+        wait_for(done, timeout, f"{len(ids)} jobs final", proc, interval=0.2)
+    except AssertionError as exc:  # say how far it got (the message above is made before waiting)
+        raise AssertionError(f"{len(final)} of {len(ids)} jobs final: {exc}") from None
     return final
 
 
