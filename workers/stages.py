@@ -4,6 +4,9 @@ Each adapter takes a :class:`StageContext` (local folders of the capture and of 
 upstream stages' outputs, an empty output folder, the job's parameters) and calls the
 plain function in ``shared/`` that the embedded ``graylight scan`` calls too; it returns a
 small JSON-able summary. A new stage plugs in by an entry in the graph and one here.
+
+Each adapter imports its stage's science when it first runs (not to dodge a circle: the
+layers contract forbids one): a render worker never loads the decoder's kernels.
 """
 
 from __future__ import annotations

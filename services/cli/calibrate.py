@@ -17,6 +17,9 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from shared.core.errors import InputError
+from shared.core.files import write_json_atomic
+
 
 def _sibling(out: Path, suffix: str) -> Path:
     return out.with_name(f"{out.stem}{suffix}")
@@ -37,7 +40,6 @@ def _progress_bar():  # type: ignore[no-untyped-def]
 
 
 def _cmd_calibrate(args: argparse.Namespace) -> int:
-    from shared.core.errors import InputError
 
     out = Path(args.out)
     if out.suffix.lower() != ".json":
@@ -81,8 +83,6 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
 def _camera_only(args: argparse.Namespace, out: Path) -> int:
     from shared.calib.board import load_board
     from shared.calib.session import calibrate_camera_images, write_opencv_yaml
-    from shared.core.errors import InputError
-    from shared.core.files import write_json_atomic
 
     if not args.board:
         raise InputError("--board", "--camera-only needs --board board.json")
