@@ -12,7 +12,8 @@ A band of rows is coded as one rANS stream of three parts:
    and decoder evaluate bit-identical predictions), coded as differences from the previous
    leaf's model extrapolated to the new block;
 3. the residuals in raster order, each in one of :data:`NCTX` tables chosen by the size of
-   its left and upper neighbours' residuals (the context).
+   the residuals of its three upper neighbours (the context; the row above only, so the
+   decoder's table choice never waits for the symbol just decoded).
 
 All values are integers in *fine units*: ``FINE = 2**F_SHIFT`` fine units per quantum, so
 that predictions carry sub-quantum precision. Lossless mode codes ``Q = round(z / q)``
@@ -29,7 +30,7 @@ from numba import njit
 
 from shared.compress._rans import (
     NSYM,
-    bitlen,
+    RANS_L,
     count_symbols,
     dec_init,
     decode_tables,
@@ -51,7 +52,7 @@ F_SHIFT = 5
 FINE = 1 << F_SHIFT
 A_SHIFT = 3  # slope coefficients in 2**-A_SHIFT fine units per half pixel
 Q_SHIFT = 9  # curvature coefficients in 2**-Q_SHIFT fine units per half pixel squared
-NCTX = 8
+NCTX = 10
 
 T_SPLIT = 0  # 4 tables, one per splittable level (64, 32, 16, 8)
 T_MODEL = 4
@@ -74,6 +75,14 @@ MODEL_BITS = np.array([8.0, 24.0, 32.0, 48.0])
 TWO_PI_E = 2.0 * math.pi * math.e
 
 assert NSYM >= (1 << L_RES) + 64
+
+#: Context of a residual from the sum of its upper neighbours' zigzag values: min(bit length, NCTX - 1).
+CTX_LUT = np.array([min(int(a).bit_length(), NCTX - 1) for a in range(1 << (NCTX - 1))], np.int64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ctx(a):
+    return CTX_LUT[a] if a < np.uint64(1 << (NCTX - 1)) else NCTX - 1
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -131,15 +140,18 @@ def fit_block(t, valid, y0, x0, B, coef):
     """Choose and fit the model of one block: returns (model, estimated bits, valid count);
     ``coef`` receives the integer coefficients. Model -1 and count 0 for an empty block."""
     H, W = t.shape
-    M = np.zeros((6, 6))
-    r = np.zeros(6)
+    # The normal equations of the quadratic basis (1, X, Y, XY, X^2, Y^2) in scalars: the
+    # compiler keeps them in registers (an array accumulator costs about 3x).
+    s1 = sx = sy = sxx = sxy = syy = sxxx = sxxy = sxyy = syyy = 0.0
+    sxxxx = sxxxy = sxxyy = sxyyy = syyyy = 0.0
+    r0 = r1 = r2 = r3 = r4 = r5 = 0.0
     dd = 0.0
     n = 0
     tref = 0.0
     inv = 1.0 / B
-    b = np.zeros(6)
     for y in range(y0, min(y0 + B, H)):
         Y = (2 * (y - y0) - (B - 1)) * inv
+        YY = Y * Y
         for x in range(x0, min(x0 + B, W)):
             if not valid[y, x]:
                 continue
@@ -147,24 +159,66 @@ def fit_block(t, valid, y0, x0, B, coef):
                 tref = float(t[y, x])
             X = (2 * (x - x0) - (B - 1)) * inv
             d = float(t[y, x]) - tref
-            b[0] = 1.0
-            b[1] = X
-            b[2] = Y
-            b[3] = X * Y
-            b[4] = X * X
-            b[5] = Y * Y
-            for i in range(6):
-                bi = b[i]
-                r[i] += bi * d
-                for j in range(i, 6):
-                    M[i, j] += bi * b[j]
+            XX = X * X
+            XY = X * Y
+            s1 += 1.0
+            sx += X
+            sy += Y
+            sxx += XX
+            sxy += XY
+            syy += YY
+            sxxx += XX * X
+            sxxy += XX * Y
+            sxyy += X * YY
+            syyy += YY * Y
+            sxxxx += XX * XX
+            sxxxy += XX * XY
+            sxxyy += XX * YY
+            sxyyy += XY * YY
+            syyyy += YY * YY
+            r0 += d
+            r1 += d * X
+            r2 += d * Y
+            r3 += d * XY
+            r4 += d * XX
+            r5 += d * YY
             dd += d * d
             n += 1
     if n == 0:
         return -1, 0.0, 0
+    M = np.empty((6, 6))
+    # rows: 1, X, Y, XY, XX, YY
+    M[0, 0] = s1
+    M[0, 1] = sx
+    M[0, 2] = sy
+    M[0, 3] = sxy
+    M[0, 4] = sxx
+    M[0, 5] = syy
+    M[1, 1] = sxx
+    M[1, 2] = sxy
+    M[1, 3] = sxxy
+    M[1, 4] = sxxx
+    M[1, 5] = sxyy
+    M[2, 2] = syy
+    M[2, 3] = sxyy
+    M[2, 4] = sxxy
+    M[2, 5] = syyy
+    M[3, 3] = sxxyy
+    M[3, 4] = sxxxy
+    M[3, 5] = sxyyy
+    M[4, 4] = sxxxx
+    M[4, 5] = sxxyy
+    M[5, 5] = syyyy
     for i in range(6):
         for j in range(i):
             M[i, j] = M[j, i]
+    r = np.empty(6)
+    r[0] = r0
+    r[1] = r1
+    r[2] = r2
+    r[3] = r3
+    r[4] = r4
+    r[5] = r5
     idx = np.array([0, 1, 2, 3, 4, 5])
     best_m = 0
     best_cost = 1e300
@@ -327,14 +381,14 @@ def _encode_events(t, valid, lossless, tab, val, nb):
                 pB = B
     if n < 0:
         return -1
-    # 3. residuals in raster order, context from the left and upper neighbours
+    # 3. residuals in raster order, context from the three upper neighbours
     pf = _fill_prediction(H, W, leaves, lcoef, nleaf)
-    up = np.zeros(W, np.uint64)
-    cur = np.zeros(W, np.uint64)
+    up = np.zeros(W + 2, np.uint64)  # zigzag residuals of the row above, one pad either side
+    cur = np.zeros(W + 2, np.uint64)
     for y in range(H):
         for x in range(W):
             if not valid[y, x]:
-                cur[x] = up[x]
+                cur[x + 1] = up[x + 1]
                 continue
             p = pf[y, x]
             if lossless:
@@ -342,27 +396,45 @@ def _encode_events(t, valid, lossless, tab, val, nb):
             else:
                 r = (t[y, x] - p + (FINE >> 1)) >> F_SHIFT
             u = zigzag(r)
-            left = cur[x - 1] if x > 0 else up[x]
-            ctx = min(bitlen(left + up[x]), NCTX - 1)
+            ctx = _ctx(up[x] + up[x + 1] + up[x + 2])
             n = put_value(tab, val, nb, n, T_RES + ctx, u, L_RES)
-            cur[x] = u
+            cur[x + 1] = u
         up, cur = cur, up
     return n
 
 
 @njit(cache=True, nogil=True)
 def _fill_prediction(H, W, leaves, lcoef, nleaf):
+    """Every leaf's prediction (fine units) on its pixels: (H, W) int64. The same integers as
+    :func:`model_eval`, with the linear and quadratic sums stepped along each row (adds only)."""
     pf = np.zeros((H, W), np.int64)
     for i in range(nleaf):
         x0 = leaves[i, 0]
         y0 = leaves[i, 1]
         B = leaves[i, 2]
         m = leaves[i, 3]
-        c = lcoef[i]
+        c0, c1, c2, c3, c4, c5 = lcoef[i, 0], lcoef[i, 1], lcoef[i, 2], lcoef[i, 3], lcoef[i, 4], lcoef[i, 5]
+        if m < 2:
+            c3 = 0
+        if m < 3:
+            c4 = 0
+            c5 = 0
+        if m < 1:
+            c1 = 0
+            c2 = 0
+        X0 = 1 - B
+        x1 = min(x0 + B, W)
         for y in range(y0, min(y0 + B, H)):
             Y = 2 * (y - y0) - (B - 1)
-            for x in range(x0, min(x0 + B, W)):
-                pf[y, x] = model_eval(m, c, 2 * (x - x0) - (B - 1), Y)
+            lin = c1 * X0 + c2 * Y  # c1 X + c2 Y, X stepping by 2
+            quad = c3 * X0 * Y + c4 * X0 * X0 + c5 * Y * Y
+            dq = c3 * 2 * Y + c4 * (4 * X0 + 4)  # quad(X + 2) - quad(X)
+            row = pf[y]
+            for x in range(x0, x1):
+                row[x] = c0 + (lin >> A_SHIFT) + (quad >> Q_SHIFT)
+                lin += 2 * c1
+                quad += dq
+                dq += 8 * c4
     return pf
 
 
@@ -402,34 +474,60 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     freq, used = unpack_tables(tables, NTABLES)
     if used < 0 or used != tables.shape[0]:
         return -1
-    cum, lut = decode_tables(freq)
-    st = dec_init(words)
-    nwords = np.uint64(words.shape[0])
+    nw = words.shape[0]
+    if nw < 4:
+        return -1
+    sym, fb = decode_tables(freq)
+    xa, xb, pos = dec_init(words)
     valid = np.zeros((H, W), np.bool_)
+    ok, xa, xb, pos = _decode_mask(xa, xb, pos, words, nw, sym, fb, valid)
+    if not ok:
+        return -1
+    nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
+    leaves = np.empty((nleaf_max, 4), np.int64)
+    lcoef = np.zeros((nleaf_max, 6), np.int64)
+    nleaf, xa, xb, pos = _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef)
+    if nleaf < 0 or pos > nw:
+        return -1
+    pf = _fill_prediction(H, W, leaves, lcoef, nleaf)
+    xa, xb, pos = _decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, pf, lossless, scale, out)
+    # A sound stream ends exactly at its last word, both states back where the encoder began.
+    if pos != nw or xa != RANS_L or xb != RANS_L:
+        return -1
+    return 0
+
+
+@njit(cache=True, nogil=True)
+def _decode_mask(xa, xb, pos, words, nw, sym, fb, valid):
+    H, W = valid.shape
     for y in range(H):
         x = 0
         state = False
         while x < W:
-            v = np.int64(get_value(st, words, freq, cum, lut, T_RUN + (1 if state else 0), L_RUN))
+            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_RUN + (1 if state else 0), L_RUN)
+            v = np.int64(u)
             if x == 0:
                 e = W if v == 0 else v - 1
             else:
                 e = W if v == 0 else x + v
-            if e > W or st[1] > nwords:
-                return -1
+            if e > W or e < x or pos > nw:
+                return False, xa, xb, pos
             if state:
                 valid[y, x:e] = True
             x = e
             state = not state
+    return True, xa, xb, pos
+
+
+@njit(cache=True, nogil=True)
+def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef):
+    H, W = valid.shape
     ii = np.zeros((H + 1, W + 1), np.int64)
     for y in range(H):
         acc = 0
         for x in range(W):
             acc += valid[y, x]
             ii[y + 1, x + 1] = ii[y, x + 1] + acc
-    nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
-    leaves = np.empty((nleaf_max, 4), np.int64)
-    lcoef = np.zeros((nleaf_max, 6), np.int64)
     nleaf = 0
     stack = np.empty((64, 4), np.int64)
     pm = 0
@@ -453,10 +551,12 @@ def decode_band(tables, words, H, W, lossless, scale, out):
                 y0 = stack[sp, 1]
                 B = stack[sp, 2]
                 lev = stack[sp, 3]
+                if pos > nw:
+                    return -1, xa, xb, pos
                 if B > MINB:
-                    split = get_symbol(st, words, freq, cum, lut, T_SPLIT + lev)
+                    split, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_SPLIT + lev)
                     if split > 1:
-                        return -1
+                        return -1, xa, xb, pos
                     if split == 1:
                         h = B // 2
                         for k in range(3, -1, -1):
@@ -470,20 +570,26 @@ def decode_band(tables, words, H, W, lossless, scale, out):
                             stack[sp, 3] = lev + 1
                             sp += 1
                         continue
-                m = np.int64(get_symbol(st, words, freq, cum, lut, T_MODEL))
-                if m > 3 or st[1] > nwords:
-                    return -1
+                m, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_MODEL)
+                if m > 3:
+                    return -1, xa, xb, pos
                 _predict_coefs(pm, pc, px, py, pB, x0, y0, B, pred)
                 c = lcoef[nleaf]
-                c[0] = pred[0] + unzigzag(get_value(st, words, freq, cum, lut, T_C0, L_COEF))
+                u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C0, L_COEF)
+                c[0] = pred[0] + unzigzag(u)
                 if m >= 1:
-                    c[1] = pred[1] + unzigzag(get_value(st, words, freq, cum, lut, T_C12, L_COEF))
-                    c[2] = pred[2] + unzigzag(get_value(st, words, freq, cum, lut, T_C12, L_COEF))
+                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C12, L_COEF)
+                    c[1] = pred[1] + unzigzag(u)
+                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C12, L_COEF)
+                    c[2] = pred[2] + unzigzag(u)
                 if m >= 2:
-                    c[3] = pred[3] + unzigzag(get_value(st, words, freq, cum, lut, T_C345, L_COEF))
+                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C345, L_COEF)
+                    c[3] = pred[3] + unzigzag(u)
                 if m == 3:
-                    c[4] = pred[4] + unzigzag(get_value(st, words, freq, cum, lut, T_C345, L_COEF))
-                    c[5] = pred[5] + unzigzag(get_value(st, words, freq, cum, lut, T_C345, L_COEF))
+                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C345, L_COEF)
+                    c[4] = pred[4] + unzigzag(u)
+                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C345, L_COEF)
+                    c[5] = pred[5] + unzigzag(u)
                 leaves[nleaf, 0] = x0
                 leaves[nleaf, 1] = y0
                 leaves[nleaf, 2] = B
@@ -494,34 +600,33 @@ def decode_band(tables, words, H, W, lossless, scale, out):
                 px = x0
                 py = y0
                 pB = B
-    if st[1] > nwords:
-        return -1
-    pf = _fill_prediction(H, W, leaves, lcoef, nleaf)
-    up = np.zeros(W, np.uint64)
-    cur = np.zeros(W, np.uint64)
+    return nleaf, xa, xb, pos
+
+
+@njit(cache=True, nogil=True)
+def _decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, pf, lossless, scale, out):
+    H, W = valid.shape
+    up = np.zeros(W + 2, np.uint64)  # zigzag residuals of the row above, one pad either side
+    cur = np.zeros(W + 2, np.uint64)
     half = FINE >> 1
     nan = np.float32(np.nan)
     for y in range(H):
         for x in range(W):
             if not valid[y, x]:
-                cur[x] = up[x]
+                cur[x + 1] = up[x + 1]
                 out[y, x] = nan
                 continue
-            left = cur[x - 1] if x > 0 else up[x]
-            ctx = min(bitlen(left + up[x]), NCTX - 1)
-            u = get_value(st, words, freq, cum, lut, T_RES + ctx, L_RES)
+            ctx = _ctx(up[x] + up[x + 1] + up[x + 2])
+            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_RES + ctx, L_RES)
             r = unzigzag(u)
             p = pf[y, x]
             if lossless:
                 out[y, x] = np.float32((((p + half) >> F_SHIFT) + r) * scale)
             else:
                 out[y, x] = np.float32((p + (r << F_SHIFT)) * scale)
-            cur[x] = u
+            cur[x + 1] = u
         up, cur = cur, up
-    # A sound stream ends exactly at its last word, in the state the encoder started from.
-    if st[1] != nwords or st[0] != np.uint64(1 << 16):
-        return -1
-    return 0
+    return xa, xb, pos
 
 
 @njit(cache=True, nogil=True, inline="always")

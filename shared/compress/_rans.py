@@ -21,7 +21,7 @@ import numpy as np
 from numba import njit
 
 #: Frequency precision: probabilities are multiples of 2**-PROB_BITS.
-PROB_BITS = 14
+PROB_BITS = 12
 PROB_SCALE = 1 << PROB_BITS
 #: The rANS state lives in [RANS_L, 2**32).
 RANS_L = 1 << 16
@@ -43,7 +43,7 @@ def bitlen(u: np.uint64) -> int:
     return n
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def put(tab, val, nb, n, t, v, bits):
     """Append one event (table ``t`` symbol ``v``, or ``t == RAW`` with ``bits`` raw bits); returns n+1
     (or -1 when the buffers are full, so the caller retries with larger ones)."""
@@ -55,13 +55,18 @@ def put(tab, val, nb, n, t, v, bits):
     return n + 1
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")
 def put_value(tab, val, nb, n, t, u, log2d):
     """Append unsigned value ``u`` in table ``t`` whose direct part is ``2**log2d`` symbols."""
     d = np.uint64(1) << np.uint64(log2d)
     u = np.uint64(u)
     if u < d:
         return put(tab, val, nb, n, t, np.int64(u), 0)
+    return _put_escape(tab, val, nb, n, t, u, log2d, d)
+
+
+@njit(cache=True, nogil=True)
+def _put_escape(tab, val, nb, n, t, u, log2d, d):
     nbits = bitlen(u)
     n = put(tab, val, nb, n, t, np.int64(d) + nbits - log2d - 1, 0)
     rem = nbits - 1
@@ -141,7 +146,9 @@ def normalise(counts):
 
 @njit(cache=True, nogil=True)
 def encode_events(tab, val, nb, n, freq):
-    """rANS-code events 0..n-1 (in reverse); returns the 16-bit words in decoding order."""
+    """rANS-code events 0..n-1 with two interleaved states (event i on state i % 2, which
+    doubles the decoder's instruction-level parallelism), in reverse; returns the 16-bit
+    words in decoding order."""
     nt, ns = freq.shape
     cum = np.zeros((nt, ns), np.int64)
     for t in range(nt):
@@ -149,114 +156,123 @@ def encode_events(tab, val, nb, n, freq):
         for s in range(ns):
             cum[t, s] = c
             c += freq[t, s]
-    out = np.empty(n + 4, np.uint16)
+    out = np.empty(n + 8, np.uint16)
     pos = out.shape[0]
-    x = np.uint64(RANS_L)
+    st = np.full(2, RANS_L, np.int64)
     for i in range(n - 1, -1, -1):
         t = tab[i]
         if t >= 0:
-            f = np.uint64(freq[t, val[i]])
-            c = np.uint64(cum[t, val[i]])
+            f = np.int64(freq[t, val[i]])
+            c = cum[t, val[i]]
         else:
             sh = PROB_BITS - nb[i]
-            f = np.uint64(1) << np.uint64(sh)
-            c = np.uint64(val[i]) << np.uint64(sh)
-        x_max = np.uint64((RANS_L >> PROB_BITS) << 16) * f
-        while x >= x_max:
+            f = np.int64(1) << sh
+            c = val[i] << sh
+        x = st[i & 1]
+        x_max = ((RANS_L >> PROB_BITS) << 16) * f
+        if x >= x_max:  # one word always suffices: x < 2**32
             pos -= 1
-            out[pos] = np.uint16(x & np.uint64(0xFFFF))
-            x >>= np.uint64(16)
-        x = ((x // f) << np.uint64(PROB_BITS)) + (x % f) + c
-    pos -= 1
-    out[pos] = np.uint16(x >> np.uint64(16))
-    pos -= 1
-    out[pos] = np.uint16(x & np.uint64(0xFFFF))
+            out[pos] = np.uint16(x & 0xFFFF)
+            x >>= 16
+        st[i & 1] = ((x // f) << PROB_BITS) + (x % f) + c
+    for k in (1, 0):
+        pos -= 1
+        out[pos] = np.uint16(st[k] >> 16)
+        pos -= 1
+        out[pos] = np.uint16(st[k] & 0xFFFF)
     return out[pos:].copy()
 
 
 @njit(cache=True, nogil=True)
 def decode_tables(freq):
-    """Cumulative frequencies and the slot -> symbol look-up of every used table."""
+    """Per table and slot: the symbol, and ``freq << 16 | (slot - cum)`` packed in 32 bits."""
     nt, ns = freq.shape
-    cum = np.zeros((nt, ns), np.int32)
-    lut = np.zeros((nt, PROB_SCALE), np.int16)
+    sym = np.zeros((nt, PROB_SCALE), np.int16)
+    fb = np.zeros((nt, PROB_SCALE), np.uint32)
     for t in range(nt):
         c = 0
         for s in range(ns):
-            cum[t, s] = c
             f = freq[t, s]
             for k in range(c, c + f):
-                lut[t, k] = s
+                sym[t, k] = s
+                fb[t, k] = (f << 16) | (k - c)
             c += f
-    return cum, lut
+    return sym, fb
+
+
+# The decoder's state is two plain integers (xa, the state of the next event, and xb) and the
+# read position; every helper returns them swapped for the next event. Locals, not an array:
+# the compiler keeps them in registers.
 
 
 @njit(cache=True, nogil=True)
 def dec_init(words):
-    """The decoder state: ``st = [x, pos]`` (numba has no cheap mutable scalars to share)."""
-    st = np.zeros(2, np.uint64)
-    if words.shape[0] < 2:
-        st[1] = np.uint64(1 << 62)  # marks a broken stream
-        return st
-    st[0] = (np.uint64(words[1]) << np.uint64(16)) | np.uint64(words[0])
-    st[1] = np.uint64(2)
-    return st
+    """Initial (xa, xb, pos) of a stream (pos beyond the end when it is too short)."""
+    if words.shape[0] < 4:
+        return RANS_L, RANS_L, words.shape[0] + 1
+    xa = (np.int64(words[1]) << 16) | np.int64(words[0])
+    xb = (np.int64(words[3]) << 16) | np.int64(words[2])
+    return xa, xb, 4
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _renorm(st, words):
-    x = st[0]
-    pos = st[1]
-    while x < np.uint64(RANS_L):
-        if pos < np.uint64(words.shape[0]):
-            x = (x << np.uint64(16)) | np.uint64(words[pos])
-        else:
-            x = (x << np.uint64(16))
-            pos = np.uint64(1 << 62)
-            break
-        pos += np.uint64(1)
-    st[0] = x
-    st[1] = pos
+def _next(xa, pos, words, nw):
+    # Branch-free renormalisation (the branch would be mispredicted on about a third of the
+    # symbols). A corrupt stream may run past its end: the read is clamped to the last word
+    # (callers check nw >= 4) and the final position check reports it.
+    need = np.int64(xa < RANS_L)
+    w = np.int64(words[min(pos, nw - 1)])
+    xa = (xa << (need << 4)) | (w & -need)
+    return xa, pos + need
 
 
 @njit(cache=True, nogil=True, inline="always")
-def get_symbol(st, words, freq, cum, lut, t):
-    x = st[0]
-    slot = x & np.uint64(PROB_SCALE - 1)
-    s = lut[t, slot]
-    st[0] = np.uint64(freq[t, s]) * (x >> np.uint64(PROB_BITS)) + slot - np.uint64(cum[t, s])
-    _renorm(st, words)
-    return s
+def get_symbol(xa, xb, pos, words, nw, sym, fb, t):
+    """Decode a symbol of table t: returns (symbol, xa, xb, pos) for the next event."""
+    slot = xa & (PROB_SCALE - 1)
+    s = np.int64(sym[t, slot])
+    e = np.int64(fb[t, slot])
+    xa = (e >> 16) * (xa >> PROB_BITS) + (e & 0xFFFF)
+    xa, pos = _next(xa, pos, words, nw)
+    return s, xb, xa, pos
 
 
 @njit(cache=True, nogil=True, inline="always")
-def get_raw(st, words, k):
-    x = st[0]
-    slot = x & np.uint64(PROB_SCALE - 1)
-    sh = np.uint64(PROB_BITS - k)
+def get_raw(xa, xb, pos, words, nw, k):
+    """Decode k <= RAW_PIECE raw bits: returns (value, xa, xb, pos)."""
+    slot = xa & (PROB_SCALE - 1)
+    sh = PROB_BITS - k
     v = slot >> sh
-    f = np.uint64(1) << sh
-    st[0] = f * (x >> np.uint64(PROB_BITS)) + (slot & (f - np.uint64(1)))
-    _renorm(st, words)
-    return v
+    xa = (np.int64(1) << sh) * (xa >> PROB_BITS) + (slot & ((np.int64(1) << sh) - 1))
+    xa, pos = _next(xa, pos, words, nw)
+    return v, xb, xa, pos
 
 
 @njit(cache=True, nogil=True)
-def get_value(st, words, freq, cum, lut, t, log2d):
-    s = np.int64(get_symbol(st, words, freq, cum, lut, t))
-    d = np.int64(1) << log2d
-    if s < d:
-        return np.uint64(s)
+def _get_escape(xa, xb, pos, words, nw, s, d, log2d):
     nbits = s - d + log2d + 1
     rem = nbits - 1
+    if rem > 63:
+        return np.uint64(0), xa, xb, nw + 1  # corrupt: position beyond the end
     u = np.uint64(1) << np.uint64(rem)
     shift = 0
     while rem > 0:
         k = min(rem, RAW_PIECE)
-        u |= get_raw(st, words, k) << np.uint64(shift)
+        v, xa, xb, pos = get_raw(xa, xb, pos, words, nw, k)
+        u |= np.uint64(v) << np.uint64(shift)
         shift += k
         rem -= k
-    return u
+    return u, xa, xb, pos
+
+
+@njit(cache=True, nogil=True, inline="always")
+def get_value(xa, xb, pos, words, nw, sym, fb, t, log2d):
+    """Decode a value put by :func:`put_value`: returns (value uint64, xa, xb, pos)."""
+    s, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, t)
+    d = np.int64(1) << log2d
+    if s < d:
+        return np.uint64(s), xa, xb, pos
+    return _get_escape(xa, xb, pos, words, nw, s, d, log2d)
 
 
 @njit(cache=True, nogil=True)
