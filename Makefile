@@ -7,7 +7,7 @@ STAMP := $(VENV)/.graylight-installed
 # Debian packages the project needs: EGL/Mesa for headless OpenGL, Chromium for the viewer
 # test, Redis for the broker. Node and npm (viewer assets) are installed only when missing,
 # since a machine may carry another build of Node that ships its own npm.
-APT_PACKAGES := libegl1 libgl1-mesa-dri chromium redis-server
+APT_PACKAGES := libegl1 libgl1-mesa-dri chromium redis-server libusb-1.0-0
 PYTEST_WORKERS ?= 2
 
 .PHONY: setup demo test test-fast bench lint services clean

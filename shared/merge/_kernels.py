@@ -1,0 +1,86 @@
+"""Compiled kernels of the merge (numba): normal equations of point-to-plane residuals, grid reductions."""
+
+from __future__ import annotations
+
+import numba
+import numpy as np
+
+
+@numba.njit(cache=True, nogil=True)
+def point_to_plane_system(p, m, r, w):  # pragma: no cover
+    """Normal equations of weighted point-to-plane residuals for a small rigid motion.
+
+    p : (N, 3) float64 points (set frame), m : (N, 3) float64 target normals, r : (N,) residuals
+    ``m . (p - q)``, w : (N,) weights. The motion ``x = (omega, v)`` moves ``p`` to
+    ``p + omega x p + v``; residual ``r + J x`` with ``J = [p x m, m]``.
+    Returns H (6, 6) = sum w J^T J, g (6,) = sum w J^T r, and the weighted squared-residual sum.
+    """
+    H = np.zeros((6, 6))
+    g = np.zeros(6)
+    e = 0.0
+    J = np.empty(6)
+    for k in range(p.shape[0]):
+        wk = w[k]
+        if wk <= 0.0:
+            continue
+        J[0] = p[k, 1] * m[k, 2] - p[k, 2] * m[k, 1]
+        J[1] = p[k, 2] * m[k, 0] - p[k, 0] * m[k, 2]
+        J[2] = p[k, 0] * m[k, 1] - p[k, 1] * m[k, 0]
+        J[3] = m[k, 0]
+        J[4] = m[k, 1]
+        J[5] = m[k, 2]
+        for a in range(6):
+            ja = wk * J[a]
+            g[a] += ja * r[k]
+            for b in range(a, 6):
+                H[a, b] += ja * J[b]
+        e += wk * r[k] * r[k]
+    for a in range(6):
+        for b in range(a):
+            H[a, b] = H[b, a]
+    return H, g, e
+
+
+@numba.njit(cache=True, nogil=True)
+def grid_reduce(order, starts, xyz, normals, rgb, conf, view, out_xyz, out_n, out_rgb, out_conf, out_view,
+                out_count):  # pragma: no cover
+    """Confidence-weighted merge of the points of each grid cell.
+
+    ``order`` sorts the points by cell; ``starts`` (C + 1,) bounds each cell's run in it. Per cell:
+    position, normal and colour are the confidence-weighted means of its points (the normal
+    renormalised), ``out_conf`` the sum of confidences, ``out_view`` the view of the most confident
+    point and ``out_count`` the number of distinct views in the cell.
+    """
+    C = starts.shape[0] - 1
+    for c in range(C):
+        sw = 0.0
+        sx = np.zeros(3)
+        sn = np.zeros(3)
+        sc = np.zeros(3)
+        best = -1.0
+        bv = -1
+        seen = np.zeros(64, np.bool_)
+        nviews = 0
+        for t in range(starts[c], starts[c + 1]):
+            k = order[t]
+            wk = max(conf[k], 1e-6)
+            sw += wk
+            for a in range(3):
+                sx[a] += wk * xyz[k, a]
+                sn[a] += wk * normals[k, a]
+                sc[a] += wk * rgb[k, a]
+            if wk > best:
+                best = wk
+                bv = view[k]
+            vk = view[k] % 64
+            if not seen[vk]:
+                seen[vk] = True
+                nviews += 1
+        nn = np.sqrt(sn[0] * sn[0] + sn[1] * sn[1] + sn[2] * sn[2])
+        for a in range(3):
+            out_xyz[c, a] = sx[a] / sw
+            out_n[c, a] = sn[a] / nn if nn > 0 else 0.0
+            out_rgb[c, a] = min(255.0, sc[a] / sw + 0.5)
+        out_conf[c] = sw
+        out_view[c] = bv
+        out_count[c] = nviews

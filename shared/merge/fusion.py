@@ -1,0 +1,214 @@
+"""Fusion: one clean cloud from the registered views.
+
+In: the views (:class:`~shared.merge.views.ViewCloud`, own frames, mm) and their poses (V, 4, 4).
+Out: a :class:`FusedCloud` in the scan set's frame, in the point-cloud contract (``x y z``, colour,
+normal, ``size``) plus a per-point ``view`` (the view that contributed most) and ``confidence``.
+
+1. **Confidence** of every sample: the decoder's contrast (captured views) times the cosine of
+   the viewing angle times ``(d_ref / d)^2`` for the distance ``d`` from the sensor (a sample seen
+   head-on and near is better), clipped to [0, 1]. Cloud views without a sensor model get 1.
+2. **Free-space violations**: a sample of one view that lies, seen from another captured view, in
+   front of the surface that view measured (by more than ``free_space_tolerance`` sample sizes,
+   at all of the 3x3 pixels around its projection) is in space that view saw through: an outlier
+   or a background point; it is removed.
+3. **Merge on a grid scaled by the samples' own size**: each sample goes to the grid of its size
+   class (powers of two of the smallest size) with cells ``cell_factor`` sizes wide; the samples in
+   a cell, from any view, merge into one point whose position, normal and colour are
+   confidence-weighted means (so overlapping views average their noise instead of piling up).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from shared.core.errors import InputError
+from shared.formats.ply import CLOUD_DTYPE, read_header, write_ply_records
+from shared.merge._kernels import grid_reduce
+from shared.merge.views import ViewCloud
+
+log = logging.getLogger(__name__)
+
+__all__ = ["FUSED_DTYPE", "FusedCloud", "FusionParams", "fuse_views", "read_fused", "sample_confidence",
+           "write_fused"]
+
+#: The fused cloud's PLY layout: the cloud contract plus the contributing view and the confidence.
+FUSED_DTYPE = np.dtype([*((n, CLOUD_DTYPE[n]) for n in CLOUD_DTYPE.names or ()), ("view", "<u2"),
+                        ("confidence", "<f4")])
+
+
+@dataclass(frozen=True)
+class FusionParams:
+    """cell_factor : grid cell width in sample sizes. free_space_tolerance : sample sizes a point
+    must lie in front of another view's surface to count as a free-space violation (plus
+    ``free_space_mm``). min_confidence : samples below it are dropped before merging."""
+
+    cell_factor: float = 1.5
+    free_space_tolerance: float = 6.0
+    free_space_mm: float = 0.5
+    min_confidence: float = 0.02
+
+
+@dataclass
+class FusedCloud:
+    """N merged points in the scan set's frame (mm); arrays row-aligned.
+
+    xyz (N, 3) float32, rgb (N, 3) uint8, normals (N, 3) float32, size (N,) float32 mm,
+    view (N,) uint16, confidence (N,) float32 (sum of the merged samples' confidences),
+    views_per_point (N,) uint8 (how many views the point merges). ``stats`` counts (JSON-ready).
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray
+    normals: np.ndarray
+    size: np.ndarray
+    view: np.ndarray
+    confidence: np.ndarray
+    views_per_point: np.ndarray
+    stats: dict
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+def sample_confidence(view: ViewCloud) -> np.ndarray:
+    """(N,) float32 confidence in [0, 1] of each sample of a view (see the module docstring)."""
+    conf = view.confidence.astype(np.float64)
+    if view.K is None:
+        return np.clip(conf, 0.0, 1.0).astype(np.float32)
+    d = np.linalg.norm(view.xyz, axis=1)
+    cos = np.clip(-np.einsum("ij,ij->i", view.normals.astype(np.float64), view.xyz) / np.maximum(d, 1e-9), 0.0, 1.0)
+    d_ref = float(np.median(d))
+    dist_term = np.clip((d_ref / np.maximum(d, 1e-9)) ** 2, 0.0, 1.5)
+    return np.clip(conf * cos * dist_term, 0.0, 1.0).astype(np.float32)
+
+
+def _free_space_mask(views: list[ViewCloud], poses: np.ndarray, pts: list[np.ndarray], params: FusionParams) -> list[np.ndarray]:
+    """Per view, True where a sample is NOT in another captured view's free space."""
+    keep = [np.ones(len(p), bool) for p in pts]
+    for k, vk in enumerate(views):
+        if vk.range_image is None or vk.K is None:
+            continue
+        z = np.nan_to_num(vk.range_image, nan=0.0).astype(np.float32)
+        # The nearest surface around each pixel: a point must be in front of all of them.
+        zmin = cv2.erode(z, np.ones((3, 3), np.uint8))
+        size_k = np.nanmedian(vk.size) if len(vk) else 0.0
+        h, w = z.shape
+        inv = np.linalg.inv(poses[k])
+        for i, p in enumerate(pts):
+            if i == k or len(p) == 0:
+                continue
+            q = p @ inv[:3, :3].T + inv[:3, 3]
+            front = q[:, 2] > 1e-6
+            if not np.any(front):
+                continue
+            uv, _ = cv2.projectPoints(q[front].reshape(-1, 1, 3), np.zeros(3), np.zeros(3), vk.K, vk.dist)
+            uv = uv.reshape(-1, 2)
+            u = np.rint(uv[:, 0]).astype(np.int64)
+            v = np.rint(uv[:, 1]).astype(np.int64)
+            inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+            idx = np.flatnonzero(front)[inside]
+            zs = zmin[v[inside], u[inside]]
+            tol = params.free_space_tolerance * np.maximum(views[i].size[idx], size_k) + params.free_space_mm
+            bad = (zs > 0) & (q[idx, 2] < zs - tol)
+            keep[i][idx[bad]] = False
+    return keep
+
+
+def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams | None = None,
+               free_space: bool = True) -> FusedCloud:
+    """Fuse registered views into one cloud (see the module docstring).
+
+    Parameters
+    ----------
+    views : the views in their own frames (mm).
+    poses : (V, 4, 4) view -> scan set frame.
+    params : see :class:`FusionParams`.
+    free_space : remove free-space violations (needs captured views' range images).
+    """
+    params = params or FusionParams()
+    if not views:
+        raise InputError("views", "nothing to fuse")
+    pts = [v.xyz @ P[:3, :3].T + P[:3, 3] for v, P in zip(views, poses, strict=True)]
+    conf = [sample_confidence(v) for v in views]
+    keep = _free_space_mask(views, poses, pts, params) if free_space else [np.ones(len(p), bool) for p in pts]
+    n_in = int(sum(len(p) for p in pts))
+    n_free = int(sum(int((~k).sum()) for k in keep))
+    keep = [k & (c >= params.min_confidence) for k, c in zip(keep, conf, strict=True)]
+    xyz = np.concatenate([p[k] for p, k in zip(pts, keep, strict=True)])
+    normals = np.concatenate([(v.normals.astype(np.float64) @ P[:3, :3].T)[k] for v, P, k in zip(views, poses, keep, strict=True)])
+    rgb = np.concatenate([(v.rgb if v.rgb is not None else np.full((len(v), 3), 200, np.uint8))[k]
+                          for v, k in zip(views, keep, strict=True)]).astype(np.float64)
+    size = np.concatenate([v.size[k] for v, k in zip(views, keep, strict=True)]).astype(np.float64)
+    c = np.concatenate([cc[k] for cc, k in zip(conf, keep, strict=True)]).astype(np.float64)
+    view = np.concatenate([np.full(int(k.sum()), v.index, np.int64) for v, k in zip(views, keep, strict=True)])
+    if len(xyz) == 0:
+        raise InputError("views", "no sample survived the confidence and free-space tests")
+    # Size classes: powers of two of the smallest size, each with its own grid.
+    s0 = max(float(np.min(size[size > 0])) if np.any(size > 0) else 1.0, 1e-6)
+    level = np.floor(np.log2(np.maximum(size, s0) / s0) + 0.5).astype(np.int64)
+    cell = params.cell_factor * s0 * np.exp2(level)
+    ijk = np.floor(xyz / cell[:, None]).astype(np.int64)
+    ijk -= ijk.min(axis=0)
+    key = np.stack([level, ijk[:, 0], ijk[:, 1], ijk[:, 2]], axis=1)
+    _, first, inv = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    inv = inv.ravel()
+    order = np.argsort(inv, kind="stable")
+    counts = np.bincount(inv, minlength=len(first))
+    starts = np.zeros(len(first) + 1, np.int64)
+    np.cumsum(counts, out=starts[1:])
+    C = len(first)
+    out_xyz = np.empty((C, 3))
+    out_n = np.empty((C, 3))
+    out_rgb = np.empty((C, 3))
+    out_conf = np.empty(C)
+    out_view = np.empty(C, np.int64)
+    out_count = np.empty(C, np.int64)
+    grid_reduce(order, starts, xyz, normals, rgb, c, view, out_xyz, out_n, out_rgb, out_conf, out_view, out_count)
+    out_size = cell[first].astype(np.float32) / np.float32(params.cell_factor)
+    stats = {"samples": n_in, "free_space_violations": n_free,
+             "low_confidence": int(n_in - n_free - len(xyz)) if n_in - n_free >= len(xyz) else 0,
+             "merged_points": int(C), "size_classes": int(len(np.unique(level))),
+             "points_from_several_views": int(np.count_nonzero(out_count > 1))}
+    log.info("fused %d samples into %d points (%d free-space violations)", n_in, C, n_free)
+    return FusedCloud(xyz=out_xyz.astype(np.float32), rgb=out_rgb.astype(np.uint8), normals=out_n.astype(np.float32),
+                      size=out_size, view=out_view.astype(np.uint16), confidence=out_conf.astype(np.float32),
+                      views_per_point=np.minimum(out_count, 255).astype(np.uint8), stats=stats)
+
+
+def write_fused(path: str | os.PathLike[str], cloud: FusedCloud, comments: tuple[str, ...] = ()) -> Path:
+    """Write the fused cloud as binary PLY (:data:`FUSED_DTYPE`), atomically, in chunks."""
+    n = len(cloud)
+    chunk = 1 << 20
+
+    def chunks():
+        for s in range(0, n, chunk):
+            sl = slice(s, min(n, s + chunk))
+            rec = np.empty(sl.stop - sl.start, FUSED_DTYPE)
+            rec["x"], rec["y"], rec["z"] = cloud.xyz[sl].T
+            rec["red"], rec["green"], rec["blue"] = cloud.rgb[sl].T
+            rec["nx"], rec["ny"], rec["nz"] = cloud.normals[sl].T
+            rec["size"] = cloud.size[sl]
+            rec["view"] = cloud.view[sl]
+            rec["confidence"] = cloud.confidence[sl]
+            yield rec
+
+    return write_ply_records(path, chunks(), n, FUSED_DTYPE, comments=("units mm", "frame scan set (view 0 camera)",
+                                                                          *comments))
+
+
+def read_fused(path: str | os.PathLike[str]) -> np.ndarray:
+    """The records of a fused cloud PLY (structured array with ``view`` and ``confidence``)."""
+    path = Path(path)
+    header = read_header(path)
+    names = set(header.dtype.names or ())
+    if not {"view", "confidence"} <= names:
+        raise InputError(path, "not a fused cloud: no 'view' and 'confidence' properties")
+    if header.fmt == "ascii":
+        raise InputError(path, "fused clouds are binary PLY")
+    return np.array(np.memmap(path, dtype=header.dtype, mode="r", offset=header.data_offset, shape=(header.count,)))

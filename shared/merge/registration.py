@@ -1,0 +1,636 @@
+"""Registration of the views of a scan set into one frame (view 0's sensor frame, mm).
+
+Three steps:
+
+1. **Coarse**: the poses given as hints; or, for a turntable, the table's axis estimated from
+   global registrations of neighbouring views and every view placed by its angle about it; or, with
+   nothing given, global registration (FPFH features + RANSAC on coarsely downsampled clouds,
+   Open3D) that grows a tree of views from view 0, trying each view's neighbours in scan order first.
+   Every candidate is checked by a fine fit (overlap and residual) before it is accepted.
+2. **Fine** pairwise: robust point-to-plane ICP (Tukey weights, normals that must agree).
+3. **Global**: one joint point-to-plane refinement of all poses over every overlapping pair (a
+   multi-view ICP: each iteration re-finds the correspondences of every edge and solves for all
+   poses at once, view 0 held fixed), so the error is spread around a turntable loop instead of
+   piling up at its end. Pairs whose overlap falls below ``min_overlap`` are pruned.
+
+Poses are 4x4 matrices ``P_i`` with ``X_set = P_i[:3, :3] @ X_view + P_i[:3, 3]`` (mm). Views
+that register to no other view raise an :class:`~shared.core.errors.InputError` naming them, or
+with ``drop_unregistered`` are left out (listed in :attr:`Registration.dropped`).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from shared.core.errors import InputError
+from shared.merge._kernels import point_to_plane_system
+from shared.merge.views import ViewCloud
+
+log = logging.getLogger(__name__)
+
+__all__ = [
+    "Registration", "RegistrationParams", "Samples", "TurntableAxis", "axis_from_poses", "pose_error",
+    "prepare_samples", "refine_poses", "register_views",
+]  # fmt: skip
+
+
+@dataclass(frozen=True)
+class RegistrationParams:
+    """Parameters with physical meaning (mm, degrees, shares).
+
+    voxel : fine sampling step in mm (None: chosen so the largest view keeps ``fine_samples`` samples).
+    fine_samples : target samples per view of the fine fits.
+    coarse_samples : target samples per view of the global feature matching.
+    min_overlap : least share of a view's samples that must meet the other view (within
+        ``2 * voxel``, normals agreeing) for a pair to count as overlapping.
+    max_rms_voxels : a pair whose fine fit leaves more than this many voxels of RMS is rejected.
+    iterations : joint-refinement iterations at most.
+    tolerance_deg, tolerance_mm : the refinement stops when no pose moves more than this.
+    normal_agreement : least cosine between the normals of corresponding points.
+    seed : seed of the RANSAC of the global registration.
+    """
+
+    voxel: float | None = None
+    fine_samples: int = 12000
+    coarse_samples: int = 2500
+    min_overlap: float = 0.2
+    max_rms_voxels: float = 0.6
+    iterations: int = 60
+    tolerance_deg: float = 2e-4
+    tolerance_mm: float = 2e-4
+    normal_agreement: float = 0.5
+    seed: int = 0
+
+
+@dataclass
+class Samples:
+    """One view's samples in its own frame: fine (with a k-d tree) and coarse (for features)."""
+
+    xyz: np.ndarray  # (n, 3) float64 mm
+    normals: np.ndarray  # (n, 3) float64 unit
+    tree: cKDTree
+    coarse_xyz: np.ndarray  # (m, 3)
+    coarse_normals: np.ndarray  # (m, 3)
+    centroid: np.ndarray  # (3,)
+
+
+@dataclass
+class TurntableAxis:
+    """A rotation axis in the scan set's frame: ``direction`` (3,) unit, ``point`` (3,) mm on it,
+    the signed angle of every view about it in degrees and the RMS misfit of the poses to the model."""
+
+    direction: np.ndarray
+    point: np.ndarray
+    angles_deg: np.ndarray
+    rms_mm: float
+
+    def to_json(self) -> dict[str, Any]:
+        return {"direction": [round(float(v), 8) for v in self.direction],
+                "point_mm": [round(float(v), 5) for v in self.point],
+                "angles_deg": [round(float(v), 5) for v in self.angles_deg], "model_rms_mm": round(self.rms_mm, 5)}
+
+
+@dataclass
+class Registration:
+    """The registered poses and how well each view fits (see the module docstring for ``poses``)."""
+
+    poses: np.ndarray  # (V, 4, 4) float64
+    method: str
+    rms_mm: np.ndarray  # (V,) RMS point-to-plane residual against the overlapping views
+    overlap: np.ndarray  # (V,) share of the view's samples that meet another view
+    inlier_share: np.ndarray  # (V,) share of the correspondences kept by the robust kernel
+    edges: list[dict[str, Any]] = field(default_factory=list)
+    axis: TurntableAxis | None = None
+    loop_closure: dict[str, Any] | None = None
+    dropped: list[int] = field(default_factory=list)
+    voxel_mm: float = 0.0
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    def to_json(self, names: Sequence[str]) -> dict[str, Any]:
+        views = []
+        for i, name in enumerate(names):
+            entry: dict[str, Any] = {"view": i, "name": name, "registered": i not in self.dropped}
+            if i not in self.dropped:
+                entry.update({
+                    "R": [[round(float(v), 10) for v in row] for row in self.poses[i, :3, :3]],
+                    "T": [round(float(v), 6) for v in self.poses[i, :3, 3]],
+                    "rms_mm": round(float(self.rms_mm[i]), 5),
+                    "overlap": round(float(self.overlap[i]), 4),
+                    "inlier_share": round(float(self.inlier_share[i]), 4),
+                })
+            views.append(entry)
+        return {"frame": "camera frame of view 0", "units": "mm", "convention": "X_set = R @ X_view + T",
+                "method": self.method, "voxel_mm": round(self.voxel_mm, 4), "views": views, "edges": self.edges,
+                "turntable_axis": None if self.axis is None else self.axis.to_json(),
+                "loop_closure": self.loop_closure, "dropped": [names[i] for i in self.dropped],
+                "seconds": self.seconds}
+
+
+# --------------------------------------------------------------------------------------- geometry
+
+
+def _rodrigues(w: np.ndarray) -> np.ndarray:
+    th = float(np.linalg.norm(w))
+    if th < 1e-15:
+        return np.eye(3)
+    k = w / th
+    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
+
+
+def _transform(P: np.ndarray, x: np.ndarray) -> np.ndarray:
+    return x @ P[:3, :3].T + P[:3, 3]
+
+
+def _rot_angle_deg(R: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def pose_error(P_est: np.ndarray, P_true: np.ndarray, points: np.ndarray) -> tuple[float, float]:
+    """Rotation error in degrees and the RMS displacement in mm of ``points`` (N, 3, view frame)
+    between two poses: the translation error measured on the object's own points."""
+    ang = _rot_angle_deg(P_est[:3, :3] @ P_true[:3, :3].T)
+    d = _transform(P_est, points) - _transform(P_true, points)
+    return ang, float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
+
+
+def axis_from_poses(poses: np.ndarray, centre: np.ndarray | None = None) -> TurntableAxis:
+    """The common rotation axis of poses ``(V, 4, 4)`` that each rotate about one fixed axis.
+
+    The direction minimises ``sum |R_i a - a|^2`` (the null vector of the stacked ``R_i - I``), the
+    point solves ``(I - R_i) p = T_i`` in least squares and is moved along the axis to the foot of
+    ``centre`` (default: the origin). The direction's sign makes the first non-trivial angle positive.
+    """
+    M = np.zeros((3, 3))
+    for P in poses:
+        D = P[:3, :3] - np.eye(3)
+        M += D.T @ D
+    _, vecs = np.linalg.eigh(M)
+    a = vecs[:, 0]
+    A = np.concatenate([np.eye(3) - P[:3, :3] for P in poses] + [a[None, :]])
+    b = np.concatenate([P[:3, 3] for P in poses] + [np.zeros(1)])
+    p = np.linalg.lstsq(A, b, rcond=None)[0]
+    c = np.zeros(3) if centre is None else np.asarray(centre, float)
+    p = p + a * float(np.dot(c - p, a))
+    angles = np.array([_signed_angle(P[:3, :3], a) for P in poses])
+    big = np.flatnonzero(np.abs(angles) > 1.0)
+    if len(big) and angles[big[0]] < 0:
+        a = -a
+        angles = -angles
+    res = [np.linalg.norm(P[:3, 3] - (np.eye(3) - P[:3, :3]) @ p) for P in poses]
+    return TurntableAxis(direction=a, point=p, angles_deg=angles, rms_mm=float(np.sqrt(np.mean(np.square(res)))))
+
+
+def _signed_angle(R: np.ndarray, a: np.ndarray) -> float:
+    # Rotation angle of R about a (sign from the skew part).
+    s = 0.5 * np.dot(a, [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
+    c = 0.5 * (np.trace(R) - 1.0)
+    return float(np.degrees(np.arctan2(s, c)))
+
+
+def _about_axis(a: np.ndarray, p: np.ndarray, deg: float) -> np.ndarray:
+    P = np.eye(4)
+    R = _rodrigues(a * np.radians(deg))
+    P[:3, :3] = R
+    P[:3, 3] = p - R @ p
+    return P
+
+
+# --------------------------------------------------------------------------------------- sampling
+
+
+def _voxel_mean(xyz: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
+    """Mean position and renormalised mean normal of the points in each voxel."""
+    keys = np.floor(xyz / voxel).astype(np.int64)
+    keys -= keys.min(axis=0)
+    dims = keys.max(axis=0) + 1
+    flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+    _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
+    out = np.zeros((len(counts), 3))
+    nrm = np.zeros((len(counts), 3))
+    for a in range(3):
+        out[:, a] = np.bincount(inv, weights=xyz[:, a], minlength=len(counts)) / counts
+        nrm[:, a] = np.bincount(inv, weights=normals[:, a], minlength=len(counts))
+    length = np.linalg.norm(nrm, axis=1)
+    ok = length > 1e-9
+    return out[ok], nrm[ok] / length[ok, None]
+
+
+def _voxel_for(views: Sequence[ViewCloud], target: int) -> float:
+    # Samples scale as area / voxel^2: start from a few sample sizes and correct once.
+    big = max(views, key=len)
+    v = 4.0 * float(np.median(big.size))
+    for _ in range(2):
+        n = len(_voxel_mean(big.xyz, big.normals.astype(np.float64), v)[0])
+        v *= float(np.sqrt(n / target))
+    return v
+
+
+def prepare_samples(views: Sequence[ViewCloud], params: RegistrationParams) -> tuple[list[Samples], float]:
+    """Fine and coarse samples of every view; returns them and the fine voxel in mm."""
+    voxel = params.voxel or _voxel_for(views, params.fine_samples)
+    coarse = voxel * float(np.sqrt(params.fine_samples / params.coarse_samples))
+    out = []
+    for v in views:
+        n64 = v.normals.astype(np.float64)
+        xyz, nrm = _voxel_mean(v.xyz, n64, voxel)
+        cxyz, cnrm = _voxel_mean(v.xyz, n64, coarse)
+        out.append(Samples(xyz=xyz, normals=nrm, tree=cKDTree(xyz), coarse_xyz=cxyz, coarse_normals=cnrm,
+                           centroid=v.xyz.mean(axis=0)))
+    return out, voxel
+
+
+# --------------------------------------------------------------------------------------- fine fits
+
+
+@dataclass
+class _EdgeFit:
+    overlap: float  # share of source samples with an accepted correspondence (both directions averaged)
+    rms: float  # weighted RMS residual, mm
+    inliers: float  # share of correspondences with non-zero robust weight
+    n: int
+
+
+def _correspond(S: list[Samples], poses: np.ndarray, i: int, j: int, dmax: float, cos_min: float,
+                stride: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:
+    """Correspondences of view i's samples (every ``stride``-th) in view j: the set-frame points,
+    target normals (set frame) and residuals ``m . (p - q)``; and the number of samples queried."""
+    src = S[i].xyz[::stride]
+    nsrc = S[i].normals[::stride]
+    rel = np.linalg.solve(poses[j], poses[i])  # view i -> view j
+    q_in_j = _transform(rel, src)
+    d, idx = S[j].tree.query(q_in_j, k=1, distance_upper_bound=dmax, workers=_workers(len(q_in_j)))
+    ok = np.isfinite(d)
+    idx = idx[ok]
+    n_src_j = nsrc[ok] @ rel[:3, :3].T
+    m_j = S[j].normals[idx]
+    ok2 = np.einsum("ij,ij->i", n_src_j, m_j) >= cos_min
+    idx = idx[ok2]
+    q_in_j = q_in_j[ok][ok2]
+    m_j = m_j[ok2]
+    r = np.einsum("ij,ij->i", m_j, q_in_j - S[j].xyz[idx])
+    Rj = poses[j][:3, :3]
+    p_set = _transform(poses[j], q_in_j)
+    return p_set, m_j @ Rj.T, r, len(src)
+
+
+def _workers(n: int) -> int:
+    # cKDTree starts its threads on every query: for small queries that costs more than it saves.
+    return -1 if n > 60000 else 1
+
+
+def _tukey(r: np.ndarray, c: float) -> np.ndarray:
+    u = r / c
+    w = (1.0 - u * u) ** 2
+    w[np.abs(u) >= 1.0] = 0.0
+    return w
+
+
+def refine_poses(S: list[Samples], poses: np.ndarray, edges: Sequence[tuple[int, int]], voxel: float,
+                 params: RegistrationParams, fixed: int = 0, start_dist: float | None = None,
+                 stride: int = 1) -> tuple[np.ndarray, dict[tuple[int, int], _EdgeFit]]:
+    """Joint robust point-to-plane refinement of ``poses`` (V, 4, 4) over ``edges``.
+
+    Each iteration finds, for every edge and both directions, the nearest sample within the current
+    correspondence distance (which shrinks from ``start_dist`` to ``1.5 * voxel``), weighs the
+    residuals by Tukey's biweight at 4.7 robust standard deviations, and solves one linear system
+    for the small motions of all views but ``fixed``. Returns the poses and the last fit of every edge.
+    """
+    poses = poses.copy()
+    d_final = 1.5 * voxel
+    dmax = max(start_dist or 4.0 * voxel, d_final)
+    movable = [v for v in sorted({a for e in edges for a in e}) if v != fixed]
+    col = {v: k for k, v in enumerate(movable)}
+    fits: dict[tuple[int, int], _EdgeFit] = {}
+    for _it in range(params.iterations):
+        H = np.zeros((6 * len(movable), 6 * len(movable)))
+        g = np.zeros(6 * len(movable))
+        fits = {}
+        for i, j in edges:
+            stats = []
+            for a, b in ((i, j), (j, i)):
+                p, m, r, n_src = _correspond(S, poses, a, b, dmax, params.normal_agreement, stride)
+                if len(r) < 12:
+                    stats.append((0.0, np.inf, 0.0, 0))
+                    continue
+                sigma = 1.4826 * float(np.median(np.abs(r))) + 1e-9
+                c = float(np.clip(4.7 * sigma, 0.25 * voxel, dmax))
+                w = _tukey(r, c)
+                Hk, gk, ek = point_to_plane_system(p, m, r, w)
+                # J_a = [p x m, m] for the source view a, -J_a for the target view b.
+                for u, su in ((a, 1.0), (b, -1.0)):
+                    if u not in col:
+                        continue
+                    ku = 6 * col[u]
+                    g[ku:ku + 6] += su * gk
+                    for v2, sv in ((a, 1.0), (b, -1.0)):
+                        if v2 in col:
+                            kv = 6 * col[v2]
+                            H[ku:ku + 6, kv:kv + 6] += su * sv * Hk
+                sw = float(w.sum())
+                stats.append((len(r) / n_src, float(np.sqrt(ek / max(sw, 1e-12))), float(np.mean(w > 0)), len(r)))
+            fits[(i, j)] = _EdgeFit(overlap=float(np.mean([s[0] for s in stats])), rms=float(np.mean([s[1] for s in stats])),
+                                    inliers=float(np.mean([s[2] for s in stats])), n=int(sum(s[3] for s in stats)))
+        if not movable:
+            break
+        H += np.eye(len(H)) * 1e-9 * (np.trace(H) / len(H) + 1.0)
+        try:
+            x = -np.linalg.solve(H, g)
+        except np.linalg.LinAlgError:
+            break
+        worst_deg = 0.0
+        worst_mm = 0.0
+        for v, k in col.items():
+            dR = _rodrigues(x[6 * k:6 * k + 3])
+            D = np.eye(4)
+            D[:3, :3] = dR
+            D[:3, 3] = x[6 * k + 3:6 * k + 6]
+            poses[v] = D @ poses[v]
+            worst_deg = max(worst_deg, float(np.degrees(np.linalg.norm(x[6 * k:6 * k + 3]))))
+            # Displacement at the view's own samples' distance from the set origin.
+            reach = float(np.linalg.norm(_transform(poses[v], S[v].centroid[None])[0]))
+            worst_mm = max(worst_mm, float(np.linalg.norm(x[6 * k + 3:6 * k + 6])) + np.radians(worst_deg) * reach)
+        shrinking = dmax > d_final * 1.0001
+        dmax = max(d_final, 0.75 * dmax)
+        if not shrinking and worst_deg < params.tolerance_deg and worst_mm < params.tolerance_mm:
+            break
+    return poses, fits
+
+
+# --------------------------------------------------------------------------------------- global registration
+
+
+class _Features:
+    """Open3D clouds and FPFH features of the coarse samples (imported lazily: Open3D loads slowly)."""
+
+    def __init__(self, S: list[Samples], coarse_voxel: float, seed: int) -> None:
+        import open3d as o3d  # slow import, only for global registration
+
+        self.o3d = o3d
+        o3d.utility.random.seed(seed)
+        self.voxel = coarse_voxel
+        self.clouds = []
+        self.features = []
+        for s in S:
+            pc = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(s.coarse_xyz))
+            pc.normals = o3d.utility.Vector3dVector(s.coarse_normals)
+            f = o3d.pipelines.registration.compute_fpfh_feature(
+                pc, o3d.geometry.KDTreeSearchParamHybrid(radius=5.0 * coarse_voxel, max_nn=100))
+            self.clouds.append(pc)
+            self.features.append(f)
+
+    def match(self, i: int, j: int) -> np.ndarray:
+        """Transform from view j's frame to view i's frame by FPFH + RANSAC."""
+        reg = self.o3d.pipelines.registration
+        d = 1.5 * self.voxel
+        res = reg.registration_ransac_based_on_feature_matching(
+            self.clouds[j], self.clouds[i], self.features[j], self.features[i], True, d,
+            reg.TransformationEstimationPointToPoint(False), 3,
+            [reg.CorrespondenceCheckerBasedOnEdgeLength(0.9), reg.CorrespondenceCheckerBasedOnDistance(d)],
+            reg.RANSACConvergenceCriteria(60000, 0.9995))
+        return np.asarray(res.transformation, np.float64)
+
+
+def _pair_fit(S: list[Samples], i: int, j: int, T_ji: np.ndarray, voxel: float, params: RegistrationParams,
+              start: float) -> tuple[np.ndarray, _EdgeFit]:
+    """Pairwise fine fit of view j onto view i from ``T_ji`` (j -> i); returns the refined T_ji."""
+    poses = np.stack([np.eye(4), T_ji])
+    sub = [S[i], S[j]]
+    fine = RegistrationParams(**{**params.__dict__, "iterations": min(params.iterations, 25),
+                                 "tolerance_deg": 1e-3, "tolerance_mm": 1e-3})
+    out, fits = refine_poses(sub, poses, [(0, 1)], voxel, fine, fixed=0, start_dist=start, stride=3)
+    return out[1], fits[(0, 1)]
+
+
+def _accept(fit: _EdgeFit, voxel: float, params: RegistrationParams) -> bool:
+    return fit.overlap >= params.min_overlap and fit.rms <= params.max_rms_voxels * voxel
+
+
+def _grow_tree(S: list[Samples], feats: _Features, placed: dict[int, np.ndarray], voxel: float,
+               params: RegistrationParams, order_hint: Sequence[int]) -> tuple[dict[int, np.ndarray], list[tuple[int, int]]]:
+    """Place every view by global registration to an already placed one (neighbours in scan order first)."""
+    V = len(S)
+    tree_edges: list[tuple[int, int]] = []
+    pos = {v: k for k, v in enumerate(order_hint)}
+    pending = [v for v in order_hint if v not in placed]
+    failed: set[tuple[int, int]] = set()
+    progress = True
+    while pending and progress:
+        progress = False
+        for v in list(pending):
+            cands = sorted(placed, key=lambda u: min(abs(pos[u] - pos[v]), V - abs(pos[u] - pos[v])))
+            for u in cands:
+                if (u, v) in failed:
+                    continue
+                T_vu = feats.match(u, v)
+                T_fit, fit = _pair_fit(S, u, v, T_vu, voxel, params, start=3.0 * feats.voxel)
+                log.info("global %d<-%d: overlap %.2f rms %.3f mm", u, v, fit.overlap, fit.rms)
+                if _accept(fit, voxel, params):
+                    placed[v] = placed[u] @ T_fit
+                    tree_edges.append((u, v))
+                    pending.remove(v)
+                    progress = True
+                    break
+                failed.add((u, v))
+            if progress:
+                break  # re-sort the remaining views against the grown tree
+    return placed, tree_edges
+
+
+def _turntable_init(S: list[Samples], feats: _Features, angles: np.ndarray, voxel: float,
+                    params: RegistrationParams) -> tuple[np.ndarray, TurntableAxis]:
+    """Poses from the turntable angles about an axis estimated from neighbouring views' global fits."""
+    V = len(S)
+    order = np.argsort(angles)
+    rel = []
+    for k in range(V):
+        i, j = int(order[k]), int(order[(k + 1) % V])
+        d = float(angles[j] - angles[i]) % 360.0
+        if d < 1e-6 or d > 180.0:
+            continue
+        T = feats.match(i, j)
+        T, fit = _pair_fit(S, i, j, T, voxel, params, start=3.0 * feats.voxel)
+        if not _accept(fit, voxel, params):
+            continue
+        ang = _rot_angle_deg(T[:3, :3])
+        if abs(ang - d) > max(3.0, 0.15 * d):
+            continue  # the fit disagrees with the table: a wrong match
+        rel.append((i, j, T, d))
+    if not rel:
+        raise InputError("turntable", "no pair of neighbouring views registers: the axis cannot be estimated")
+    # Axis direction: the rotation axes of the neighbour fits; the point from their translations.
+    axis = axis_from_poses(np.stack([r[2] for r in rel]))
+    a = axis.direction
+    signs = [np.sign(_signed_angle(T[:3, :3], a)) for _, _, T, _ in rel]
+    s = 1.0 if np.sum(signs) >= 0 else -1.0
+    # The fit j -> i turns by s * (theta_j - theta_i) about the axis, so view v maps to view 0 by
+    # s * (theta_v - theta_0).
+    poses = np.stack([_about_axis(a, axis.point, s * float(angles[v] - angles[0])) for v in range(V)])
+    return poses, axis
+
+
+def _all_overlap_edges(S: list[Samples], poses: np.ndarray, voxel: float, params: RegistrationParams,
+                       views: Sequence[int]) -> list[tuple[int, int]]:
+    edges = []
+    for x, i in enumerate(views):
+        for j in views[x + 1:]:
+            _, _, r_ij, n_i = _correspond(S, poses, i, j, 2.0 * voxel, params.normal_agreement, 4)
+            _, _, r_ji, n_j = _correspond(S, poses, j, i, 2.0 * voxel, params.normal_agreement, 4)
+            if min(len(r_ij) / n_i, len(r_ji) / n_j) >= params.min_overlap:
+                edges.append((i, j))
+    return edges
+
+
+def _view_stats(S: list[Samples], poses: np.ndarray, voxel: float, params: RegistrationParams,
+                views: Sequence[int], fits: dict[tuple[int, int], _EdgeFit]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    V = len(S)
+    rms = np.full(V, np.nan)
+    overlap = np.zeros(V)
+    inl = np.zeros(V)
+    for i in views:
+        covered = np.zeros(len(S[i].xyz), bool)
+        for j in views:
+            if j == i:
+                continue
+            rel = np.linalg.solve(poses[j], poses[i])
+            d, _ = S[j].tree.query(_transform(rel, S[i].xyz), k=1, distance_upper_bound=2.0 * voxel,
+                                   workers=_workers(len(S[i].xyz)))
+            covered |= np.isfinite(d)
+        overlap[i] = covered.mean()
+        mine = [(f.rms, f.inliers, f.n) for e, f in fits.items() if i in e and np.isfinite(f.rms)]
+        if mine:
+            wts = np.array([m[2] for m in mine], float)
+            rms[i] = float(np.sqrt(np.average(np.square([m[0] for m in mine]), weights=wts)))
+            inl[i] = float(np.average([m[1] for m in mine], weights=wts))
+    return rms, overlap, inl
+
+
+def _loop_closure(S: list[Samples], poses: np.ndarray, axis: TurntableAxis, voxel: float,
+                  params: RegistrationParams, views: Sequence[int]) -> dict[str, Any] | None:
+    """Chain the pairwise fits of neighbours (by angle about the axis) around the loop: the
+    composed transform's distance from the identity is the loop-closure error."""
+    ang = {v: float(axis.angles_deg[v]) % 360.0 for v in views}
+    order = sorted(views, key=lambda v: ang[v])
+    gaps = [(ang[order[(k + 1) % len(order)]] - ang[order[k]]) % 360.0 for k in range(len(order))]
+    if len(order) < 3 or max(gaps) > 120.0:
+        return None  # not a loop around the object
+    chain = np.eye(4)
+    for k in range(len(order)):
+        i, j = order[k], order[(k + 1) % len(order)]
+        T0 = np.linalg.solve(poses[i], poses[j])
+        T, _ = _pair_fit(S, i, j, T0, voxel, params, start=2.0 * voxel)
+        chain = chain @ T
+    ref = S[order[0]].xyz
+    deg, mm = pose_error(chain, np.eye(4), ref)
+    # The global solution closes the loop exactly by construction; what it spread is the chain's error.
+    return {"order": [int(v) for v in order], "chained_pairwise_deg": round(deg, 5), "chained_pairwise_mm": round(mm, 5)}
+
+
+def register_views(
+    views: Sequence[ViewCloud],
+    hints: Sequence[np.ndarray | None] | None = None,
+    turntable_deg: np.ndarray | None = None,
+    params: RegistrationParams | None = None,
+    drop_unregistered: bool = False,
+    names: Sequence[str] | None = None,
+    progress: Callable[[float], None] | None = None,
+) -> Registration:
+    """Register views (mm, own frames) into view 0's frame.
+
+    Parameters
+    ----------
+    views : the views (already cropped to the region of interest if one applies).
+    hints : per view a (4, 4) pose hint in mm or None; used when every view has one.
+    turntable_deg : (V,) table angles (sign unknown); used when there are no complete hints.
+    params : see :class:`RegistrationParams`.
+    drop_unregistered : leave views that register to nothing out instead of raising.
+    names : view names for messages (default ``view N``).
+    progress : called with the fraction done.
+    """
+    params = params or RegistrationParams()
+    names = list(names) if names is not None else [f"view {i}" for i in range(len(views))]
+    report = progress or (lambda f: None)
+    V = len(views)
+    t0 = time.perf_counter()
+    S, voxel = prepare_samples(views, params)
+    t_prep = time.perf_counter()
+    report(0.1)
+    coarse_voxel = voxel * float(np.sqrt(params.fine_samples / params.coarse_samples))
+    axis = None
+    have_hints = hints is not None and all(h is not None for h in hints)
+    placed: dict[int, np.ndarray]
+    if have_hints:
+        assert hints is not None
+        P0inv = np.linalg.inv(np.asarray(hints[0]))
+        init = np.stack([P0inv @ np.asarray(h) for h in hints])
+        method = "pose hints + "
+        placed = {v: init[v] for v in range(V)}
+        tree_edges: list[tuple[int, int]] = []
+    elif turntable_deg is not None:
+        feats = _Features(S, coarse_voxel, params.seed)
+        init, _ = _turntable_init(S, feats, np.asarray(turntable_deg, float), voxel, params)
+        method = "turntable angles (axis estimated by FPFH+RANSAC of neighbours) + "
+        placed = {v: init[v] for v in range(V)}
+        tree_edges = []
+    else:
+        feats = _Features(S, coarse_voxel, params.seed)
+        placed, tree_edges = _grow_tree(S, feats, {0: np.eye(4)}, voxel, params, list(range(V)))
+        method = "global FPFH+RANSAC tree + "
+    t_coarse = time.perf_counter()
+    report(0.5)
+    init = np.stack([placed.get(v, np.eye(4)) for v in range(V)])
+    active = sorted(placed)
+    # Views placed by hints or the table get a first pairwise-free joint pass with a wide reach.
+    edges = _all_overlap_edges(S, init, 4.0 * voxel if not tree_edges else voxel, params, active)
+    edges = sorted(set(edges) | {tuple(sorted(e)) for e in tree_edges})
+    poses, fits = refine_poses(S, init, edges, voxel, params, start_dist=6.0 * voxel, stride=2)
+    report(0.75)
+    # Re-find the overlapping pairs at the refined poses, prune the weak ones, refine once more.
+    edges = _all_overlap_edges(S, poses, voxel, params, active)
+    poses, fits = refine_poses(S, poses, edges, voxel, params, start_dist=2.0 * voxel)
+    fits = {e: f for e, f in fits.items() if f.overlap >= params.min_overlap}
+    t_fine = time.perf_counter()
+    connected = {0}
+    changed = True
+    while changed:
+        changed = False
+        for i, j in fits:
+            if (i in connected) != (j in connected):
+                connected |= {i, j}
+                changed = True
+    lost = [v for v in range(V) if v not in connected]
+    if lost and not drop_unregistered:
+        raise InputError(", ".join(f"views[{v}] ({names[v]})" for v in lost),
+                         "overlaps no other view: it cannot be registered (--drop-unregistered leaves it out)")
+    if lost:
+        log.warning("left out views that register to nothing: %s", ", ".join(names[v] for v in lost))
+    kept = [v for v in range(V) if v in connected]
+    rms, overlap, inl = _view_stats(S, poses, voxel, params, kept, fits)
+    reg_axis = None
+    loop = None
+    if len(kept) >= 3:
+        cand = axis_from_poses(poses[kept], centre=np.mean([_transform(poses[v], S[v].centroid[None])[0] for v in kept], axis=0))
+        if cand.rms_mm < 5.0 * voxel or turntable_deg is not None:
+            full = np.zeros(V)
+            full[kept] = cand.angles_deg
+            reg_axis = TurntableAxis(direction=cand.direction, point=cand.point, angles_deg=full, rms_mm=cand.rms_mm)
+            loop = _loop_closure(S, poses, reg_axis, voxel, params, kept)
+    axis = reg_axis
+    report(1.0)
+    t_end = time.perf_counter()
+    edge_docs = [{"views": [int(i), int(j)], "overlap": round(f.overlap, 4), "rms_mm": round(f.rms, 5),
+                  "inlier_share": round(f.inliers, 4)} for (i, j), f in sorted(fits.items())]
+    return Registration(
+        poses=poses, method=method + "robust point-to-plane ICP + joint multi-view refinement",
+        rms_mm=rms, overlap=overlap, inlier_share=inl, edges=edge_docs, axis=axis, loop_closure=loop,
+        dropped=lost, voxel_mm=voxel,
+        seconds={"samples": round(t_prep - t0, 3), "coarse": round(t_coarse - t_prep, 3),
+                 "fine": round(t_fine - t_coarse, 3), "stats": round(t_end - t_fine, 3)},
+    )

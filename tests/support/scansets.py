@@ -1,0 +1,70 @@
+"""Scan sets for the multi-view tests and the bench.
+
+- :func:`cached_scanset`: a simulated turntable/orbit scan set (:func:`shared.sim.scanset.simulate_scanset`)
+  rendered once per cache folder (a file lock makes concurrent test workers wait for the first).
+- :func:`dragon_scanset`: a ``scanset.json`` over the real Stanford dragon turntable scans (cloud
+  views in metres), with or without the turntable angles; :func:`stanford_poses` reads Stanford's
+  own registration (README convention ``X_world = R(q)^T X + t``) relative to view 0, in mm.
+"""
+
+from __future__ import annotations
+
+import fcntl
+import hashlib
+import json
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from shared.core.datapaths import shared_data_dir
+
+DRAGON = shared_data_dir() / "stanford-dragon-turntable"
+
+
+def cached_scanset(root: Path, scene: str = "bunny", views: int = 8, mode: str = "turntable",
+                   size: tuple[int, int] = (640, 480), projector: tuple[int, int] = (512, 384), seed: int = 0) -> Path:
+    """The folder of a simulated scan set under ``root`` (rendered on first use)."""
+    from shared.sim.scanset import simulate_scanset
+
+    key = json.dumps([scene, views, mode, list(size), list(projector), seed])
+    folder = root / f"scanset-{scene}-{mode}-{views}-{size[0]}x{size[1]}-{hashlib.sha1(key.encode()).hexdigest()[:8]}"
+    root.mkdir(parents=True, exist_ok=True)
+    with open(root / f"{folder.name}.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        try:
+            if not (folder / "scanset.json").is_file():
+                simulate_scanset(scene, folder, views=views, mode=mode, size=size, projector=projector, seed=seed,
+                                 overwrite=True)
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)
+    return folder
+
+
+def _dragon_conf() -> list[list[str]]:
+    lines = (DRAGON / "dragonStandRight.conf").read_text().splitlines()
+    return [ln.split() for ln in lines if ln.startswith("bmesh")]
+
+
+def dragon_scanset(folder: Path, turntable: bool) -> Path:
+    """Write ``folder/scanset.json`` naming the 15 dragon scans (units m), angles from the file names."""
+    conf = _dragon_conf()
+    views = [{"cloud": str(DRAGON / c[1]), "units": "m"} for c in conf]
+    doc: dict = {"format": "graylight-scanset-v1", "views": views}
+    if turntable:
+        doc["turntable"] = {"angles_deg": [float(c[1].rsplit("_", 1)[1].split(".")[0]) for c in conf]}
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / "scanset.json").write_text(json.dumps(doc))
+    return folder
+
+
+def stanford_poses() -> np.ndarray:
+    """(15, 4, 4) Stanford's registration of the dragon scans relative to view 0, mm."""
+    out = []
+    for c in _dragon_conf():
+        P = np.eye(4)
+        P[:3, :3] = Rotation.from_quat(np.array(c[5:9], float)).as_matrix().T
+        P[:3, 3] = np.array(c[2:5], float) * 1000.0
+        out.append(P)
+    P = np.stack(out)
+    return np.linalg.inv(P[0]) @ P
