@@ -5,6 +5,7 @@
   ``shared/`` (its ``where`` becomes the location: ``params.preview.size`` ->
   ``["body", "params", "preview", "size"]``; a file inside a capture stays one element,
   ``["body", "scan7.zip:col_02.png"]``), and a route's ``HTTPException(422, "field: problem")``.
+* A storage reference that names nothing (``capture_ref``, ``manifest``) is 404.
 * Every other error is ``{"detail": "one line"}`` (:class:`services.api.models.ErrorOut`).
 * A 405 names in ``Allow`` every method of every route whose path matches, not only those of
   the first route Starlette tried.
@@ -22,17 +23,11 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
 from services.api.http import BodyInvalid
+from services.api.intake import NotInStorage
 from shared.core.errors import InputError
 
 __all__ = ["install_error_handlers", "loc_of", "validation_item"]
 
-#: Fields of the API's requests: an ``InputError`` whose ``where`` starts with one of them is a
-#: request field (dotted into its parts); any other ``where`` (a file, a member of an archive)
-#: is one location element.
-REQUEST_FIELDS = frozenset({
-    "body", "params", "name", "batch", "kind", "capture", "capture_ref", "upload_id", "captures", "manifest",
-    "rig", "filename",
-})  # fmt: skip
 _DOTTED = re.compile(r"^[A-Za-z_]\w*(\.\w+)*$")
 
 
@@ -40,7 +35,7 @@ def loc_of(where: str) -> list[str | int]:
     """The location (FastAPI's ``loc``) of a problem at ``where``."""
     if where == "body":
         return ["body"]
-    if _DOTTED.match(where) and where.split(".", 1)[0] in REQUEST_FIELDS:
+    if where.startswith("params.") and _DOTTED.match(where):  # the one nested field
         return ["body", *(int(p) if p.isdigit() else p for p in where.split("."))]
     return ["body", where]
 
@@ -53,9 +48,20 @@ def _invalid(items: list[dict[str, Any]]) -> JSONResponse:
     return JSONResponse({"detail": items}, 422)
 
 
+def _routes(routes: Any) -> Any:
+    """Every endpoint route, through included routers (FastAPI keeps an included router
+    whole; the API includes its routers without a prefix, so their paths are the full ones)."""
+    for route in routes:
+        inner = getattr(route, "original_router", None)
+        if inner is not None:
+            yield from _routes(inner.routes)
+        else:
+            yield route
+
+
 def _allowed(app: Any, scope: dict[str, Any]) -> list[str]:
     methods: set[str] = set()
-    for route in app.router.routes:
+    for route in _routes(app.router.routes):
         match, _child = route.matches(scope)
         if match != Match.NONE:
             methods |= set(getattr(route, "methods", None) or ())
@@ -64,6 +70,10 @@ def _allowed(app: Any, scope: dict[str, Any]) -> list[str]:
 
 def install_error_handlers(app: FastAPI) -> None:
     """Register the handlers described in the module docstring on ``app``."""
+
+    @app.exception_handler(NotInStorage)
+    async def _not_in_storage(_request: Request, exc: NotInStorage) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, 404)
 
     @app.exception_handler(InputError)
     async def _input_error(_request: Request, exc: InputError) -> JSONResponse:

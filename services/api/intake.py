@@ -67,6 +67,10 @@ class BatchCreate(BaseModel):
     params: dict[str, Any] = Field(default_factory=dict)
 
 
+class NotInStorage(InputError):
+    """A storage reference (``capture_ref``, ``manifest``) that names nothing in storage: 404."""
+
+
 # ---- field checks -------------------------------------------------------------------------
 def check_kind(kind: str) -> str:
     if kind not in GRAPHS:
@@ -86,8 +90,19 @@ def check_name(value: str | None, field: str) -> str | None:
 
 def check_params(params: Any, kind: str) -> dict[str, Any]:
     """A client's job parameters for a ``kind`` job (:func:`shared.service.params.check_job_params`);
-    :class:`InputError` (422) names the field."""
-    return check_job_params(kind, params)
+    :class:`InputError` (422) names the field. A number with no fraction (``163.0``) is the
+    integer it equals, as in JSON Schema."""
+    return check_job_params(kind, _integral(params))
+
+
+def _integral(value: Any) -> Any:
+    if isinstance(value, float) and value.is_integer():
+        return int(value)
+    if isinstance(value, dict):
+        return {k: _integral(v) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_integral(v) for v in value]
+    return value
 
 
 def form_text(value: Any) -> str | None:
@@ -162,7 +177,7 @@ class Intake:
         except ArtifactError as exc:
             raise InputError("capture_ref", str(exc)) from None
         except FileNotFoundError:
-            raise InputError("capture_ref", f"{ref!r}: no such file or folder in storage") from None
+            raise NotInStorage("capture_ref", f"{ref!r}: no such file or folder in storage") from None
         return f"ref:{clean}", key
 
     def read_manifest(self, ref: str) -> list[str]:
@@ -174,7 +189,7 @@ class Intake:
             with self.arts.fs.open(self.arts.ref_path(clean), "rb") as f:
                 data = f.read(4 << 20)
         except (FileNotFoundError, ArtifactError, IsADirectoryError):
-            raise InputError("manifest", f"{ref!r}: no such file in storage") from None
+            raise NotInStorage("manifest", f"{ref!r}: no such file in storage") from None
         try:
             text = data.decode("utf-8")
         except UnicodeDecodeError:

@@ -15,6 +15,7 @@ from typing import Any
 
 from pydantic import BaseModel, Field
 
+from services.api.schema import any_params_schema
 from shared.service.jobs import StageState
 from shared.service.jobstore import Batch, Job, Stage
 
@@ -137,7 +138,10 @@ class UploadCreate(BaseModel):
 
 
 class RetryIn(BaseModel):
-    params: dict[str, Any] | None = Field(None, description="new job parameters (stages they affect re-run)")
+    params: dict[str, Any] | None = Field(
+        None, description="new job parameters (stages they affect re-run); those of the job's kind",
+        json_schema_extra={"anyOf": [*any_params_schema()["anyOf"], {"type": "null"}]},
+    )
 
 
 # ---- converters --------------------------------------------------------------------------------

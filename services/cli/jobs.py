@@ -252,6 +252,19 @@ def error_text(detail: Any) -> str:
     return "; ".join(parts)
 
 
+def error_text(detail: Any) -> str:
+    """One line of an API error's ``detail``: the text itself, or a 422's list of
+    ``{"loc", "msg"}`` as ``FIELD: MESSAGE; ...`` (the location without its ``body``/``query``)."""
+    if not isinstance(detail, list):
+        return str(detail)
+    parts = []
+    for item in detail:
+        loc = [str(p) for p in (item.get("loc") or [])[1:]] if isinstance(item, dict) else []
+        msg = item.get("msg", item) if isinstance(item, dict) else item
+        parts.append(f"{'.'.join(loc)}: {msg}" if loc else str(msg))
+    return "; ".join(parts)
+
+
 def _as_archive(path: Path, tmp: Path) -> Path:
     from shared.service.archive import pack_folder
 

@@ -62,7 +62,12 @@ def create_router(dist: Path = VIEWER_DIST, tiles_url_template: str = TILES_URL_
         query = f"?{request.url.query}" if request.url.query else ""
         return RedirectResponse(f"{request.scope.get('root_path', '')}/viewer/{query}", status_code=307)
 
-    @router.get("/viewer/", response_class=HTMLResponse, summary="Viewer for any tiles URL (?tiles=URL)")
+    #: What the pages can answer besides 200 (the API's OpenAPI document lists them).
+    errors = {503: {"description": "viewer assets not built"}}
+    not_found = {404: {"description": "not a job id"}}
+
+    @router.get("/viewer/", response_class=HTMLResponse, summary="Viewer for any tiles URL (?tiles=URL)",
+                responses=errors)
     def viewer_any() -> HTMLResponse:
         return HTMLResponse(render_page(dist), headers={"Cache-Control": "no-cache"})
 
@@ -73,7 +78,8 @@ def create_router(dist: Path = VIEWER_DIST, tiles_url_template: str = TILES_URL_
             raise HTTPException(404, f"viewer asset {name!r} not found")
         return FileResponse(path, media_type=_MEDIA_TYPES.get(path.suffix, "application/octet-stream"))
 
-    @router.get("/viewer/{job}", response_class=HTMLResponse, summary="Fly through a finished job's scan")
+    @router.get("/viewer/{job}", response_class=HTMLResponse, summary="Fly through a finished job's scan",
+                responses={**not_found, **errors})
     def viewer_job(job: str, request: Request) -> HTMLResponse:
         if not _JOB_ID.match(job):
             raise HTTPException(404, f"job id {job!r} is not valid")

@@ -326,3 +326,27 @@ def test_cli_client_uploads_in_chunks_and_resumes(api, capture: Path, tmp_path: 
     assert client.get(f"/v1/uploads/{up['id']}", headers=alice).json()["offset"] == len(data)
     again = client.post("/v1/jobs", headers=alice, json={"upload_id": up["id"], "params": {"render": False}})
     assert again.status_code == 201 and again.json()["name"] == "again.zip"
+
+
+def test_error_answers_have_the_documented_shapes(api) -> None:
+    client, _senv, alice, _bob = api
+    r = client.delete("/v1/jobs", headers=alice)
+    assert r.status_code == 405 and r.headers["allow"] == "GET, POST"  # both routes of the path
+    r = client.put("/v1/uploads/00000000-0000-0000-0000-000000000000", headers=alice)
+    assert r.status_code == 405 and r.headers["allow"] == "GET, PATCH"
+    r = client.post("/v1/jobs", headers=alice, json={"kind": "probe", "params": {"seconds": 99}})
+    assert r.status_code == 422
+    [item] = r.json()["detail"]
+    assert item["loc"] == ["body", "params", "seconds"] and "0..60" in item["msg"] and item["type"] == "value_error"
+    r = client.post("/v1/batches", headers=alice, json={"name": ""})
+    assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "name"]
+    r = client.post("/v1/batches", headers=alice, data={"name": "x", "params": "{nope"},
+                    files={"unused": ("x", b"", "text/plain")})  # fmt: skip
+    assert r.status_code == 422 and problem(r).startswith("params: not JSON")
+    r = client.post("/v1/jobs", headers=alice, json={"capture_ref": "inbox/none.zip"})
+    assert r.status_code == 404 and "no such file or folder in storage" in r.json()["detail"]
+    doc = client.get("/openapi.json").json()
+    for path, ops in doc["paths"].items():
+        for method, op in ops.items():
+            if path.startswith("/v1/"):
+                assert {"401", "422"} <= set(op["responses"]), (method, path)

@@ -7,35 +7,15 @@ from fastapi import APIRouter, Request
 
 from services.api.deps import Key, Svc, owned_batch
 from services.api.http import is_form, parse_body, read_form
-from services.api.intake import NAME_PATTERN, BatchCreate
+from services.api.intake import BatchCreate
 from services.api.models import BatchOut, batch_out, errors
+from services.api.schema import batch_body
 
 router = APIRouter(tags=["batches"])
 
-_BATCH_BODY = {
-    "requestBody": {
-        "required": True,
-        "content": {
-            "multipart/form-data": {
-                "schema": {
-                    "type": "object",
-                    "properties": {
-                        "name": {"type": "string", "pattern": NAME_PATTERN},
-                        "kind": {"type": "string", "enum": ["scan", "calibrate", "probe"], "default": "scan"},
-                        "params": {"type": "string", "description": "JSON object applied to every job"},
-                        "captures": {"type": "array", "items": {"type": "string", "format": "binary"}},
-                    },
-                    "required": ["name"],
-                }
-            },
-            "application/json": {"schema": BatchCreate.model_json_schema()},
-        },
-    }
-}
 
-
-@router.post("/v1/batches", response_model=BatchOut, status_code=201, openapi_extra=_BATCH_BODY,
-             responses=errors(400, 401, 413, 422, 429, 507))  # fmt: skip
+@router.post("/v1/batches", response_model=BatchOut, status_code=201, openapi_extra=batch_body(),
+             responses=errors(400, 401, 404, 413, 422, 429, 507))  # fmt: skip
 async def submit_batch(request: Request, key: Key, svc: Svc) -> BatchOut:
     """Many captures at once: multipart files in ``captures``, or JSON with storage
     references (``captures``) or a ``manifest`` file listing them. A capture refused at

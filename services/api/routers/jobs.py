@@ -9,39 +9,16 @@ from fastapi import APIRouter, HTTPException, Query, Request
 
 from services.api.deps import Key, Svc, owned_job
 from services.api.http import is_form, parse_body, read_form
-from services.api.intake import NAME_PATTERN, JobCreate, check_params
+from services.api.intake import JobCreate, check_params
 from services.api.models import JobList, JobOut, RetryIn, errors, job_out
+from services.api.schema import job_body
 from shared.service.jobs import JobState, StageView, rows_to_rerun
 from shared.service.queue import publish_stages
 
 router = APIRouter(tags=["jobs"])
 
-_JOB_BODY = {
-    "requestBody": {
-        "required": True,
-        "content": {
-            "multipart/form-data": {
-                "schema": {
-                    "type": "object",
-                    "properties": {
-                        "capture": {"type": "string", "format": "binary", "description": "zip or tar of a capture folder"},
-                        "rig": {"type": "string", "format": "binary", "description": "rig.json to use instead of the capture's"},
-                        "kind": {"type": "string", "enum": ["scan", "calibrate", "probe"], "default": "scan"},
-                        "name": {"type": "string", "pattern": NAME_PATTERN},
-                        "batch": {"type": "string", "pattern": NAME_PATTERN},
-                        "params": {"type": "string", "description": "JSON object"},
-                        "capture_ref": {"type": "string", "description": "a path in storage, read when no capture file is sent"},
-                    },
-                    "required": ["capture"],
-                }
-            },
-            "application/json": {"schema": JobCreate.model_json_schema()},
-        },
-    }
-}
 
-
-@router.post("/v1/jobs", response_model=JobOut, status_code=201, openapi_extra=_JOB_BODY,
+@router.post("/v1/jobs", response_model=JobOut, status_code=201, openapi_extra=job_body(),
              responses=errors(400, 401, 404, 409, 413, 422, 429, 507))  # fmt: skip
 async def submit_job(request: Request, key: Key, svc: Svc) -> JobOut:
     """Submit a job: multipart (field ``capture``: zip or tar), or JSON (``upload_id`` of a
@@ -111,7 +88,7 @@ def retry(svc: Svc, job_id: str, key: Key, new_params: dict | None = None) -> Jo
     return job_out(owned_job(svc, job_id, key))
 
 
-@router.post("/v1/jobs/{job_id}/retry", response_model=JobOut, responses=errors(401, 404, 409, 422))
+@router.post("/v1/jobs/{job_id}/retry", response_model=JobOut, responses=errors(400, 401, 404, 409, 422))
 def retry_job(job_id: str, key: Key, svc: Svc, body: RetryIn | None = None) -> JobOut:
     """Re-run the stages that failed or were cancelled, and those whose inputs changed
     (new parameters, a new stage version); finished stages with unchanged inputs are kept."""

@@ -17,7 +17,7 @@ from shared.core.errors import InputError
 router = APIRouter(tags=["uploads"])
 
 
-@router.post("/v1/uploads", response_model=UploadOut, status_code=201, responses=errors(401, 422))
+@router.post("/v1/uploads", response_model=UploadOut, status_code=201, responses=errors(400, 401, 422))
 def create_upload(key: Key, svc: Svc, body: UploadCreate | None = None) -> UploadOut:
     """Open an upload session; send the archive in chunks with ``PATCH`` and
     ``Upload-Offset``, resume from ``GET``'s offset, then ``POST /v1/jobs {"upload_id"}``."""
