@@ -12,7 +12,6 @@ line; ``--wait`` follows them with a progress bar (on stderr) and exits 1 if any
 from __future__ import annotations
 
 import argparse
-import atexit
 import json
 import logging
 import os
@@ -24,6 +23,7 @@ from typing import Any
 
 from shared.core.errors import GraylightError, InputError
 from shared.service.config import get_settings
+from shared.service.jobs import QUEUES
 
 log = logging.getLogger(__name__)
 
@@ -100,8 +100,8 @@ def cmd_worker(args: argparse.Namespace) -> int:
     settings = get_settings()
     logical = [q.strip() for q in args.queues.split(",") if q.strip()]
     for q in logical:
-        if q not in ("cpu", "render", "control"):
-            raise InputError("--queues", f"unknown queue {q!r} (cpu, render, control)")
+        if q not in QUEUES:
+            raise InputError("--queues", f"unknown queue {q!r} ({', '.join(QUEUES)})")
     if not args.no_control and "control" not in logical:
         logical.append("control")
     argv = [
@@ -118,70 +118,10 @@ def cmd_worker(args: argparse.Namespace) -> int:
 
 
 def cmd_beat(args: argparse.Namespace) -> int:
-    from celery.apps.beat import Beat
+    from workers.beat import run_beat
 
-    from workers.celery_app import get_app
-
-    settings = get_settings()
-    settings.data_dir.mkdir(parents=True, exist_ok=True)
-    hold_beat_lock(settings)
-    app = get_app(settings)
-    Beat(app=app, loglevel=args.loglevel, schedule=app.conf.beat_schedule_filename).run()
+    run_beat(get_settings(), args.loglevel)
     return 0
-
-
-#: Seconds a beat's lock lives without renewal (a dead beat frees it this fast).
-BEAT_LOCK_TTL = 30
-
-
-def hold_beat_lock(settings: Any) -> None:
-    """Make sure this is the only beat of its queues: take a lock in Redis (renewed by a
-    thread; it expires when the beat dies) or refuse to start. Only a Redis broker is checked."""
-    import secrets
-    import threading
-
-    if not settings.broker_url.startswith(("redis://", "rediss://")):
-        return
-    import redis
-
-    name = f"{settings.queue_prefix}graylight-beat-lock"
-    token = secrets.token_hex(8)
-    client = redis.Redis.from_url(settings.broker_url, socket_timeout=5, socket_connect_timeout=5)
-    try:
-        got = client.set(name, token, nx=True, ex=BEAT_LOCK_TTL)
-    except redis.exceptions.ConnectionError as exc:
-        raise ServiceError(f"beat: cannot reach the broker at {settings.broker_url}: {exc}") from None
-    if not got:
-        raise ServiceError(f"another beat already runs for these queues (Redis key {name!r}); run exactly one")
-
-    def renew() -> None:
-        while True:
-            time.sleep(BEAT_LOCK_TTL / 3)
-            try:
-                held = client.get(name)
-                if held is None:
-                    # Redis restarted (keys gone): take the lock back unless another beat did.
-                    if not client.set(name, token, nx=True, ex=BEAT_LOCK_TTL):
-                        log.critical("another beat took the lock; stopping this one")
-                        os._exit(3)
-                elif held.decode() != token:
-                    log.critical("another beat holds the lock; stopping this one")
-                    os._exit(3)
-                else:
-                    client.expire(name, BEAT_LOCK_TTL)
-            except redis.exceptions.RedisError as exc:  # the broker blinks; beat itself retries too
-                log.warning("beat lock: %s", exc)
-
-    def release() -> None:
-        # Free the lock at a clean exit so a replacement need not wait for it to expire.
-        try:
-            if client.get(name) == token.encode():
-                client.delete(name)
-        except redis.exceptions.RedisError:
-            pass
-
-    atexit.register(release)
-    threading.Thread(target=renew, name="beat-lock", daemon=True).start()
 
 
 # ---- keys -------------------------------------------------------------------------------------
