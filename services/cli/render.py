@@ -15,7 +15,7 @@ def _tiles(args: argparse.Namespace) -> int:
 
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", f"must be at least 1, got {args.workers}")
-    report = tiles_stage(Path(args.cloud), Path(args.out), workers=args.workers)
+    report = tiles_stage(Path(args.cloud), Path(args.out), workers=args.workers, estimate_normals=args.estimate_normals)
     print(
         f"{report['points']} points in {report['nodes']} nodes, {report['depth']} levels deep, "
         f"{report['bytes'] / 1e6:.1f} MB, in {report['seconds']:.1f} s ({report['points_per_second'] / 1e6:.2f} M points/s)"
@@ -43,13 +43,18 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("cloud", help="cloud PLY (x, y, z; colour, normal, size when present)")
     p.add_argument("--out", required=True, help="output folder (replaced atomically)")
     p.add_argument("--workers", type=int, default=None, help="processes building chunks (default: CPU count)")
+    p.add_argument(
+        "--estimate-normals",
+        action="store_true",
+        help="give a cloud without normals unit normals from its neighbourhoods (facing the origin)",
+    )
     p.set_defaults(func=_tiles)
 
     p = subparsers.add_parser("preview", help="render a flythrough MP4 and poster PNG of tiles")
     p.add_argument("tiles", help="tiles folder written by 'graylight tiles'")
     p.add_argument("--out", required=True, help="output MP4 (the poster is written beside it as .png)")
     w, h = PREVIEW_DEFAULTS.size
-    p.add_argument("--path", default=PREVIEW_DEFAULTS.path, help=f"orbit, dolly or a JSON keyframe file (default {PREVIEW_DEFAULTS.path})")
+    p.add_argument("--path", default=PREVIEW_DEFAULTS.path, help=f"auto, arc, orbit, dolly or a JSON keyframe file (default {PREVIEW_DEFAULTS.path}: an arc on the scanner's side for one view, an orbit for a merged model)")
     p.add_argument("--size", default=f"{w}x{h}", help=f"WIDTHxHEIGHT (default {w}x{h})")
     p.add_argument("--seconds", type=float, default=PREVIEW_DEFAULTS.seconds, help=f"duration (default {PREVIEW_DEFAULTS.seconds:g})")
     p.add_argument("--fps", type=float, default=PREVIEW_DEFAULTS.fps, help=f"frames per second (default {PREVIEW_DEFAULTS.fps:g})")

@@ -1,11 +1,17 @@
-"""Camera paths for preview videos: an orbit around a scene's bounds, a dolly through them, or
-keyframes from a JSON file.
+"""Camera paths for preview videos: an arc around the scanner's viewpoint, an orbit around the
+object, a dolly through it, or keyframes from a JSON file.
 
-In: the scene's tight bounding box (world units, e.g. mm), a frame count. Out: one
-:class:`CameraPose` a frame (eye, target, up, vertical field of view in degrees).
+In: the scene's tight bounding box (world units, e.g. mm), a frame count and, for framing, a
+sample of the points. Out: one :class:`CameraPose` a frame (eye, target, up, vertical field
+of view in degrees).
 
-Graylight clouds live in the scanner camera's frame (x right, y down, z forward), so the
-default "up" is -y and the default views look along +z, as the scanner did.
+Graylight clouds live in the scanner camera's frame (x right, y down, z forward, the scanner
+at the origin), so the default "up" is -y and the default views look along +z, as the
+scanner did. ``"auto"`` (the default) picks the arc for a single-view scan, whose back is
+empty (:func:`is_single_view`: along the scanner's rays the cloud holds one surface), and the
+full orbit for a model merged from views all around. Both frame the object: pose by pose, the
+camera is placed where every sampled point (bar the 0.2 % farthest out on each axis, stray
+points) projects inside :data:`FILL` of the frame, as large as it fits, centred.
 
 A path file is JSON::
 
@@ -30,6 +36,13 @@ from shared.core.errors import InputError
 
 DEFAULT_UP = (0.0, -1.0, 0.0)
 DEFAULT_FOV = 50.0
+#: Fraction of the frame's half-width and half-height the framed object reaches at most.
+FILL = 0.9
+#: The arc's swing around the object, left to right (degrees), and its elevation swing.
+ARC_SWEEP = 70.0
+ARC_ELEVATION = 12.0
+#: Where a Graylight cloud's scanner is: the origin of the camera frame.
+SCANNER = (0.0, 0.0, 0.0)
 #: How far (in scene diagonals, from the box) a path file's eye may go.
 MAX_DISTANCE_FACTOR = 5.0
 
@@ -51,15 +64,184 @@ def _box(box_min, box_max) -> tuple[np.ndarray, np.ndarray, float]:
     return lo, hi, diag if diag > 0 else 1.0
 
 
-def orbit_path(
-    box_min, box_max, frames: int, *, up=DEFAULT_UP, fov_y: float = DEFAULT_FOV, elevation_deg: float = 20.0
+def core_points(points: np.ndarray, trim: float = 0.002) -> np.ndarray:
+    """The points bar the ``trim`` fraction farthest out at either end of each axis (stray
+    points that would shrink the object in the frame). ``points`` (N, 3); returns (M, 3) float64."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    p = p[np.isfinite(p).all(axis=1)]
+    if p.shape[0] < 50:
+        return p
+    lo = np.quantile(p, trim, axis=0)
+    hi = np.quantile(p, 1 - trim, axis=0)
+    return p[np.all((p >= lo) & (p <= hi), axis=1)]
+
+
+def _basis(forward: np.ndarray, up: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Image right and image up (unit) of a camera looking along ``forward``."""
+    right = np.cross(forward, up)
+    if np.linalg.norm(right) < 1e-9:
+        right = np.cross(forward, [1.0, 0.0, 0.0] if abs(forward[0]) < 0.9 else [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    return right, np.cross(right, forward)
+
+
+def fit_view(
+    points: np.ndarray,
+    centre: np.ndarray,
+    direction: np.ndarray,
+    up=DEFAULT_UP,
+    fov_y: float = DEFAULT_FOV,
+    aspect: float = 16 / 9,
+    fill: float = FILL,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Eye and target of the camera that looks along ``-direction`` (unit, (3,): from the
+    object towards the eye) and sees ``points`` (N, 3) as large as they fit: within ``fill`` of
+    the frame's half-width and half-height, centred on screen. ``aspect`` = width / height.
+
+    With the camera's right/up offsets ``a``, ``b`` from ``centre`` and distance ``t``, a point
+    at (x, y, z) (camera axes, relative to ``centre``) projects to (x - a) / (t + z); both sides
+    within ``tan(fov / 2) * fill`` is linear in (a, t), and the smallest ``t`` is exact:
+    ``t = (P - Q) / 2 tan``, ``a = (P + Q) / 2`` with ``P = max(x - tan z)``, ``Q = min(x + tan z)``.
+    """
+    c = np.asarray(centre, np.float64)
+    p = np.asarray(points, np.float64) - c
+    d = np.asarray(direction, np.float64)
+    d = d / np.linalg.norm(d)
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    fwd = -d
+    right, cam_up = _basis(fwd, up)
+    if p.shape[0] == 0:
+        return c + d, c.copy()
+    z = p @ fwd
+    ty = math.tan(math.radians(fov_y) / 2) * fill
+    tx = ty * aspect
+    out = []
+    for axis, t in ((right, tx), (cam_up, ty)):
+        x = p @ axis
+        P, Q = float(np.max(x - t * z)), float(np.min(x + t * z))
+        out.append(((P - Q) / (2 * t), (P + Q) / 2))
+    dist = max(out[0][0], out[1][0], 1e-6 * (1.0 + float(np.abs(p).max())))
+    # Keep the nearest point in front of the camera whatever the object's shape.
+    dist = max(dist, float(-z.min()) * 1.05 + 1e-9)
+    target = c + out[0][1] * right + out[1][1] * cam_up
+    return target + dist * d, target
+
+
+def is_single_view(points: np.ndarray, viewpoint=SCANNER, bins: int = 48, spread: float = 0.15) -> bool:
+    """Whether a cloud is one view seen from ``viewpoint``: along the viewpoint's rays it holds
+    one surface (a range image's points), not a front and a back.
+
+    The rays are binned in a ``bins`` x ``bins`` grid over the cloud's angular extent; a bin
+    whose depths spread over more than ``spread`` of the cloud's depth extent holds two
+    surfaces. A single view has such bins only along occlusion edges; a model merged from
+    views around the object has them wherever its back lies behind its front. ``points``
+    (N, 3) world; False when the viewpoint lies inside the cloud's bounds.
+    """
+    p = np.asarray(points, np.float64) - np.asarray(viewpoint, np.float64)
+    p = p[np.isfinite(p).all(axis=1)]
+    if p.shape[0] < 100:
+        return True
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    if np.all((lo < 0) & (hi > 0)):
+        return False
+    centre = core_points(p).mean(axis=0)
+    fwd = centre / max(np.linalg.norm(centre), 1e-12)
+    right, cam_up = _basis(fwd, np.array(DEFAULT_UP))
+    depth = p @ fwd
+    front = depth > 1e-9
+    if front.mean() < 0.99:  # points beside or behind the viewpoint: not what it saw
+        return False
+    a = np.arctan2(p[front] @ right, depth[front])
+    b = np.arctan2(p[front] @ cam_up, depth[front])
+    r = np.linalg.norm(p[front], axis=1)
+    ia = np.minimum(((a - a.min()) / max(np.ptp(a), 1e-12) * bins).astype(np.int64), bins - 1)
+    ib = np.minimum(((b - b.min()) / max(np.ptp(b), 1e-12) * bins).astype(np.int64), bins - 1)
+    cell = ia * bins + ib
+    rmin = np.full(bins * bins, np.inf)
+    rmax = np.full(bins * bins, -np.inf)
+    np.minimum.at(rmin, cell, r)
+    np.maximum.at(rmax, cell, r)
+    used = np.isfinite(rmin)
+    extent = max(float(np.ptp(r)), 1e-12)
+    doubled = (rmax[used] - rmin[used]) > spread * extent
+    return bool(doubled.mean() < 0.2)
+
+
+def arc_path(
+    points: np.ndarray,
+    frames: int,
+    *,
+    viewpoint=SCANNER,
+    up=DEFAULT_UP,
+    fov_y: float = DEFAULT_FOV,
+    aspect: float = 16 / 9,
+    sweep_deg: float = ARC_SWEEP,
+    elevation_deg: float = ARC_ELEVATION,
 ) -> list[CameraPose]:
-    """A full turn around the box's vertical axis, starting on the -z side (the scanner's view),
-    at a distance that fits the whole box in view."""
+    """An arc around the object that stays on the scanner's side: starting from the scanner's
+    direction, the eye swings ``sweep_deg / 2`` to one side, up by ``elevation_deg`` over the
+    middle, to the other side and back (a closed loop, an ellipse in yaw and pitch), always looking at the object's centre, at the distance
+    that frames the object from that pose (:func:`fit_view`). ``points`` (N, 3) world:
+    a sample of the cloud (the framing uses :func:`core_points`)."""
+    core = core_points(points)
+    if core.shape[0] == 0:
+        raise InputError("points", "the scene holds no finite points to frame")
+    lo, hi = core.min(axis=0), core.max(axis=0)
+    centre = (lo + hi) / 2
+    up = np.asarray(up, np.float64) / np.linalg.norm(up)
+    home = np.asarray(viewpoint, np.float64) - centre
+    if np.linalg.norm(home) < 1e-9:
+        home = np.array([0.0, 0.0, -1.0])
+    home /= np.linalg.norm(home)
+    side = np.cross(up, home)
+    if np.linalg.norm(side) < 1e-6:  # looking straight down the up axis
+        side = np.cross(home, [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+    lift = np.cross(home, side)
+    lift *= np.sign(lift @ up) or 1.0
+    dirs = []
+    for k in range(frames):
+        phase = 2 * math.pi * k / max(frames, 1)
+        yaw = math.radians(sweep_deg / 2) * math.sin(phase)
+        pitch = math.radians(elevation_deg / 2) * (1 - math.cos(phase))  # an ellipse: up and back
+        d = math.cos(pitch) * (math.cos(yaw) * home + math.sin(yaw) * side) + math.sin(pitch) * lift
+        dirs.append(d / np.linalg.norm(d))
+    return _framed(core, centre, dirs, up, fov_y, aspect)
+
+
+def _framed(core, centre, dirs, up, fov_y, aspect) -> list[CameraPose]:
+    """Poses looking at ``centre`` from each direction, each at its own framing distance (the
+    distances change smoothly along a smooth path, so the object keeps its size on screen)."""
+    poses = []
+    for d in dirs:
+        eye, target = fit_view(core, centre, d, up, fov_y, aspect)
+        poses.append(CameraPose(eye=eye, target=target, up=up, fov_y=fov_y))
+    return poses
+
+
+def orbit_path(
+    box_min,
+    box_max,
+    frames: int,
+    *,
+    up=DEFAULT_UP,
+    fov_y: float = DEFAULT_FOV,
+    elevation_deg: float = 20.0,
+    points: np.ndarray | None = None,
+    aspect: float = 16 / 9,
+) -> list[CameraPose]:
+    """A full turn around the box's vertical axis, starting on the -z side (the scanner's view).
+
+    With ``points`` (N, 3), a sample of the cloud, the orbit turns around their centre, each
+    pose at the distance that frames them (:func:`fit_view`); without, at one distance
+    that fits the box's bounding sphere."""
     lo, hi, diag = _box(box_min, box_max)
     centre = (lo + hi) / 2
     up = np.asarray(up, np.float64) / np.linalg.norm(up)
     dist = 0.5 * diag / math.tan(math.radians(fov_y) / 2) * 1.05
+    core = core_points(points) if points is not None else np.empty((0, 3))
+    if core.shape[0]:
+        centre = (core.min(axis=0) + core.max(axis=0)) / 2
     # Horizontal frame: the start direction is -z with its component along ``up`` removed.
     minus_z = np.array([0.0, 0.0, -1.0])
     start = minus_z - up * float(minus_z @ up)
@@ -68,13 +250,14 @@ def orbit_path(
     start /= np.linalg.norm(start)
     side = np.cross(up, start)
     el = math.radians(elevation_deg)
-    poses = []
+    dirs = []
     for k in range(frames):
         a = 2 * math.pi * k / max(frames, 1)
         horiz = math.cos(a) * start + math.sin(a) * side
-        eye = centre + dist * (math.cos(el) * horiz + math.sin(el) * up)
-        poses.append(CameraPose(eye=eye, target=centre.copy(), up=up, fov_y=fov_y))
-    return poses
+        dirs.append(math.cos(el) * horiz + math.sin(el) * up)
+    if core.shape[0]:
+        return _framed(core, centre, dirs, up, fov_y, aspect)
+    return [CameraPose(eye=centre + dist * d, target=centre.copy(), up=up, fov_y=fov_y) for d in dirs]
 
 
 def dolly_path(
@@ -159,10 +342,30 @@ def load_path_file(path: Path, frames: int, box_min, box_max) -> list[CameraPose
     return poses
 
 
-def make_path(spec: str | Path, box_min, box_max, frames: int) -> list[CameraPose]:
-    """``"orbit"``, ``"dolly"`` or the path of a JSON keyframe file."""
-    if str(spec) == "orbit":
-        return orbit_path(box_min, box_max, frames)
+def make_path(
+    spec: str | Path,
+    box_min,
+    box_max,
+    frames: int,
+    *,
+    points: np.ndarray | None = None,
+    aspect: float = 16 / 9,
+) -> list[CameraPose]:
+    """``"auto"``, ``"arc"``, ``"orbit"``, ``"dolly"`` or the path of a JSON keyframe file.
+
+    ``points`` (N, 3) world, a sample of the cloud, frames the arc and the orbit and lets
+    ``"auto"`` choose between them (:func:`is_single_view`); ``aspect`` = width / height.
+    Without points, ``"auto"`` and ``"arc"`` use the box's corners as the sample."""
+    name = str(spec)
+    if name in ("auto", "arc") and points is None:
+        lo, hi = np.asarray(box_min, np.float64), np.asarray(box_max, np.float64)
+        points = np.array([[a[0], b[1], c[2]] for a in (lo, hi) for b in (lo, hi) for c in (lo, hi)])
+    if name == "auto":
+        name = "arc" if is_single_view(points) else "orbit"
+    if name == "arc":
+        return arc_path(points, frames, aspect=aspect)
+    if name == "orbit":
+        return orbit_path(box_min, box_max, frames, points=points, aspect=aspect)
     if str(spec) == "dolly":
         return dolly_path(box_min, box_max, frames)
     return load_path_file(Path(spec), frames, box_min, box_max)

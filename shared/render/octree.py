@@ -1,17 +1,21 @@
 """Out-of-core builder of Potree 2.0 level-of-detail tiles from a PLY point cloud.
 
 In: a cloud PLY per :mod:`shared.formats.ply` (``x, y, z`` required; colour, normal and the world
-sample ``size`` = Z / f_camera carried when present). Out: a folder readable by Potree 2.x
-viewers (``OctreeLoader.js``)::
+sample ``size`` = Z / f_camera carried when present). A cloud from elsewhere keeps only what it
+has: no colour, no normals (unless asked to estimate them) — the attributes list and the
+records say so — and a ``size`` derived from its local point spacing when it has none, so
+splats still close its surfaces. Out: a folder readable by Potree 2.x viewers
+(``OctreeLoader.js``)::
 
     metadata.json   version "2.0", points, hierarchy {firstChunkSize, stepSize, depth},
                     offset, scale, spacing, cubic boundingBox, encoding "DEFAULT", attributes
     hierarchy.bin   22-byte node records (type u8, childMask u8, numPoints u32, byteOffset i64,
                     byteSize i64), breadth-first per hierarchy chunk, proxies every 4 levels
-    octree.bin      every node's points once (additive LOD), 34 bytes a point:
+    octree.bin      every node's points once (additive LOD), 34 bytes a point for a full cloud:
                     position 3 x int32 (world = int * scale + offset), rgb 3 x uint16
                     (8-bit colour * 257), NormalX/NormalY/NormalZ float32, size float32
-                    (world units; the scanner's Z / f_camera)
+                    (world units; the scanner's Z / f_camera); a cloud lacking colour or
+                    normals has records without those fields
 
 Level-of-detail scheme: positions are quantised, then Morton-coded at 21 bits an axis with
 Potree's child order (bit 2 = x, bit 1 = y, bit 0 = z). A node at level L has spacing
@@ -60,6 +64,7 @@ import numpy as np
 from shared.core.errors import InputError
 from shared.formats.ply import CLOUD_DTYPE, iter_ply_chunks, read_header
 from shared.formats.potree import HIERARCHY_DTYPE, HIERARCHY_STEP
+from shared.render import _neighbours
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +101,20 @@ class TilePlan:
     has: dict[str, bool] = field(default_factory=dict)
     bounds_min: list[float] = field(default_factory=list)  # tight bounds of the points
     bounds_max: list[float] = field(default_factory=list)
+    #: Attributes the cloud lacks that the chunks compute ("size" from the point spacing,
+    #: "normal" when asked): see :mod:`shared.render._neighbours`.
+    derived: dict[str, bool] = field(default_factory=dict)
+
+    def point_dtype(self) -> np.dtype:
+        """Records of ``octree.bin``: :data:`POINT_DTYPE` less what the cloud neither has
+        nor derives (a full Graylight cloud: all of it)."""
+        return tiles_dtype({k: self.has.get(k, False) or self.derived.get(k, False) for k in ("rgb", "normal", "size")})
+
+
+def tiles_dtype(present: dict[str, bool]) -> np.dtype:
+    """:data:`POINT_DTYPE`'s fields, in its order, for the attributes ``present`` says exist
+    (keys rgb, normal, size; the position always)."""
+    return np.dtype([(name, POINT_DTYPE[name]) for name in POINT_DTYPE.names if name == "position" or present.get(name)])
 
 
 # --------------------------------------------------------------------------- Morton codes
@@ -549,6 +568,7 @@ def plan_tiles(
     pool: Executor | None = None,
     workers: int = 1,
     scale: float | None = None,
+    estimate_normals: bool = False,
 ) -> TilePlan:
     """Pass 1: bounds, counts, chunk choice and distribution of points into chunk files.
 
@@ -558,6 +578,9 @@ def plan_tiles(
     ``scale`` (world units per integer step) overrides the default power of ten that spreads
     the cube over about 2**30 steps (a COPC export picks its own, see
     :func:`shared.formats.las.coordinate_scale`); it must keep the cube within int32.
+    A cloud without ``size`` gets one from its local point spacing, and with
+    ``estimate_normals`` one without normals gets them from its neighbourhoods (both computed
+    per chunk, :mod:`shared.render._neighbours`); missing colour stays missing.
     Raises :class:`InputError` for an empty cloud or NaN / infinite coordinates.
     """
     cloud_ply = Path(cloud_ply)
@@ -642,6 +665,7 @@ def plan_tiles(
         ],
         max_leaf=max_leaf,
         has=has,
+        derived={"size": not has["size"], "normal": bool(estimate_normals) and not has["normal"]},
         bounds_min=[float(v) for v in lo],
         bounds_max=[float(v) for v in hi],
     )
@@ -800,19 +824,66 @@ def _build_nodes(
     return assigned, levels[:nodes].copy(), prefixes[:nodes].copy(), own[:nodes].copy()
 
 
+def _derive(plan: TilePlan, rec: np.ndarray, work_dir: Path, index: int) -> None:
+    """Fill the derived attributes of one chunk's records in place and write the chunk back
+    (the in-process build re-reads it), with their ranges in ``chunk_*.range.json`` for the
+    metadata. Neighbours are looked up within the chunk: near a chunk's faces a point misses
+    those across it, which only widens its size a little there."""
+    xyz = rec["position"] * plan.scale  # relative to the offset: float64 keeps every step
+    tree = _neighbours.kdtree(xyz)
+    ranges = {}
+    if plan.derived.get("size"):
+        rec["size"] = _neighbours.spacing_size(xyz, tree=tree)
+        ranges["size"] = [[float(rec["size"].min())], [float(rec["size"].max())]]
+    if plan.derived.get("normal"):
+        viewpoint = -np.asarray(plan.offset, np.float64)  # the world origin: where the scanner is
+        rec["normal"] = _neighbours.pca_normals(xyz, viewpoint, tree=tree)
+        ranges["normal"] = [rec["normal"].min(axis=0).tolist(), rec["normal"].max(axis=0).tolist()]
+    rec.tofile(work_dir / plan.chunks[index]["file"])
+    (work_dir / f"chunk_{index:05d}.range.json").write_text(json.dumps(ranges))
+
+
+def _derived_ranges(plan: TilePlan, work_dir: Path) -> None:
+    """Put the derived attributes' ranges (over every chunk) into ``plan.attr_min/max``."""
+    for key in (k for k, v in plan.derived.items() if v):
+        lows, highs = [], []
+        for i in range(len(plan.chunks)):
+            path = work_dir / f"chunk_{i:05d}.range.json"
+            if path.is_file():
+                r = json.loads(path.read_text()).get(key)
+                if r:
+                    lows.append(r[0])
+                    highs.append(r[1])
+        if lows:
+            plan.attr_min[key] = np.min(lows, axis=0).tolist()
+            plan.attr_max[key] = np.max(highs, axis=0).tolist()
+
+
+def _as_output(rec: np.ndarray, dtype: np.dtype) -> np.ndarray:
+    """Records in the tiles' own layout (only the fields ``dtype`` keeps)."""
+    if dtype == rec.dtype:
+        return rec
+    out = np.empty(rec.shape[0], dtype)
+    for name in dtype.names:
+        out[name] = rec[name]
+    return out
+
+
 def _chunk_nodes(work_dir: Path, index: int) -> tuple[np.ndarray, np.ndarray, list[list]]:
     """Sample chunk ``index``: its records as read, the order grouping them by node, and the
     node table ``[name, numPoints, byteOffset, own]`` (offsets into the grouped records)."""
     plan = load_plan(work_dir)
     spec = plan.chunks[index]
     rec = np.fromfile(work_dir / spec["file"], dtype=POINT_DTYPE)
+    if any(plan.derived.values()):
+        _derive(plan, rec, work_dir, index)
     level_c, prefix_c = spec["level"], spec["prefix"]
     order, codes, max_depth = _morton_order(morton_codes(rec["position"], plan.qsize), level_c, prefix_c)
     assigned, levels, prefixes, own = _build_nodes(codes, level_c, prefix_c, plan.max_leaf, max_depth)
     by_node, bounds = _counting_order(assigned, levels.shape[0])
     counts = np.diff(bounds)
     table = [
-        [node_name(int(levels[i]), int(prefixes[i])), int(counts[i]), int(bounds[i]) * POINT_DTYPE.itemsize,
+        [node_name(int(levels[i]), int(prefixes[i])), int(counts[i]), int(bounds[i]) * plan.point_dtype().itemsize,
          bool(own[i])]
         for i in range(levels.shape[0])
         if counts[i] > 0 or own[i]
@@ -838,7 +909,7 @@ def build_chunk(work_dir: Path, index: int) -> Path:
         return out_json
     rec, by_node, table = _chunk_nodes(work_dir, index)
     tmp_bin = out_bin.with_name(out_bin.name + f".{os.getpid()}.tmp")
-    _permute(rec, by_node).tofile(tmp_bin)
+    _as_output(_permute(rec, by_node), load_plan(work_dir).point_dtype()).tofile(tmp_bin)
     os.replace(tmp_bin, out_bin)
     tmp_json = out_json.with_name(out_json.name + f".{os.getpid()}.tmp")
     tmp_json.write_text(json.dumps(table))
@@ -850,30 +921,40 @@ def build_chunk(work_dir: Path, index: int) -> Path:
 
 
 def _attributes(plan: TilePlan) -> list[dict]:
+    """The attributes list of ``metadata.json``: the position and what the cloud has or the
+    chunks derived, in :data:`POINT_DTYPE` order (for a full cloud, all of them)."""
     lo, hi = plan.bounds_min, plan.bounds_max
+    present = plan.point_dtype().names
 
     def rng(key: str, k: int, default: float, factor: float = 1.0) -> tuple[list[float], list[float]]:
         mn, mx = plan.attr_min[key], plan.attr_max[key]
-        if not plan.has.get(key) or not all(math.isfinite(v) for v in mn + mx):
+        if not (plan.has.get(key) or plan.derived.get(key)) or not all(math.isfinite(v) for v in mn + mx):
             return [default] * k, [default] * k
         return [v * factor for v in mn], [v * factor for v in mx]
 
     rgb_min, rgb_max = rng("rgb", 3, 65535.0, 257.0)
     n_min, n_max = rng("normal", 3, 0.0)
     s_min, s_max = rng("size", 1, 0.0)
-    return [
+    normal_text = "unit normal (estimated from neighbours)" if plan.derived.get("normal") else "unit normal"
+    size_text = ("world-space sample size from the local point spacing" if plan.derived.get("size")
+                 else "world-space sample size Z / f_camera")  # fmt: skip
+    out = [
         {"name": "position", "description": "", "size": 12, "numElements": 3, "elementSize": 4,
          "type": "int32", "min": lo, "max": hi},
-        {"name": "rgb", "description": "", "size": 6, "numElements": 3, "elementSize": 2,
-         "type": "uint16", "min": rgb_min, "max": rgb_max},
+    ]  # fmt: skip
+    if "rgb" in present:
+        out.append({"name": "rgb", "description": "", "size": 6, "numElements": 3, "elementSize": 2,
+                    "type": "uint16", "min": rgb_min, "max": rgb_max})  # fmt: skip
+    if "normal" in present:
         # Normals as three scalars: Potree and potree-core both join NormalX/Y/Z into a
         # NORMAL vector (potree-core cannot decode a 3-element "normal"); same bytes.
-        *({"name": f"Normal{axis}", "description": "unit normal", "size": 4, "numElements": 1,
-           "elementSize": 4, "type": "float", "min": [n_min[k]], "max": [n_max[k]]}
-          for k, axis in enumerate("XYZ")),
-        {"name": "size", "description": "world-space sample size Z / f_camera", "size": 4,
-         "numElements": 1, "elementSize": 4, "type": "float", "min": s_min, "max": s_max},
-    ]  # fmt: skip
+        out += [{"name": f"Normal{axis}", "description": normal_text, "size": 4, "numElements": 1,
+                 "elementSize": 4, "type": "float", "min": [n_min[k]], "max": [n_max[k]]}
+                for k, axis in enumerate("XYZ")]  # fmt: skip
+    if "size" in present:
+        out.append({"name": "size", "description": size_text, "size": 4,
+                    "numElements": 1, "elementSize": 4, "type": "float", "min": s_min, "max": s_max})  # fmt: skip
+    return out
 
 
 def _hierarchy(nodes: dict[str, dict]) -> tuple[bytes, int, int]:
@@ -947,7 +1028,9 @@ def _copy_range(src, dst, src_off: int, dst_off: int, nbytes: int) -> None:
         dst.flush()
 
 
-def _layout(tables: list[list[list]]) -> tuple[dict[str, dict], list[list[tuple[int, int, int]]], int]:
+def _layout(
+    tables: list[list[list]], itemsize: int = POINT_DTYPE.itemsize
+) -> tuple[dict[str, dict], list[list[tuple[int, int, int]]], int]:
     """Where every chunk's node pieces go in ``octree.bin``: nodes breadth first, a node's
     pieces in chunk order. Returns the nodes (name -> points, offset, size), per chunk its
     copies ``(source byte offset, octree.bin byte offset, bytes)``, and the file size."""
@@ -965,9 +1048,9 @@ def _layout(tables: list[list[list]]) -> tuple[dict[str, dict], list[list[tuple[
         npts = 0
         for ci, off, cnt in pieces[nm]:
             if cnt:
-                copies[ci].append((off, pos + npts * POINT_DTYPE.itemsize, cnt * POINT_DTYPE.itemsize))
+                copies[ci].append((off, pos + npts * itemsize, cnt * itemsize))
                 npts += cnt
-        size = npts * POINT_DTYPE.itemsize
+        size = npts * itemsize
         nodes[nm] = {"points": npts, "offset": pos, "size": size}
         pos += size
     return nodes, copies, pos
@@ -1029,7 +1112,8 @@ def merge_tiles(work_dir: Path, out_dir: Path) -> dict:
     tables = [
         json.loads((work_dir / f"chunk_{i:05d}.nodes.json").read_text()) for i in range(len(plan.chunks))
     ]
-    nodes, copies, nbytes = _layout(tables)
+    nodes, copies, nbytes = _layout(tables, plan.point_dtype().itemsize)
+    _derived_ranges(plan, work_dir)
 
     def fill(octree_bin: Path) -> None:
         with open(octree_bin, "r+b", buffering=0) as out:
@@ -1060,7 +1144,7 @@ def _chunk_write_job(work: str, index: int, octree_bin: str, copies: list[tuple[
     rec = np.fromfile(work_dir / f"chunk_{index:05d}.bin", dtype=POINT_DTYPE)
     (order_file,) = work_dir.glob(f"chunk_{index:05d}.order.*")
     by_node = np.fromfile(order_file, dtype=order_file.suffix[1:])
-    data = memoryview(_permute(rec, by_node)).cast("B")
+    data = memoryview(_as_output(_permute(rec, by_node), load_plan(work_dir).point_dtype())).cast("B")
     del rec, by_node
     fd = os.open(octree_bin, os.O_WRONLY)
     try:
@@ -1103,13 +1187,14 @@ def build_tiles(
     max_chunk: int = 2_000_000,
     max_leaf: int = 10_000,
     scale: float | None = None,
+    estimate_normals: bool = False,
 ) -> dict:
     """Build Potree 2.0 tiles from ``cloud_ply`` into ``out_dir`` (all passes, in-process).
 
     ``workers`` processes run the passes over the cloud and build chunks in parallel (default:
     the CPU count; 1 runs in this process). Temporary chunk files live beside ``out_dir`` and
-    are removed. Returns a report with points, nodes, depth, bytes, chunks, seconds and
-    points_per_second.
+    are removed. ``scale`` and ``estimate_normals`` as :func:`plan_tiles`. Returns a report
+    with points, nodes, depth, bytes, chunks, seconds and points_per_second.
     """
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -1128,7 +1213,7 @@ def build_tiles(
             )
             plan = plan_tiles(
                 Path(cloud_ply), work, max_chunk=max_chunk, max_leaf=max_leaf, pool=pool, workers=workers,
-                scale=scale,
+                scale=scale, estimate_normals=estimate_normals,
             )
             nchunks = len(plan.chunks)
             # Largest chunks first keeps the pool busy to the end.
@@ -1138,7 +1223,8 @@ def build_tiles(
             done = _run_parts(chunk_pool, _chunk_table_job, [(str(work), i) for i in order])
             for i, table in zip(order, done, strict=True):
                 tables[i] = table
-            nodes, copies, nbytes = _layout(tables)
+            nodes, copies, nbytes = _layout(tables, plan.point_dtype().itemsize)
+            _derived_ranges(plan, work)
 
             def fill(octree_bin: Path) -> None:
                 calls = [(str(work), i, str(octree_bin), copies[i]) for i in order]

@@ -27,12 +27,13 @@ MAX_FPS = 120
 class PreviewOptions:
     """What a preview video shows and how long it runs.
 
-    ``path``: ``"orbit"``, ``"dolly"`` or the path of a JSON keyframe file; ``size``:
+    ``path``: ``"auto"`` (an arc on the scanner's side for a single-view scan, a full orbit
+    for a merged model), ``"arc"``, ``"orbit"``, ``"dolly"`` or the path of a JSON keyframe file; ``size``:
     (width, height) in pixels, even, 16..3840 x 16..2160; ``seconds`` in (0, 600];
     ``fps`` frames per second in [1, 120].
     """
 
-    path: str = "orbit"
+    path: str = "auto"
     size: tuple[int, int] = (1280, 720)
     seconds: float = 10.0
     fps: float = 30.0
@@ -61,7 +62,7 @@ class PreviewOptions:
         if isinstance(f, bool) or not (isinstance(f, int | float) and math.isfinite(f) and 1 <= f <= MAX_FPS):
             raise InputError(f"{prefix}fps", f"must be in [1, {MAX_FPS}], got {f!r}")
         if not isinstance(self.path, str) or not self.path:
-            raise InputError(f"{prefix}path", f"must be orbit, dolly or a keyframe file, got {self.path!r}")
+            raise InputError(f"{prefix}path", f"must be auto, arc, orbit, dolly or a keyframe file, got {self.path!r}")
         return replace(self, size=(width, height), seconds=float(s), fps=float(f))
 
     @classmethod

@@ -27,7 +27,7 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.formats.potree import PotreeTiles, open_tiles, tight_bounds
-from shared.render.camera_path import CameraPose, make_path
+from shared.render.camera_path import DEFAULT_UP, SCANNER, CameraPose, make_path
 from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
 from shared.render.raster import Camera, GLRasterizer, NodeTable, Rasterizer, select_nodes
 
@@ -40,9 +40,14 @@ MAX_LOADED = 40_000_000
 BACKGROUND = (18, 18, 24)
 #: Points the camera path frames (the coarse levels' sample of the object).
 FRAMING_POINTS = 60_000
-#: Eye-dome lighting strength of the CPU renderer's frames: outlines and depth steps darken,
-#: so a grey or white object reads as a shape (the viewer's EDL does the same).
-DEFAULT_EDL = 1.0
+#: Eye-dome lighting strength of the CPU renderer's frames of a cloud without normals
+#: (:func:`shared.render.raster.Rasterizer.render` sums four neighbours: 0.25 is Potree's EDL
+#: at strength 1, which averages them): outlines and depth steps darken, so an object reads as
+#: a shape. Clouds with normals are lit by them instead (:func:`shade_colours`), on the CPU
+#: and in OpenGL alike.
+DEFAULT_EDL = 0.25
+#: Light a surface facing away from the key light still gets (of its colour).
+AMBIENT = 0.35
 
 
 @dataclass
@@ -63,15 +68,44 @@ class LoadedScene:
     names: list[str]
     bounds_min: np.ndarray
     bounds_max: np.ndarray
+    lit: bool = False  # colours shaded by the normals (:func:`shade_colours`)
 
     @property
     def points(self) -> int:
         return int(self.xyz.shape[0])
 
 
-def load_scene(tiles: PotreeTiles, max_points: int = MAX_LOADED) -> LoadedScene:
+def shade_colours(colour: np.ndarray, normal: np.ndarray, light: np.ndarray) -> np.ndarray:
+    """Colours (N,) packed 0x00BBGGRR lit by a distant light along ``light`` (3,) unit:
+    ``AMBIENT + (1 - AMBIENT) * |n . light|`` (two-sided: a normal's sign is not trusted).
+    Points whose normal is zero (none estimated) keep their colour."""
+    n = np.asarray(normal, np.float32)
+    lit = np.abs(n @ np.asarray(light, np.float32))
+    unknown = np.einsum("ij,ij->i", n, n) < 0.25
+    f = np.where(unknown, 1.0, AMBIENT + (1.0 - AMBIENT) * np.minimum(lit, 1.0))
+    c = colour.astype(np.uint32)
+    r = ((c & 0xFF) * f).astype(np.uint32)
+    g = (((c >> 8) & 0xFF) * f).astype(np.uint32)
+    b = (((c >> 16) & 0xFF) * f).astype(np.uint32)
+    return r | (g << 8) | (b << 16)
+
+
+def key_light(centre: np.ndarray, viewpoint=SCANNER, up=DEFAULT_UP) -> np.ndarray:
+    """Unit direction towards the key light: from the object towards the scanner, raised by
+    about 30 degrees and moved a little to the side, as a photographer's key light."""
+    home = np.asarray(viewpoint, np.float64) - np.asarray(centre, np.float64)
+    home = home / np.linalg.norm(home) if np.linalg.norm(home) > 0 else np.array([0.0, 0.0, -1.0])
+    up = np.asarray(up, np.float64)
+    side = np.cross(up, home)
+    side = side / np.linalg.norm(side) if np.linalg.norm(side) > 0 else np.zeros(3)
+    d = home + 0.6 * up + 0.35 * side
+    return d / np.linalg.norm(d)
+
+
+def load_scene(tiles: PotreeTiles, max_points: int = MAX_LOADED, shade: bool = True) -> LoadedScene:
     """Decode nodes breadth-first until ``max_points`` would be exceeded (children of
-    skipped nodes are skipped too)."""
+    skipped nodes are skipped too). With ``shade`` and normals in the tiles, colours are lit
+    by :func:`key_light` (:func:`shade_colours`) so that a grey object shows its shape."""
     chosen = []
     total = 0
     loaded: set[str] = set()
@@ -87,6 +121,8 @@ def load_scene(tiles: PotreeTiles, max_points: int = MAX_LOADED) -> LoadedScene:
         raise InputError(tiles.root, "the tiles hold no points")
     lo, hi = tight_bounds(tiles)
     origin = (lo + hi) / 2
+    light = key_light(origin)
+    lit = shade and {"NormalX", "NormalY", "NormalZ"} <= set(tiles.point_dtype.names or ())
     xyz = np.empty((total, 3), np.float32)
     colour = np.empty(total, np.uint32)
     size = np.zeros(total, np.float32)
@@ -110,6 +146,9 @@ def load_scene(tiles: PotreeTiles, max_points: int = MAX_LOADED) -> LoadedScene:
             colour[pos : pos + n] = 0xFFFFFF
         if "size" in names_in:
             size[pos : pos + n] = rec["size"]
+        if lit:
+            normal = np.stack([rec["NormalX"], rec["NormalY"], rec["NormalZ"]], axis=1)
+            colour[pos : pos + n] = shade_colours(colour[pos : pos + n], normal, light)
         ranges[j] = pos, pos + n
         pos += n
     index = {node.name: j for j, node in enumerate(chosen)}
@@ -124,7 +163,7 @@ def load_scene(tiles: PotreeTiles, max_points: int = MAX_LOADED) -> LoadedScene:
         spacing=np.array([nd.spacing for nd in chosen]),
     )
     return LoadedScene(origin=origin, xyz=xyz, colour=colour, size=size, ranges=ranges, table=table,
-                       names=[nd.name for nd in chosen], bounds_min=lo, bounds_max=hi)  # fmt: skip
+                       names=[nd.name for nd in chosen], bounds_min=lo, bounds_max=hi, lit=lit)  # fmt: skip
 
 
 def frame_sample(scene: LoadedScene, points: int = FRAMING_POINTS) -> np.ndarray:
@@ -215,14 +254,16 @@ def render_preview(
     seconds: float = PREVIEW_DEFAULTS.seconds,
     fps: float = PREVIEW_DEFAULTS.fps,
     budget: int = DEFAULT_BUDGET,
-    edl: float = DEFAULT_EDL,
+    edl: float | None = None,
     renderer: str = "auto",
     progress: Callable[[float], None] | None = None,
 ) -> dict:
     """Render a flythrough of ``tiles_dir`` to ``out_path`` (MP4) and its poster PNG.
 
     ``renderer`` is "auto" (OpenGL when a hardware GPU is there, else the CPU rasteriser),
-    "cpu" or "gl". ``progress`` is called with the fraction of frames written. Returns a report: video, poster, frames, width, height, fps, seconds,
+    "cpu" or "gl". ``edl``: eye-dome lighting strength of the CPU frames (None: 0 when the
+    tiles' normals light the colours, else :data:`DEFAULT_EDL`; OpenGL frames have none).
+    ``progress`` is called with the fraction of frames written. Returns a report: video, poster, frames, width, height, fps, seconds,
     points (loaded), mean_points_per_frame, render_seconds, render_fps, elapsed_seconds.
     """
     import imageio_ffmpeg
@@ -236,6 +277,8 @@ def render_preview(
     out_path = Path(out_path)
     tiles = open_tiles(Path(tiles_dir))
     scene = load_scene(tiles)
+    if edl is None:  # shading: the normals when the tiles have them, else eye-dome lighting
+        edl = 0.0 if scene.lit else DEFAULT_EDL
     poses = make_path(path, scene.bounds_min, scene.bounds_max, frames, points=frame_sample(scene),
                       aspect=width / height)  # fmt: skip
     out_path.parent.mkdir(parents=True, exist_ok=True)

@@ -22,10 +22,13 @@ from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
 from shared.render.preview import render_preview
 
 
-def tiles_stage(cloud_ply: Path, out_dir: Path, *, workers: int | None = None) -> dict:
-    """Build tiles of ``cloud_ply`` into ``out_dir``; returns points, nodes, depth, bytes,
-    chunks, seconds, points_per_second and the output folder."""
-    report = build_tiles(Path(cloud_ply), Path(out_dir), workers=workers)
+def tiles_stage(
+    cloud_ply: Path, out_dir: Path, *, workers: int | None = None, estimate_normals: bool = False
+) -> dict:
+    """Build tiles of ``cloud_ply`` into ``out_dir`` (``estimate_normals`` for a cloud without
+    normals); returns points, nodes, depth, bytes, chunks, seconds, points_per_second and the
+    output folder."""
+    report = build_tiles(Path(cloud_ply), Path(out_dir), workers=workers, estimate_normals=estimate_normals)
     report["tiles"] = str(out_dir)
     return report
 
