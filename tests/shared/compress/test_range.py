@@ -1,0 +1,237 @@
+"""The quadtree range codec: round trips (lossless to the quantum, error-bounded checked on every
+sample, mask exact) on synthetic, simulated and real range images; bad input and damaged files."""
+
+from __future__ import annotations
+
+import struct
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shared.compress import (
+    RangeImage,
+    encode_range,
+    expected_lossless,
+    load_range_npz,
+    read_range,
+    save_range_npz,
+    write_range,
+)
+from shared.core.errors import InputError
+from shared.formats.container import MAGIC
+
+
+def piecewise(h: int = 300, w: int = 420, sigma: float = 0.2, seed: int = 0) -> np.ndarray:
+    """A piecewise smooth range image: a tilted plane, a sphere cap standing 40 mm proud
+    (a depth jump at its rim), a hole, ragged NaN borders and Gaussian noise ``sigma``."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = 900.0 + 0.08 * xx - 0.05 * yy
+    cap = (xx - 0.6 * w) ** 2 + (yy - 0.5 * h) ** 2 < (0.25 * h) ** 2
+    z[cap] = 860.0 - 0.002 * ((xx[cap] - 0.6 * w) ** 2 + (yy[cap] - 0.5 * h) ** 2)
+    z += rng.normal(0.0, sigma, z.shape)
+    z[(xx - 0.2 * w) ** 2 + (yy - 0.3 * h) ** 2 < 400] = np.nan
+    z[:, : 5 + rng.integers(0, 9, h)[:, None].clip(0, 8).max()] = np.nan
+    z[rng.random(z.shape) < 0.01] = np.nan  # speckle of failed decodes
+    return z.astype(np.float32)
+
+
+def check_lossless(z: np.ndarray, q: float) -> float:
+    blob = encode_range(RangeImage(z), quantum=q)
+    out = read_range(blob).z
+    mask = ~np.isnan(z)
+    np.testing.assert_array_equal(np.isnan(out), ~mask)
+    np.testing.assert_array_equal(out[mask], expected_lossless(z, q)[mask])
+    assert np.abs(out[mask].astype(np.float64) - z[mask]).max() <= q / 2 + np.spacing(np.float32(np.nanmax(np.abs(z))))
+    return len(blob) * 8 / mask.sum()
+
+
+def check_bounded(z: np.ndarray, e: float) -> float:
+    blob = encode_range(RangeImage(z), max_error=e)
+    out = read_range(blob).z
+    mask = ~np.isnan(z)
+    np.testing.assert_array_equal(np.isnan(out), ~mask)
+    err = np.abs(out[mask].astype(np.float64) - z[mask].astype(np.float64))
+    print(f"max error {err.max():.6g} <= {e}")
+    assert err.max() <= e
+    return len(blob) * 8 / mask.sum()
+
+
+@pytest.mark.parametrize("q", [0.02, 0.1, 1.0])
+def test_lossless_synthetic(q: float) -> None:
+    bits = check_lossless(piecewise(), q)
+    if q <= 0.2:  # where the noise spans quanta, sigma/q of it costs about log2(sigma/q) + 2.05 bits
+        floor = np.log2(0.2 / q) + 2.05
+        assert bits < floor + 0.75, (bits, floor)  # the 1 % speckle in the mask costs about 0.4
+
+
+@pytest.mark.parametrize("e", [0.05, 0.1, 0.5, 1.0, 5.0])
+def test_bounded_synthetic(e: float) -> None:
+    check_bounded(piecewise(seed=2), e)
+
+
+def test_coarser_bounds_cost_fewer_bits() -> None:
+    z = piecewise(seed=3)
+    bits = [check_bounded(z, e) for e in (0.1, 0.5, 1.0)]
+    assert bits[0] > bits[1] > bits[2]
+
+
+def test_discontinuity_blocks_split_and_edges_stay_sharp() -> None:
+    # A 50 mm step through the middle of 64x64 blocks: no smearing, every sample within the bound,
+    # and the step costs little more than a flat image (the blocks at the edge split).
+    h, w = 256, 256
+    rng = np.random.default_rng(5)
+    flat = (1000.0 + rng.normal(0, 0.2, (h, w))).astype(np.float32)
+    step = flat.copy()
+    step[:, 101:] -= 50.0
+    b_flat, b_step = check_bounded(flat, 0.1), check_bounded(step, 0.1)
+    assert b_step < b_flat * 1.1
+
+
+def test_constant_image_and_all_holes() -> None:
+    z = np.full((70, 130), 1234.5, np.float32)
+    assert check_lossless(z, 0.02) * z.size / 8 < 600  # bytes: the header and a few symbols
+    holes = np.full((65, 70), np.nan, np.float32)
+    out = read_range(encode_range(RangeImage(holes), quantum=0.02)).z
+    assert out.shape == holes.shape and np.isnan(out).all()
+
+
+@pytest.mark.parametrize("shape", [(1, 1), (1, 300), (300, 1), (257, 65), (513, 7)])
+def test_odd_shapes_and_band_edges(shape: tuple[int, int]) -> None:
+    rng = np.random.default_rng(7)
+    z = (500 + rng.normal(0, 1.0, shape)).astype(np.float32)
+    z[rng.random(shape) < 0.2] = np.nan
+    check_lossless(z, 0.05)
+    check_bounded(z, 0.3)
+
+
+def test_simulated_scan_range(sim_range: Path, tmp_path: Path) -> None:
+    img = load_range_npz(sim_range)
+    assert np.isnan(img.z).any() and (~np.isnan(img.z)).sum() > 10000
+    for q in (0.02, 0.5):
+        check_lossless(img.z, q)
+    for e in (0.1, 0.5, 1.0):
+        check_bounded(img.z, e)
+    # Through a file, the camera model and units ride along.
+    path = tmp_path / "view.glr"
+    write_range(path, img, quantum=0.02)
+    back = read_range(path)
+    np.testing.assert_array_equal(back.K, img.K)
+    np.testing.assert_array_equal(back.dist, img.dist)
+    assert back.units == img.units
+
+
+@pytest.mark.slow
+def test_real_captures(real_range_files: dict[str, Path]) -> None:
+    assert len(real_range_files) == 5
+    for name, path in real_range_files.items():
+        img = load_range_npz(path)
+        assert (~np.isnan(img.z)).mean() > 0.3, name
+        check_lossless(img.z, 0.02)
+        for e in (0.1, 1.0):
+            check_bounded(img.z, e)
+
+
+def test_npz_round_trip_as_a_scan_writes_it(tmp_path: Path) -> None:
+    z = piecewise(80, 90)
+    img = RangeImage(z, np.eye(3) * 1000.0, np.arange(5.0) / 10, "cm")
+    p = save_range_npz(tmp_path / "range.npz", img)
+    with np.load(p) as d:
+        assert set(d.files) == {"z", "K", "dist", "units"} and d["z"].dtype == np.float32
+    back = load_range_npz(p)
+    np.testing.assert_array_equal(back.z, z)
+    assert back.units == "cm"
+
+
+# --- bad input ---------------------------------------------------------------------------------
+
+
+def test_infinite_depth_among_valid_samples() -> None:
+    z = piecewise(64, 64)
+    z[10, 20] = np.inf
+    with pytest.raises(InputError, match="infinite depth.*row 10, column 20"):
+        encode_range(RangeImage(z), quantum=0.02)
+
+
+@pytest.mark.parametrize("kw, match", [
+    ({"max_error": 0.0}, "--max-error: must be a positive number"),
+    ({"max_error": -1.0}, "--max-error: must be a positive number"),
+    ({"max_error": float("nan")}, "--max-error: must be a positive number"),
+    ({"quantum": 0.0}, "--quantum: must be a positive number"),
+    ({"quantum": 1e-6}, "--quantum: 1e-06 is finer than float32 can hold"),
+    ({"max_error": 1e-6}, "--max-error: 1e-06 is finer than float32 can hold"),
+    ({}, "exactly one of"),
+    ({"quantum": 0.1, "max_error": 0.1}, "exactly one of"),
+])  # fmt: skip
+def test_bad_parameters(kw: dict, match: str) -> None:
+    with pytest.raises(InputError, match=match):
+        encode_range(RangeImage(piecewise(64, 64)), **kw)
+
+
+def test_bad_arrays() -> None:
+    with pytest.raises(InputError, match="2-D array"):
+        encode_range(RangeImage(np.zeros(5, np.float32)), quantum=0.1)
+    with pytest.raises(InputError, match="floating point"):
+        encode_range(RangeImage(np.zeros((4, 4), np.int32)), quantum=0.1)
+
+
+@pytest.fixture(scope="module")
+def good_file(tmp_path_factory: pytest.TempPathFactory) -> bytes:
+    z = piecewise(520, 100)  # three bands: three chunks
+    return encode_range(RangeImage(z), max_error=0.2)
+
+
+def _write(tmp_path: Path, data: bytes) -> Path:
+    p = tmp_path / "x.glr"
+    p.write_bytes(data)
+    return p
+
+
+def test_truncated_files_fail_clearly(tmp_path: Path, good_file: bytes) -> None:
+    for cut in (3, 12, 30, len(good_file) // 2, len(good_file) - 9, len(good_file) - 1):
+        p = _write(tmp_path, good_file[:cut])
+        with pytest.raises(InputError, match=rf"^{p}: truncated"):
+            read_range(p)
+
+
+def test_corrupted_bytes_fail_clearly(tmp_path: Path, good_file: bytes) -> None:
+    rng = np.random.default_rng(0)
+    hdr_end = len(MAGIC) + 12 + struct.unpack_from("<I", good_file, len(MAGIC) + 4)[0]
+    for pos in [*rng.integers(len(MAGIC) + 12, hdr_end, 3), *rng.integers(hdr_end, len(good_file) - 8, 12)]:
+        bad = bytearray(good_file)
+        bad[pos] ^= 0x5A
+        p = _write(tmp_path, bytes(bad))
+        with pytest.raises(InputError, match=rf"^{p}: (corrupt|truncated)"):
+            read_range(p)
+
+
+def test_wrong_magic_version_kind_and_trailing_bytes(tmp_path: Path, good_file: bytes) -> None:
+    with pytest.raises(InputError, match="wrong magic number"):
+        read_range(_write(tmp_path, b"PK\x03\x04" + good_file[4:]))
+    bad = bytearray(good_file)
+    bad[len(MAGIC) : len(MAGIC) + 2] = struct.pack("<H", 7)
+    with pytest.raises(InputError, match="container version 7 is not supported"):
+        read_range(_write(tmp_path, bytes(bad)))
+    with pytest.raises(InputError, match="bytes after the end marker"):
+        read_range(_write(tmp_path, good_file + b"\0"))
+    with pytest.raises(InputError, match="no such file"):
+        read_range(tmp_path / "missing.glr")
+
+
+def test_damaged_payload_with_a_matching_checksum_is_still_caught() -> None:
+    # A payload rewritten and re-checksummed (a buggy writer, not line noise) must not decode
+    # to a wrong image: the stream's own end check catches it.
+    import zlib
+
+    z = piecewise(64, 64)
+    blob = bytearray(encode_range(RangeImage(z), quantum=0.02))
+    hdr_end = len(MAGIC) + 12 + struct.unpack_from("<I", blob, len(MAGIC) + 4)[0]
+    length = struct.unpack_from("<I", blob, hdr_end)[0]
+    start = hdr_end + 8
+    payload = bytearray(blob[start : start + length])
+    payload[len(payload) // 2] ^= 0xFF
+    blob[start : start + length] = payload
+    struct.pack_into("<I", blob, hdr_end + 4, zlib.crc32(bytes(payload)))
+    with pytest.raises(InputError, match="corrupt chunk 0"):
+        read_range(bytes(blob))
