@@ -12,6 +12,11 @@ import importlib
 from typing import Any
 
 __all__ = [
+    "decode_cloud",
+    "encode_cloud",
+    "iter_cloud",
+    "read_cloud_to_ply",
+    "write_cloud",
     "RangeImage",
     "check_range",
     "decode_range",
@@ -23,7 +28,8 @@ __all__ = [
     "write_range",
 ]
 
-_HOME = {name: "shared.compress.range" for name in __all__}
+_CLOUD = {"decode_cloud", "encode_cloud", "iter_cloud", "read_cloud_to_ply", "write_cloud"}
+_HOME = {name: "shared.compress.cloud" if name in _CLOUD else "shared.compress.range" for name in __all__}
 _ALIASES = {"decode_range": "read_range"}
 
 

@@ -141,24 +141,30 @@ def iter_chunks(f: BinaryIO, header: ContainerHeader, where: str) -> Iterator[by
 
 
 def open_container(source: str | os.PathLike[str] | bytes, kind: str | None = None) -> tuple[ContainerHeader, Iterator[bytes]]:
-    """Header and chunk iterator of a container file (or of its bytes). The file stays open
-    until the iterator is exhausted or closed."""
+    """Header (read and checked now) and chunk iterator of a container file (or of its bytes).
+    The iterator opens the file when iteration starts and closes it when it ends."""
     if isinstance(source, bytes | bytearray | memoryview):
-        where = "<bytes>"
-        f: BinaryIO = io.BytesIO(bytes(source))
-    else:
-        where = str(source)
-        if not Path(source).is_file():
-            raise InputError(where, "no such file")
-        f = open(source, "rb")  # noqa: SIM115 - closed by the generator below
-    try:
-        header = read_header(f, where, kind)
-    except BaseException:
-        f.close()
-        raise
+        data = bytes(source)
+        f = io.BytesIO(data)
+        header = read_header(f, "<bytes>", kind)
+        start = f.tell()
 
-    def chunks() -> Iterator[bytes]:
-        with f:
-            yield from iter_chunks(f, header, where)
+        def from_bytes() -> Iterator[bytes]:
+            g = io.BytesIO(data)
+            g.seek(start)
+            yield from iter_chunks(g, header, "<bytes>")
 
-    return header, chunks()
+        return header, from_bytes()
+    where = str(source)
+    if not Path(source).is_file():
+        raise InputError(where, "no such file")
+    with open(source, "rb") as fh:
+        header = read_header(fh, where, kind)
+        start = fh.tell()
+
+    def from_file() -> Iterator[bytes]:
+        with open(source, "rb") as g:
+            g.seek(start)
+            yield from iter_chunks(g, header, where)
+
+    return header, from_file()

@@ -1,0 +1,358 @@
+"""Point clouds (any PLY of the cloud contract) coded by an octree to a geometry precision.
+
+Geometry is quantised to a grid of step ``precision`` (in the cloud's units) anchored at the
+origin: every decoded coordinate is the centre of its input point's voxel, within
+``precision / 2`` of the input on each axis. Attributes, as stated:
+
+- ``red, green, blue``: exact;
+- ``nx, ny, nz``: octahedral 12+12-bit, re-normalised (within :data:`NORMAL_MAX_DEG` degrees);
+- ``size``: to ``precision / 128`` (absolute);
+- ``confidence``: to 2**-13 (absolute);
+- any integer field (``view``...): exact; any other float field: exact (stored raw, zlib).
+
+Points come back in Morton order within each chunk (the order an octree yields), chunk after
+chunk in file order. The cloud is cut into chunks of :data:`CHUNK_POINTS` points in file
+order, each its own octree on the shared grid, coded on a thread pool (:mod:`shared.compress._octree`),
+so a 100 M-point cloud streams through bounded memory on both cores.
+"""
+
+from __future__ import annotations
+
+import io
+import logging
+import math
+import os
+import struct
+import zlib
+from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shared.compress import _octree as ot
+from shared.core.errors import InputError
+from shared.formats.container import open_container, write_container, write_stream
+from shared.formats.ply import iter_ply_records, read_header, write_ply_records
+
+log = logging.getLogger(__name__)
+
+CODEC = "octree-rans-1"
+#: Points per chunk: about 100 MB of working memory per chunk in flight.
+CHUNK_POINTS = 1 << 22
+NORMAL_BITS = 12
+#: Largest angle between a normal and its decoded value, degrees (measured bound of 12-bit octahedral).
+NORMAL_MAX_DEG = 0.05
+CONFIDENCE_STEP = 2.0**-12
+SIZE_STEP_OF_PRECISION = 1.0 / 64
+_CHUNK_HEAD = struct.Struct("<qqqqqqI")  # points, voxels, depth, offset xyz, raw-bytes length
+
+
+def _threads() -> int:
+    return max(1, min(2, os.cpu_count() or 1))
+
+
+def _sign(a: np.ndarray) -> np.ndarray:
+    return np.where(a >= 0, 1.0, -1.0)
+
+
+def octa_encode(n: np.ndarray) -> np.ndarray:
+    """Unit normals (N, 3) -> (N, 2) int64 in [0, 2**NORMAL_BITS) (octahedral map)."""
+    n = n.astype(np.float64)
+    s = np.abs(n).sum(axis=1)
+    s[s == 0] = 1.0
+    u, v, w = n[:, 0] / s, n[:, 1] / s, n[:, 2] / s
+    neg = w < 0
+    u2 = np.where(neg, (1 - np.abs(v)) * _sign(u), u)
+    v2 = np.where(neg, (1 - np.abs(u)) * _sign(v), v)
+    m = (1 << NORMAL_BITS) - 1
+    return np.stack([np.rint((u2 + 1) * 0.5 * m), np.rint((v2 + 1) * 0.5 * m)], axis=1).astype(np.int64)
+
+
+def octa_decode(q: np.ndarray) -> np.ndarray:
+    """Inverse of :func:`octa_encode`: (N, 2) -> unit normals (N, 3) float32."""
+    m = (1 << NORMAL_BITS) - 1
+    u = q[:, 0] * (2.0 / m) - 1
+    v = q[:, 1] * (2.0 / m) - 1
+    w = 1 - np.abs(u) - np.abs(v)
+    neg = w < 0
+    u2 = np.where(neg, (1 - np.abs(v)) * _sign(u), u)
+    v2 = np.where(neg, (1 - np.abs(u)) * _sign(v), v)
+    out = np.stack([u2, v2, w], axis=1)
+    out /= np.linalg.norm(out, axis=1, keepdims=True)
+    return out.astype(np.float32)
+
+
+def _plan_fields(dtype: np.dtype, where: str) -> list[tuple[str, str]]:
+    """(field, how) for every field other than x, y, z: how is rgb, normal, size, confidence, int or raw."""
+    names = list(dtype.names or ())
+    for axis in ("x", "y", "z"):
+        if axis not in names:
+            raise InputError(where, f'the vertex element has no "{axis}" property')
+    plan = []
+    has_rgb = {"red", "green", "blue"} <= set(names)
+    has_n = {"nx", "ny", "nz"} <= set(names)
+    for name in names:
+        kind = dtype[name]
+        if name in ("x", "y", "z"):
+            continue
+        if has_rgb and name in ("red", "green", "blue") and kind == np.uint8:
+            plan.append((name, "rgb"))
+        elif has_n and name in ("nx", "ny", "nz"):
+            plan.append((name, "normal"))
+        elif name == "size" and kind.kind == "f":
+            plan.append((name, "size"))
+        elif name == "confidence" and kind.kind == "f":
+            plan.append((name, "confidence"))
+        elif kind.kind in "iu":
+            plan.append((name, "int"))
+        else:
+            plan.append((name, "raw"))
+    return plan
+
+
+def _channels(rec: np.ndarray, plan: list[tuple[str, str]], precision: float) -> tuple[np.ndarray, np.ndarray, bytes]:
+    """Attribute channels (N, C) int64 as differences in point order, their tables' direct
+    sizes (log2), and the raw bytes of the fields stored raw."""
+    cols: list[np.ndarray] = []
+    log2d: list[int] = []
+    raw = b""
+    kinds = dict(plan)
+    if "red" in kinds and kinds["red"] == "rgb":
+        r, g, b = (rec[c].astype(np.int64) for c in ("red", "green", "blue"))
+        dg = np.diff(g, prepend=0)
+        cols += [dg, np.diff(r, prepend=0) - dg, np.diff(b, prepend=0) - dg]
+        log2d += [6, 5, 5]
+    if "nx" in kinds and kinds["nx"] == "normal":
+        q = octa_encode(np.stack([rec["nx"], rec["ny"], rec["nz"]], axis=1))
+        half = 1 << (NORMAL_BITS - 1)
+        for k in range(2):
+            d = np.diff(q[:, k], prepend=0)
+            cols.append((d + half) % (1 << NORMAL_BITS) - half)  # wrapped: differences stay small
+            log2d.append(6)
+    raws = []
+    for name, how in plan:
+        if how == "size":
+            cols.append(np.diff(np.rint(rec[name].astype(np.float64) / (precision * SIZE_STEP_OF_PRECISION)).astype(np.int64), prepend=0))
+            log2d.append(4)
+        elif how == "confidence":
+            cols.append(np.diff(np.rint(rec[name].astype(np.float64) / CONFIDENCE_STEP).astype(np.int64), prepend=0))
+            log2d.append(6)
+        elif how == "int":
+            cols.append(np.diff(rec[name].astype(np.int64), prepend=0))
+            log2d.append(4)
+        elif how == "raw":
+            raws.append(np.ascontiguousarray(rec[name]).tobytes())
+    if raws:
+        raw = zlib.compress(b"".join(raws), 6)
+    chan = np.stack(cols, axis=1) if cols else np.zeros((len(rec), 0), np.int64)
+    return np.ascontiguousarray(chan), np.array(log2d, np.int64), raw
+
+
+def _encode_chunk(rec: np.ndarray, plan: list[tuple[str, str]], precision: float, where: str, first: int) -> bytes:
+    xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
+    bad = ~np.isfinite(xyz).all(axis=1)
+    if bad.any():
+        raise InputError(where, f"point {first + int(np.argmax(bad))} has a non-finite coordinate")
+    q = np.floor(xyz / precision).astype(np.int64)
+    off = q.min(axis=0) if len(q) else np.zeros(3, np.int64)
+    q -= off
+    span = int(q.max()) if len(q) else 0
+    depth = max(1, span.bit_length())
+    if depth > ot.MAX_DEPTH:
+        raise InputError("--precision", f"{precision:g} is too fine for this cloud's extent (2**21 cells per axis at most)")
+    codes = ot.morton(q)
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
+    srec = rec[order]
+    first_of = np.ones(len(codes), bool)
+    first_of[1:] = codes[1:] != codes[:-1]
+    vox = codes[first_of]
+    counts = np.diff(np.append(np.flatnonzero(first_of), len(codes))).astype(np.int64)
+    chan, log2d, raw = _channels(srec, plan, precision)
+    tables, words = ot.encode_chunk(vox, counts, depth, chan, log2d)
+    head = _CHUNK_HEAD.pack(len(rec), len(vox), depth, *(int(v) for v in off), len(raw))
+    return head + raw + struct.pack("<I", len(tables)) + tables.tobytes() + words.astype("<u2").tobytes()
+
+
+def _chunk_log2d(plan: list[tuple[str, str]]) -> np.ndarray:
+    # The direct sizes the encoder chose for each channel, in channel order (see _channels).
+    kinds = dict(plan)
+    out: list[int] = []
+    if kinds.get("red") == "rgb":
+        out += [6, 5, 5]
+    if kinds.get("nx") == "normal":
+        out += [6, 6]
+    for _, how in plan:
+        out += {"size": [4], "confidence": [6], "int": [4]}.get(how, [])
+    return np.array(out, np.int64)
+
+
+def _check_precision(precision: float) -> float:
+    p = float(precision)
+    if not math.isfinite(p) or p <= 0:
+        raise InputError("--precision", f"must be a positive number, got {precision!r}")
+    return p
+
+
+def _meta(header_dtype: np.dtype, count: int, precision: float, units: str, comments: tuple[str, ...]) -> dict[str, Any]:
+    return {
+        "codec": CODEC,
+        "points": count,
+        "chunk_points": CHUNK_POINTS,
+        "chunks": -(-count // CHUNK_POINTS),
+        "precision": precision,
+        "units": units,
+        "fields": [[n, header_dtype[n].newbyteorder("<").str] for n in header_dtype.names or ()],
+        "comments": list(comments),
+    }
+
+
+def _units_of(comments: tuple[str, ...]) -> str:
+    for c in comments:
+        if c.startswith("units "):
+            return c.split(None, 1)[1]
+    return "mm"
+
+
+def _chunk_stream(chunks: Iterator[np.ndarray], plan: list[tuple[str, str]], precision: float, where: str) -> Iterator[bytes]:
+    with ThreadPoolExecutor(_threads()) as pool:
+        pending = []
+        first = 0
+        for rec in chunks:
+            pending.append(pool.submit(_encode_chunk, np.asarray(rec), plan, precision, where, first))
+            first += len(rec)
+            if len(pending) > _threads():
+                yield pending.pop(0).result()
+        for f in pending:
+            yield f.result()
+
+
+def write_cloud(path: str | os.PathLike[str], ply: str | os.PathLike[str], precision: float) -> int:
+    """Code the PLY cloud ``ply`` into the container file ``path`` (atomically); returns its size."""
+    precision = _check_precision(precision)
+    header = read_header(ply)
+    plan = _plan_fields(header.dtype, str(ply))
+    meta = _meta(header.dtype, header.count, precision, _units_of(header.comments), header.comments)
+    return write_container(path, "cloud", meta, _chunk_stream(iter_ply_records(ply, CHUNK_POINTS), plan, precision, str(ply)))
+
+
+def encode_cloud(rec: np.ndarray, precision: float, units: str = "mm", comments: tuple[str, ...] = ()) -> bytes:
+    """Code structured point records (PLY vertex dtype, at least x, y, z) into container bytes."""
+    precision = _check_precision(precision)
+    plan = _plan_fields(rec.dtype, "cloud")
+    meta = _meta(rec.dtype, len(rec), precision, units, comments)
+    parts = (rec[i : i + CHUNK_POINTS] for i in range(0, len(rec), CHUNK_POINTS))
+    buf = io.BytesIO()
+    write_stream(buf, "cloud", meta, _chunk_stream(parts, plan, precision, "cloud"))
+    return buf.getvalue()
+
+
+def _decode_chunk(payload: bytes, i: int, dtype: np.dtype, plan: list[tuple[str, str]], precision: float,
+                  log2d: np.ndarray, where: str) -> np.ndarray:
+    if len(payload) < _CHUNK_HEAD.size + 4:
+        raise InputError(where, f"corrupt chunk {i} (too short)")
+    npts, nvox, depth, ox, oy, oz, nraw = _CHUNK_HEAD.unpack_from(payload)
+    pos = _CHUNK_HEAD.size
+    if not (0 < nvox <= npts <= CHUNK_POINTS and 1 <= depth <= ot.MAX_DEPTH) or pos + nraw + 4 > len(payload):
+        raise InputError(where, f"corrupt chunk {i} (bad chunk header)")
+    raw = payload[pos : pos + nraw]
+    pos += nraw
+    (nt,) = struct.unpack_from("<I", payload, pos)
+    pos += 4
+    if pos + nt > len(payload) or (len(payload) - pos - nt) % 2:
+        raise InputError(where, f"corrupt chunk {i} (bad table length)")
+    tables = np.frombuffer(payload, np.uint8, nt, pos)
+    words = np.frombuffer(payload, "<u2", (len(payload) - pos - nt) // 2, pos + nt).astype(np.uint16)
+    codes = np.empty(npts, np.int64)
+    chan = np.empty((npts, len(log2d)), np.int64)
+    if ot.decode_chunk(tables, words, nvox, npts, depth, log2d, codes, chan) != 0:
+        raise InputError(where, f"corrupt chunk {i} (the coded stream does not decode)")
+    q = ot.unmorton(codes)
+    out = np.empty(npts, dtype)
+    for k, (axis, o) in enumerate(zip("xyz", (ox, oy, oz), strict=True)):
+        out[axis] = (q[:, k] + o + 0.5) * precision
+    c = 0
+    kinds = dict(plan)
+    if kinds.get("red") == "rgb":
+        g = np.cumsum(chan[:, 0])
+        r = np.cumsum(chan[:, 1] + chan[:, 0])
+        b = np.cumsum(chan[:, 2] + chan[:, 0])
+        out["red"], out["green"], out["blue"] = r, g, b
+        c = 3
+    if kinds.get("nx") == "normal":
+        m = 1 << NORMAL_BITS
+        oq = np.stack([np.cumsum(chan[:, c]) % m, np.cumsum(chan[:, c + 1]) % m], axis=1)
+        n = octa_decode(oq)
+        out["nx"], out["ny"], out["nz"] = n[:, 0], n[:, 1], n[:, 2]
+        c += 2
+    raw_fields = [name for name, how in plan if how == "raw"]
+    for name, how in plan:
+        if how == "size":
+            out[name] = np.cumsum(chan[:, c]) * (precision * SIZE_STEP_OF_PRECISION)
+            c += 1
+        elif how == "confidence":
+            out[name] = np.cumsum(chan[:, c]) * CONFIDENCE_STEP
+            c += 1
+        elif how == "int":
+            out[name] = np.cumsum(chan[:, c])
+            c += 1
+    if raw_fields:
+        try:
+            blob = zlib.decompress(raw)
+        except zlib.error:
+            raise InputError(where, f"corrupt chunk {i} (raw fields)") from None
+        at = 0
+        for name in raw_fields:
+            nbytes = npts * dtype[name].itemsize
+            if at + nbytes > len(blob):
+                raise InputError(where, f"corrupt chunk {i} (raw fields)")
+            out[name] = np.frombuffer(blob, dtype[name], npts, at)
+            at += nbytes
+    return out
+
+
+def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Iterator[bytes], np.dtype, str]:
+    where = "<bytes>" if isinstance(source, bytes | bytearray | memoryview) else str(source)
+    header, chunks = open_container(source, kind="cloud")
+    meta = header.meta
+    try:
+        dtype = np.dtype([(str(n), str(t)) for n, t in meta["fields"]])
+        ok = (meta.get("codec") == CODEC and int(meta["chunk_points"]) == CHUNK_POINTS
+              and float(meta["precision"]) > 0 and meta["chunks"] == -(-int(meta["points"]) // CHUNK_POINTS))
+    except (KeyError, TypeError, ValueError):
+        ok = False
+    if not ok:
+        raise InputError(where, "corrupt or unsupported cloud header")
+    return meta, chunks, dtype, where
+
+
+def iter_cloud(source: str | os.PathLike[str] | bytes) -> Iterator[np.ndarray]:
+    """Decode a cloud container chunk by chunk: structured records of the input's PLY dtype."""
+    meta, chunks, dtype, where = _open(source)
+    plan = _plan_fields(dtype, where)
+    log2d = _chunk_log2d(plan)
+    precision = float(meta["precision"])
+    with ThreadPoolExecutor(_threads()) as pool:
+        pending = []
+        for i, payload in enumerate(chunks):
+            pending.append(pool.submit(_decode_chunk, payload, i, dtype, plan, precision, log2d, where))
+            if len(pending) > _threads():
+                yield pending.pop(0).result()
+        for f in pending:
+            yield f.result()
+
+
+def decode_cloud(source: str | os.PathLike[str] | bytes) -> np.ndarray:
+    """The whole decoded cloud as one structured array."""
+    parts = list(iter_cloud(source))
+    _, _, dtype, _ = _open(source)
+    return np.concatenate(parts) if parts else np.empty(0, dtype)
+
+
+def read_cloud_to_ply(source: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
+    """Decode a cloud container into a binary PLY (the cloud contract), atomically."""
+    meta, _, dtype, _ = _open(source)
+    comments = tuple(str(c) for c in meta.get("comments", ()))
+    return write_ply_records(out, iter_cloud(source), int(meta["points"]), dtype, comments)

@@ -1,0 +1,135 @@
+"""The octree cloud codec: every point within half the precision per axis, attributes as
+stated (colour and integers exact, normals within NORMAL_MAX_DEG, size and confidence to
+their steps), duplicates kept, PLY round trip, bad input and damaged files."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from shared.compress.cloud import (
+    CONFIDENCE_STEP,
+    NORMAL_MAX_DEG,
+    SIZE_STEP_OF_PRECISION,
+    decode_cloud,
+    encode_cloud,
+    read_cloud_to_ply,
+    write_cloud,
+)
+from shared.core.errors import InputError
+from shared.formats.ply import CLOUD_DTYPE, iter_ply_records, read_header, write_ply_records
+
+MERGED = np.dtype(CLOUD_DTYPE.descr + [("view", "<u2"), ("confidence", "<f4"), ("weird", "<f8")])
+
+
+def surface_cloud(n_side: int = 300, seed: int = 0, dtype: np.dtype = MERGED) -> np.ndarray:
+    """A noisy curved sheet sampled like a range image (0.3 mm pitch), with every attribute."""
+    rng = np.random.default_rng(seed)
+    u, v = np.meshgrid(np.arange(n_side) * 0.3, np.arange(n_side) * 0.3)
+    z = 800 + 0.002 * (u - 45) ** 2 + rng.normal(0, 0.2, u.shape)
+    rec = np.zeros(u.size, dtype)
+    rec["x"], rec["y"], rec["z"] = u.ravel() - 40, v.ravel() + 12, z.ravel()
+    if "red" not in (dtype.names or ()):
+        return rec
+    rec["red"] = rng.integers(0, 256, u.size)
+    rec["green"] = np.clip(rec["red"].astype(int) + rng.integers(-5, 6, u.size), 0, 255)
+    rec["blue"] = 200
+    n = np.stack([0.004 * (u - 45), np.zeros_like(u), -np.ones_like(u)], -1).reshape(-1, 3) + rng.normal(0, 0.02, (u.size, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    rec["nx"], rec["ny"], rec["nz"] = n.T
+    rec["size"] = rec["z"] / 3000.0
+    if "view" in (dtype.names or ()):
+        rec["view"] = rng.integers(0, 36, u.size)
+        rec["confidence"] = rng.random(u.size)
+        rec["weird"] = rng.normal(size=u.size)
+    return rec
+
+
+def _match(a: np.ndarray, b: np.ndarray, precision: float) -> tuple[np.ndarray, np.ndarray]:
+    """Pair input and decoded points: sort both by voxel (the decoder returns Morton order)."""
+    def key(r: np.ndarray) -> np.ndarray:
+        q = np.floor(np.stack([r["x"], r["y"], r["z"]], 1).astype(np.float64) / precision).astype(np.int64)
+        return np.lexsort(q.T[::-1])
+    return a[key(a)], b[key(b)]
+
+
+@pytest.mark.parametrize("precision", [0.1, 0.5, 2.0])
+def test_round_trip_every_point_and_attribute(precision: float) -> None:
+    rec = surface_cloud()
+    out = decode_cloud(encode_cloud(rec, precision))
+    assert out.dtype == rec.dtype and len(out) == len(rec)
+    a, b = _match(rec, out, precision)
+    for axis in "xyz":
+        err = np.abs(a[axis].astype(np.float64) - b[axis])
+        assert err.max() <= precision / 2 * (1 + 1e-5) + np.spacing(np.float32(900)), axis
+    for f in ("red", "green", "blue", "view", "weird"):
+        np.testing.assert_array_equal(a[f], b[f])
+    na = np.stack([a["nx"], a["ny"], a["nz"]], 1).astype(np.float64)
+    nb = np.stack([b["nx"], b["ny"], b["nz"]], 1).astype(np.float64)
+    ang = np.degrees(np.arccos(np.clip((na * nb).sum(1), -1, 1)))
+    assert ang.max() <= NORMAL_MAX_DEG
+    assert np.abs(a["size"] - b["size"]).max() <= precision * SIZE_STEP_OF_PRECISION / 2 * 1.001
+    assert np.abs(a["confidence"] - b["confidence"]).max() <= CONFIDENCE_STEP / 2 * 1.001
+
+
+def test_duplicates_and_coincident_points_survive() -> None:
+    rec = surface_cloud(40, dtype=CLOUD_DTYPE)
+    rec = np.concatenate([rec, rec[:500], rec[:7]])
+    out = decode_cloud(encode_cloud(rec, 0.5))
+    assert len(out) == len(rec)
+    a, b = _match(rec, out, 0.5)
+    assert np.abs(a["x"] - b["x"]).max() <= 0.25 * 1.0001
+
+
+def test_coarser_grids_cost_fewer_bits() -> None:
+    rec = surface_cloud(dtype=np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4")]))
+    sizes = [len(encode_cloud(rec, p)) for p in (0.1, 0.5, 2.0)]
+    assert sizes[0] > sizes[1] > sizes[2]
+
+
+def test_several_chunks_and_ply_files(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import shared.compress.cloud as cloud
+
+    monkeypatch.setattr(cloud, "CHUNK_POINTS", 10_000)  # small chunks: many of them, in parallel
+    rec = surface_cloud(150)
+    ply = write_ply_records(tmp_path / "in.ply", iter([rec]), len(rec), rec.dtype, ("units mm", "frame camera"))
+    size = write_cloud(tmp_path / "c.glo", ply, 0.25)
+    assert size == (tmp_path / "c.glo").stat().st_size
+    out_ply = read_cloud_to_ply(tmp_path / "c.glo", tmp_path / "out.ply")
+    h = read_header(out_ply)
+    assert h.count == len(rec) and h.dtype.names == rec.dtype.names and "units mm" in h.comments
+    out = np.concatenate(list(iter_ply_records(out_ply)))
+    a, b = _match(rec, out, 0.25)
+    np.testing.assert_array_equal(a["view"], b["view"])
+    assert np.abs(a["z"].astype(np.float64) - b["z"]).max() <= 0.125 * 1.0001
+
+
+def test_bad_input(tmp_path: Path) -> None:
+    rec = surface_cloud(20, dtype=CLOUD_DTYPE)
+    for p in (0.0, -1.0, float("inf")):
+        with pytest.raises(InputError, match="--precision: must be a positive number"):
+            encode_cloud(rec, p)
+    with pytest.raises(InputError, match="--precision: 1e-06 is too fine"):
+        encode_cloud(rec, 1e-6)
+    bad = rec.copy()
+    bad["y"][17] = np.nan
+    with pytest.raises(InputError, match="point 17 has a non-finite coordinate"):
+        encode_cloud(bad, 0.5)
+
+
+def test_damaged_cloud_files(tmp_path: Path) -> None:
+    blob = encode_cloud(surface_cloud(60), 0.5)
+    rng = np.random.default_rng(1)
+    for pos in rng.integers(40, len(blob) - 8, 10):
+        bad = bytearray(blob)
+        bad[pos] ^= 0x21
+        p = tmp_path / "bad.glo"
+        p.write_bytes(bytes(bad))
+        with pytest.raises(InputError, match=rf"^{p}: (corrupt|truncated)"):
+            decode_cloud(p)
+    p = tmp_path / "short.glo"
+    p.write_bytes(blob[: len(blob) - 20])
+    with pytest.raises(InputError, match="truncated"):
+        decode_cloud(p)
