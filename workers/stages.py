@@ -140,6 +140,18 @@ def run_preview(ctx: StageContext) -> dict[str, Any]:
     return _jsonable(preview_stage(ctx.inputs["tiles"], ctx.out_dir / "preview.mp4", options, progress=ctx.progress))
 
 
+def run_export(ctx: StageContext) -> dict[str, Any]:
+    """The cloud as LAZ and COPC (``cloud.laz``, ``cloud.copc.laz``)."""
+    from shared.render.export import export_cloud
+
+    cloud = ctx.inputs["triangulate"] / "cloud.ply"
+    laz = export_cloud(cloud, ctx.out_dir / "cloud.laz", "laz")
+    ctx.progress(0.3)
+    copc = export_cloud(cloud, ctx.out_dir / "cloud.copc.laz", "copc", workers=1)
+    return _jsonable({"points": laz["points"], "scale": laz["scale"], "laz_bytes": laz["bytes"],
+                      "copc_bytes": copc["bytes"], "copc_nodes": copc["nodes"]})  # fmt: skip
+
+
 def run_calibrate(ctx: StageContext) -> dict[str, Any]:
     from shared.calib.session import calibrate_session
 
@@ -170,6 +182,7 @@ STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
     "tiles_chunk": run_tiles_chunk,
     "tiles": run_tiles,
     "preview": run_preview,
+    "export": run_export,
     "calibrate": run_calibrate,
     "probe": run_probe,
 }

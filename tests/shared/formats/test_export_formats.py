@@ -225,3 +225,23 @@ def test_bad_clouds_leave_nothing(fmt: str, tmp_path: Path) -> None:
 def test_unknown_format_is_input_error(full: Path, tmp_path: Path) -> None:
     with pytest.raises(InputError, match="format"):
         export_cloud(full, tmp_path / "x.xyz", "xyz")
+
+
+def test_copc_empty_parent_keeps_its_children_reachable(tmp_path: Path) -> None:
+    from shared.formats.las import CopcNode, LasLayout, write_copc_nodes
+
+    rng = np.random.default_rng(0)
+    nodes = [CopcNode((0, 0, 0, 0), np.empty((0, 3), np.int32), None, {})]
+    for x, y, z in ((0, 0, 0), (1, 0, 0), (1, 1, 1)):
+        q = rng.integers(0, 500, (100, 3)).astype(np.int32) + np.array([x, y, z], np.int32) * 500
+        nodes.append(CopcNode((1, x, y, z), q, None, {}))
+    out = tmp_path / "e.copc.laz"
+    write_copc_nodes(out, nodes, layout=LasLayout(6, ()), scale=0.01, offset=np.zeros(3), cube_min=np.zeros(3),
+                     cube_size=10.0, spacing=10 / 128, points=300)  # fmt: skip
+    with laspy.CopcReader.open(out) as r:
+        assert len(r.query()) == 300 and len(r.query(level=0)) == 0 and len(r.query(level=1)) == 300
+        assert len(r.spatial_query(Bounds(np.zeros(3), np.full(3, 5.0)))) == 100
+    with pytest.raises(RuntimeError, match="300"):
+        write_copc_nodes(tmp_path / "bad.copc.laz", nodes, layout=LasLayout(6, ()), scale=0.01, offset=np.zeros(3),
+                         cube_min=np.zeros(3), cube_size=10.0, spacing=1.0, points=301)  # fmt: skip
+    assert not (tmp_path / "bad.copc.laz").exists()

@@ -72,10 +72,10 @@ def test_rows_to_rerun() -> None:
     assert rows_to_rerun("scan", _rows(keys), "cap", {"render": False}) == set()
     # A failed stage re-runs with everything downstream of it, nothing upstream.
     failed = rows_to_rerun("scan", _rows(keys, {"decode": StageState.FAILED}), "cap", {"render": False})
-    assert failed == {"decode", "triangulate"}
+    assert failed == {"decode", "triangulate", "export"}
     # A parameter that only ingest and triangulate read (the rig) re-runs them and what follows.
     rig = rows_to_rerun("scan", _rows(keys), "cap", {"render": False, "rig": "other"})
-    assert rig == {"ingest", "decode", "triangulate"}
+    assert rig == {"ingest", "decode", "triangulate", "export"}
 
 
 def test_graphs_declare_known_queues() -> None:
