@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "services.cli.calibrate",
     "services.cli.export",
     "services.cli.rig",
+    "services.cli.compress",
 ]
 
 
