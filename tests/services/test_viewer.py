@@ -231,8 +231,18 @@ def tiles_root(tmp_path_factory: pytest.TempPathFactory) -> Path:
     return tmp_path_factory.mktemp("viewer-tiles")
 
 
+def scan_bare(path: Path) -> int:
+    """:func:`scan_scene`'s points with nothing but x, y, z (a cloud another scanner made)."""
+    from shared.formats.ply import read_ply
+
+    n = scan_scene(path)
+    write_ply(path, read_ply(path).xyz)
+    return n
+
+
 #: Tile sets the tests use: folder name -> (synthetic scan writer, max points per leaf).
-TILE_SETS = {"job-scene": (scan_scene, 4000), "wall": (scan_wall, 4000), "blob": (scan_blob, 1000)}
+TILE_SETS = {"job-scene": (scan_scene, 4000), "wall": (scan_wall, 4000), "blob": (scan_blob, 1000),
+             "bare": (scan_bare, 4000)}  # fmt: skip
 
 
 @pytest.fixture(scope="module")
@@ -513,6 +523,29 @@ def test_deep_hierarchy_with_proxy_chunks_loads_every_node_without_ranges(served
         assert tiles.points == state["totalPoints"]
         fetched = [name for name, _, _ in log if name.startswith("whole/")]
         assert sorted(fetched) == ["whole/hierarchy.bin", "whole/metadata.json", "whole/octree.bin"]
+        assert page.errors == [], page.errors
+    finally:
+        page.close()
+
+
+def test_cloud_with_only_positions_renders(served, browser, build) -> None:
+    """Tiles of an x, y, z cloud carry position and the derived size only: the viewer draws
+    them (default grey, splats sized by the derived spacing) with no error."""
+    from shared.formats.potree import open_tiles
+
+    tiles = open_tiles(build("bare"))
+    assert tiles.point_dtype.names == ("position", "size")
+    server, _log = served
+    url = f"{server.url}/static/bare/metadata.json"
+    page = Page(browser, f"{server.url}/viewer/?tiles={url}&budget=10000000&edl=0&grazing=0", size=(320, 240))
+    try:
+        state = page.wait_idle()
+        assert state["error"] is None, state["error"]
+        assert state["hasSize"] and not state["hasColor"] and not state["hasNormal"]
+        assert state["drawnPoints"] == tiles.points
+        img = page.capture()
+        fg = np.abs(img.astype(float) - np.array([0.08, 0.09, 0.11]) * 255).sum(axis=2) > 30
+        assert fg.mean() > 0.6, f"only {fg.mean():.1%} of the frame shows points (holes?)"
         assert page.errors == [], page.errors
     finally:
         page.close()
