@@ -4,6 +4,7 @@ PY ?= python3
 VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.graylight-installed
+KERNELS := $(VENV)/.graylight-kernels
 # Debian packages the project needs: EGL/Mesa for headless OpenGL, Chromium for the viewer
 # test, Redis for the broker. Node and npm (viewer assets) are installed only when missing,
 # since a machine may carry another build of Node that ships its own npm.
@@ -12,7 +13,13 @@ PYTEST_WORKERS ?= 2
 
 .PHONY: setup demo test test-fast bench lint services clean
 
-setup: $(STAMP)
+setup: $(STAMP) $(KERNELS)
+
+# numba's cache (__pycache__ beside each module, or NUMBA_CACHE_DIR) filled for every kernel
+# signature the pipeline uses, so that no first run compiles; redone when a source changes.
+$(KERNELS): $(STAMP) $(shell find shared -name '*.py' 2>/dev/null)
+	$(BIN)/python -m shared.warmup
+	@touch $(KERNELS)
 
 $(STAMP): pyproject.toml Makefile $(wildcard services/viewer/package-lock.json)
 	@missing=""; for p in $(APT_PACKAGES); do dpkg -s $$p >/dev/null 2>&1 || missing="$$missing $$p"; done; \

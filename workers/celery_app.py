@@ -22,6 +22,7 @@ from shared.service.config import Settings, get_settings
 from shared.service.jobs import all_stage_specs
 from shared.service.jobstore import dispose_engines
 from shared.service.queue import RECONCILE_TASK, RERENDER_TASK, celery_config, task_name
+from shared.warmup import load_kernels_in_background
 from workers.reconciler import enqueue_preview_rerender, reconcile_once
 from workers.runner import TRANSIENT, run_stage
 
@@ -85,6 +86,8 @@ def get_app(settings: Settings | None = None) -> Celery:
 def _after_fork(**_kwargs: Any) -> None:
     # A forked child must not share the parent's pooled database connections.
     dispose_engines()
+    # Load the stages' compiled numba kernels now, not inside the first job.
+    load_kernels_in_background()
 
 
 #: The app ``celery -A workers.celery_app`` and ``graylight worker`` use.

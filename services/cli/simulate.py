@@ -17,15 +17,26 @@ from services.cli.args import parse_size
 log = logging.getLogger(__name__)
 
 
-def register(subparsers: argparse._SubParsersAction) -> None:
-    from shared.sim.scenes import SCENES
+class _SceneHelp(argparse.HelpFormatter):
+    """Lists the scene names only when ``simulate --help`` is printed: the scene module loads
+    numpy and numba, which every other command (and ``graylight --help``) should not pay for."""
 
+    def _get_help_string(self, action: argparse.Action) -> str | None:
+        if action.dest == "scene":
+            from shared.sim.scenes import SCENES  # slow import (numba), only for this help text
+
+            return f"scene name: {', '.join(SCENES)}"
+        return super()._get_help_string(action)
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser(
         "simulate",
         help="render a synthetic Gray-code capture with ground truth",
         description="Render a synthetic graycode-v1 capture (images, capture.json, rig.json, truth.npz).",
+        formatter_class=_SceneHelp,
     )
-    p.add_argument("--scene", required=True, help=f"scene name: {', '.join(SCENES)}")
+    p.add_argument("--scene", required=True, help="scene name")
     p.add_argument("--out", required=True, type=Path, help="output capture folder (must not exist or be empty)")
     p.add_argument("--size", default="2048x1536", help="camera size WxH (default 2048x1536; up to 15 MP and more)")
     p.add_argument("--projector", default="1024x768", help="projector size WxH (default 1024x768)")

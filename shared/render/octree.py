@@ -64,7 +64,6 @@ import numpy as np
 from shared.core.errors import InputError
 from shared.formats.ply import CLOUD_DTYPE, iter_ply_chunks, read_header
 from shared.formats.potree import HIERARCHY_DTYPE, HIERARCHY_STEP
-from shared.render import _neighbours
 
 log = logging.getLogger(__name__)
 
@@ -829,6 +828,10 @@ def _derive(plan: TilePlan, rec: np.ndarray, work_dir: Path, index: int) -> None
     (the in-process build re-reads it), with their ranges in ``chunk_*.range.json`` for the
     metadata. Neighbours are looked up within the chunk: near a chunk's faces a point misses
     those across it, which only widens its size a little there."""
+    # Imported here: scipy.spatial takes about a second to import, and only clouds that lack
+    # a size or normals need it (``graylight tiles`` of a scan starts without it).
+    from shared.render import _neighbours
+
     xyz = rec["position"] * plan.scale  # relative to the offset: float64 keeps every step
     tree = _neighbours.kdtree(xyz)
     ranges = {}

@@ -56,7 +56,7 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
-from shared.formats.capture import Capture, CodeImage
+from shared.formats.capture import Capture, CodeImage, code_bits
 from shared.formats.images import read_grey, read_grey_and_colour
 
 log = logging.getLogger(__name__)
@@ -120,7 +120,7 @@ def _bit_planes(pats, refs, bits, thr, kq, signs, weak, q, store_q, m1, m2):  # 
     and second-smallest ``|q|`` seen so far (the confidence). One launch per batch, the bits of a
     batch: launches, not arithmetic, dominate on a busy machine.
     """
-    k = len(pats)
+    k = bits.size  # planes in this batch; the tuples are padded to _MAX_BATCH (one signature)
     n = pats[0].size
     chunk = 1 << 15
     zero = np.uint16(0)
@@ -356,7 +356,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
     levels) int64: lit pixels, interpolated pixels, decoded pixels per level.
     """
     H, W = white.shape
-    k = len(pats)
+    k = bits.size  # planes of this axis; the tuples are padded to _MAX_PLANES (one signature)
     full = (1 << nbits) - 1
     zero = np.uint16(0)
     nq = k if want_q else 1
@@ -576,7 +576,8 @@ def _load(image: Path | np.ndarray, size: tuple[int, int], name: str) -> np.ndar
     if isinstance(image, np.ndarray):
         if image.ndim != 2 or (image.shape[1], image.shape[0]) != size or image.dtype not in (np.uint8, np.uint16):
             raise InputError(name, f"in-memory image must be a {size[0]}x{size[1]} uint8 or uint16 grey array")
-        return image
+        # C order, like decoded files: the kernels are compiled for that layout (no copy if it is).
+        return np.ascontiguousarray(image)
     return read_grey(image, size)
 
 
@@ -662,6 +663,20 @@ _MAX_BATCH = 12
 _ONE_PASS_BYTES = 480_000_000
 
 
+#: Bit planes an axis can have (a 16384-pixel projector side needs 14): the one-pass kernel's
+#: tuples are padded to this length, so that every capture runs one compiled signature.
+_MAX_PLANES = 16
+
+
+def _padded(images: Sequence[np.ndarray], n: int) -> tuple[np.ndarray, ...]:
+    """``images`` as a tuple of length ``n``, padded with its first image (never read: the
+    kernels take the count from their ``bits`` array). numba compiles a kernel for each tuple
+    length it sees; a fixed length lets ``make setup`` compile the one the pipeline uses."""
+    if not 0 < len(images) <= n:
+        raise ValueError(f"{len(images)} images, need 1..{n}")
+    return (*images, *(images[0],) * (n - len(images)))
+
+
 def _batch_size(size: tuple[int, int], itemsize: int) -> int:
     return int(max(1, min(_MAX_BATCH, _BATCH_BYTES // (2 * size[0] * size[1] * itemsize))))
 
@@ -738,9 +753,10 @@ def _decode_axis(
         with_inverse = bool(invs)
         bits = np.array([e.bit for e in entries], np.uint16)
         _decode_rows(
-            tuple(pats), tuple(invs) if with_inverse else tuple(pats), with_inverse, bits, white, black,
-            np.float32(params.lit_threshold * scale), np.float32(params.noise * scale), np.float32(params.weak_ratio),
-            nbits, lowest, max_level, n_proj, store_q, subpixel, np.zeros(0, np.int16 if itemsize == 1 else np.int32),
+            _padded(pats, _MAX_PLANES), _padded(invs if with_inverse else pats, _MAX_PLANES), with_inverse, bits,
+            white, black, np.float32(params.lit_threshold * scale), np.float32(params.noise * scale),
+            np.float32(params.weak_ratio), int(nbits), int(lowest), int(max_level), int(n_proj), bool(store_q),
+            bool(subpixel), np.zeros(0, np.int16 if itemsize == 1 else np.int32),
             out.lit, out.value, out.level, out.conf, counts,
         )
         if lit_known:
@@ -769,15 +785,15 @@ def _decode_axis(
             return
         with_inverse = batch[0][2] is not None
         thr, kq = refs.thresholds(with_inverse)
-        # Tuples of flat views: no copies (numba specialises on the batch length).
-        pats = tuple(p.ravel() for _, p, _ in batch)
+        # Tuples of flat views (no copies), padded to one length: numba specialises on it.
+        pats = _padded([p.ravel() for _, p, _ in batch], _MAX_BATCH)
         if with_inverse:
-            ref = tuple(i.ravel() for _, _, i in batch)
+            ref = _padded([i.ravel() for _, _, i in batch], _MAX_BATCH)
         else:
-            ref = (refs.mid,) * len(batch)
+            ref = (refs.mid,) * _MAX_BATCH
         bits = np.array([e.bit for e, _, _ in batch], np.uint16)
         qs = q[first : first + len(batch)] if store_q else q
-        _bit_planes(pats, ref, bits, thr, kq, signs, weak, qs, store_q, m1, m2)
+        _bit_planes(pats, ref, bits, thr, kq, signs, weak, qs, bool(store_q), m1, m2)
         first += len(batch)
         tick(sum(1 + (i is not None) for _, _, i in batch))
         batch.clear()
@@ -794,7 +810,8 @@ def _decode_axis(
     q3 = q.reshape(len(entries), h, w) if store_q else np.zeros((1, 1, 1), np.int8)
     _finish_rows(
         signs.reshape(h, w), weak.reshape(h, w), out.lit, m2.reshape(h, w) if store_q else np.zeros((1, w), np.uint8),
-        store_q, q3, nbits, lowest, max_level, n_proj, subpixel, out.value, out.level, out.conf, counts,
+        bool(store_q), q3, int(nbits), int(lowest), int(max_level), int(n_proj), bool(subpixel), out.value,
+        out.level, out.conf, counts,
     )
     return counts
 
@@ -862,6 +879,8 @@ def decode_stack(
     projector_size : (width, height) of the projector.
     colour : (H, W, 3) uint8 RGB for the points; grey white frame when None.
     """
+    # C order, like decoded files (the kernels are compiled for it; no copy when it already is).
+    white, black = np.ascontiguousarray(white), np.ascontiguousarray(black)
     if colour is None:
         colour = np.empty((*white.shape, 3), np.uint8)
         with kernel_thread_scope():
@@ -892,7 +911,6 @@ def _decode_inner(
     params: DecodeParams,
     pool: ThreadPoolExecutor | None,
 ) -> Decoded:
-    from shared.formats.capture import code_bits
 
     t0 = time.perf_counter()
     pw, ph = projector_size

@@ -19,6 +19,7 @@ import logging
 import os
 import time
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 from pathlib import Path
 from typing import Any
@@ -32,7 +33,7 @@ from shared.formats.images import probe_image
 from shared.formats.ply import write_ply
 from shared.formats.rig import Rig, check_rig_matches, load_rig
 from shared.scan.decode import Decoded, decode_capture, load_decoded, save_decoded
-from shared.scan.triangulate import Triangulated, triangulate
+from shared.scan.triangulate import Triangulated, rig_tables, triangulate
 
 log = logging.getLogger(__name__)
 
@@ -208,10 +209,14 @@ def scan(
     assert capture.rig is not None
     t_ingest = time.perf_counter()
     report_progress(0.02)
-    decoded = decode_capture(capture, progress=lambda f: report_progress(0.02 + 0.73 * f))
-    t_decode = time.perf_counter()
-    decode_stats = decoded.stats
-    tri = triangulate(decoded, rig_model)
+    # The rig's undistortion tables (about a second of CPU, OpenCV without the GIL) are
+    # computed while the images are read and decoded, on a core shared with the readers.
+    with ThreadPoolExecutor(max_workers=1) as pool:
+        tables = pool.submit(rig_tables, rig_model)
+        decoded = decode_capture(capture, progress=lambda f: report_progress(0.02 + 0.73 * f))
+        t_decode = time.perf_counter()
+        decode_stats = decoded.stats
+        tri = triangulate(decoded, rig_model, tables=tables.result())
     del decoded
     t_tri = time.perf_counter()
     report_progress(0.9)

@@ -22,7 +22,10 @@ image (isolated spikes of a wrong code) are rejected too. Normals come from the 
 from __future__ import annotations
 
 import logging
+import os
+import threading
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -70,6 +73,22 @@ class Triangulated:
         return self.pixel[:, 1].astype(np.int64) * self.range_image.shape[1] + self.pixel[:, 0]
 
 
+#: Points per cv2.undistortPoints call of a table: a few blocks a thread, so that the
+#: iterative undistortion (the bulk of a table's cost) runs on every core.
+_UNDISTORT_BLOCK = 1 << 16
+
+
+def _undistort_points(pts: np.ndarray, dev: Device) -> np.ndarray:
+    """cv2.undistortPoints of (N, 1, 2) float64 pixels, in blocks on a thread pool (OpenCV
+    releases the GIL; each point is undistorted on its own, so blocks give the same values)."""
+    blocks = [pts[i : i + _UNDISTORT_BLOCK] for i in range(0, len(pts), _UNDISTORT_BLOCK)]
+    if len(blocks) == 1:
+        return cv2.undistortPoints(pts, dev.K, dev.dist, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+        parts = pool.map(lambda b: cv2.undistortPoints(b, dev.K, dev.dist, criteria=_UNDISTORT_CRITERIA), blocks)
+        return np.concatenate([p.reshape(-1, 2) for p in parts])
+
+
 def _undistort_table(dev: Device, stride: int) -> tuple[np.ndarray, np.ndarray, float]:
     """Normalised undistorted coordinates of a grid over the device image (and a margin).
 
@@ -81,12 +100,62 @@ def _undistort_table(dev: Device, stride: int) -> tuple[np.ndarray, np.ndarray, 
     gx, gy = np.meshgrid(xs, ys)
     pts = np.stack([gx.ravel(), gy.ravel()], axis=1).reshape(-1, 1, 2)
     if np.any(dev.dist != 0):
-        und = cv2.undistortPoints(pts, dev.K, dev.dist, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
+        und = _undistort_points(pts, dev)
     else:
         # A skew-free pinhole: invert K directly.
         Kinv = np.linalg.inv(dev.K)
         und = (pts.reshape(-1, 2) @ Kinv[:2, :2].T) + Kinv[:2, 2]
     return und[:, 0].reshape(gx.shape), und[:, 1].reshape(gx.shape), float(-_MARGIN)
+
+
+@dataclass(frozen=True)
+class RigTables:
+    """What triangulation precomputes from a rig alone (cost: about a second of CPU for a
+    1024x768 projector, mostly OpenCV's iterative undistortion): normalised undistorted
+    coordinates of the camera on a 4-pixel grid and of the projector on every pixel, with
+    the tangent of each undistorted projector column. All (gh, gw) float64."""
+
+    cam_a: np.ndarray
+    cam_b: np.ndarray
+    cam_stride: float
+    cam_org: float
+    pa: np.ndarray
+    pb: np.ndarray
+    pta: np.ndarray
+    ptb: np.ndarray
+    p_org: float
+
+
+def _rig_key(rig: Rig) -> tuple:
+    return tuple((d.width, d.height, np.asarray(d.K, np.float64).tobytes(), np.asarray(d.dist, np.float64).tobytes())
+                 for d in (rig.camera, rig.projector))  # fmt: skip
+
+
+_TABLES: dict[tuple, RigTables] = {}
+_TABLES_LOCK = threading.Lock()
+
+
+def rig_tables(rig: Rig) -> RigTables:
+    """The :class:`RigTables` of ``rig``, computed once per rig and process (the last few
+    rigs are kept: a job-service worker triangulates many scans of one calibration).
+
+    Thread-safe: :func:`shared.scan.pipeline.scan` computes them on a thread while the
+    images are decoded."""
+    key = _rig_key(rig)
+    with _TABLES_LOCK:
+        if key in _TABLES:
+            return _TABLES[key]
+    stride = 4
+    cam_a, cam_b, cam_org = _undistort_table(rig.camera, stride)
+    pa, pb, p_org = _undistort_table(rig.projector, 1)
+    # Tangent of the undistorted column curve along the projector row (per projector pixel).
+    tables = RigTables(cam_a, cam_b, float(stride), cam_org, pa, pb, np.gradient(pa, axis=0), np.gradient(pb, axis=0),
+                       p_org)  # fmt: skip
+    with _TABLES_LOCK:
+        while len(_TABLES) >= 4:
+            _TABLES.pop(next(iter(_TABLES)))
+        _TABLES[key] = tables
+    return tables
 
 
 @numba.njit(inline="always")
@@ -299,6 +368,7 @@ def triangulate(
     support_tolerance: float = 0.01,
     min_support: int = 2,
     iterations: int = 2,
+    tables: RigTables | None = None,
 ) -> Triangulated:
     """Triangulate every decoded camera pixel against its projector column plane.
 
@@ -311,17 +381,19 @@ def triangulate(
     support_tolerance : relative depth difference within which a neighbour supports a point.
     min_support : neighbours (of 8) a point needs to be kept; 0 keeps isolated points.
     iterations : ray-plane intersections per point (the plane depends on the row).
+    tables : ``rig_tables(rig)``, when the caller computed them ahead (None: looked up here).
 
     Returns
     -------
     Triangulated (see there).
     """
     with kernel_thread_scope():
-        return _triangulate(decoded, rig, row_tolerance, support_tolerance, min_support, iterations)
+        return _triangulate(decoded, rig, row_tolerance, support_tolerance, min_support, iterations, tables)
 
 
 def _triangulate(
-    decoded: Decoded, rig: Rig, row_tolerance: float, support_tolerance: float, min_support: int, iterations: int
+    decoded: Decoded, rig: Rig, row_tolerance: float, support_tolerance: float, min_support: int, iterations: int,
+    tables: RigTables | None,
 ) -> Triangulated:
     t0 = time.perf_counter()
     h, w = decoded.shape
@@ -331,18 +403,13 @@ def _triangulate(
         row_span = np.exp2(np.maximum(decoded.row_level, 0).astype(np.float32))
     else:
         row_span = np.ones((1, 1), np.float32) if not has_row else np.ones((h, w), np.float32)
-    stride = 4
-    cam_a, cam_b, cam_org = _undistort_table(cam, stride)
-    pa, pb, p_org = _undistort_table(proj, 1)
-    # Tangent of the undistorted column curve along the projector row (per projector pixel).
-    pta = np.gradient(pa, axis=0)
-    ptb = np.gradient(pb, axis=0)
+    tb = tables if tables is not None else rig_tables(rig)
     P = np.empty((h, w, 3), np.float32)
     vmask = np.empty((h, w), bool)
     reasons = np.zeros((h, 2), np.int64)
     _intersect_grid(np.ascontiguousarray(decoded.column, np.float32), np.ascontiguousarray(decoded.row, np.float32),
-                    row_span, has_row, float(row_tolerance), cam_a, cam_b, float(stride), cam_org,
-                    pa, pb, pta, ptb, p_org, np.ascontiguousarray(rig.R, np.float64),
+                    row_span, has_row, float(row_tolerance), tb.cam_a, tb.cam_b, tb.cam_stride, tb.cam_org,
+                    tb.pa, tb.pb, tb.pta, tb.ptb, tb.p_org, np.ascontiguousarray(rig.R, np.float64),
                     np.ascontiguousarray(rig.T, np.float64).ravel(), np.ascontiguousarray(proj.K, np.float64),
                     np.ascontiguousarray(proj.dist[:5], np.float64), iterations, P, vmask, reasons)
     del row_span

@@ -1,0 +1,239 @@
+"""Compile and cache every numba kernel of the pipeline ahead of use, and load them early.
+
+numba compiles a kernel on its first call for each new signature (argument types) and keeps
+the machine code in its cache (``__pycache__`` beside the module, or ``NUMBA_CACHE_DIR``);
+without that cache a fresh clone's first scan or tile build spends tens of seconds
+compiling. :func:`warm` runs the real stage functions on tiny inputs — a small simulated
+capture of each image kind (8-bit grey, 16-bit colour, without inverses, without rows), its
+scan, the one-pass and the streaming decoder, tiles of clouds with and without attributes,
+preview frames with and without eye-dome lighting — so that every signature those stages
+use is compiled once, at ``make setup`` (``python -m shared.warmup``) or while a Docker
+image is built. A kernel's signature depends only on argument types (dtype, dimensions,
+layout, tuple length), never on image or cloud sizes, which is why tiny inputs suffice.
+
+:func:`load_cached_kernels` only loads what the cache holds, without running or compiling
+anything: a job-service worker calls it when its process starts, so that no job pays for
+loading machine code (a cache miss there is logged, not compiled, to keep start-up short).
+
+This module sits beside the science packages (it imports scan, render and sim; none of
+them imports it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import importlib
+import logging
+import tempfile
+import threading
+import time
+from collections.abc import Iterator, Sequence
+from pathlib import Path
+from types import ModuleType
+from typing import Any
+
+log = logging.getLogger(__name__)
+
+#: Modules holding numba kernels, by domain.
+KERNEL_MODULES: dict[str, tuple[str, ...]] = {
+    "sim": ("shared.sim.raycast",),
+    "scan": ("shared.scan.decode", "shared.scan.triangulate"),
+    "render": ("shared.render.octree", "shared.render.raster"),
+}
+DOMAINS = tuple(KERNEL_MODULES)
+
+
+def kernel_dispatchers(domains: Sequence[str] = DOMAINS) -> list[tuple[str, Any]]:
+    """``(module.name, dispatcher)`` of every cached numba kernel (``cache=True``) defined in
+    the modules of ``domains``."""
+    # numba loads on demand: importing it costs half a second, which the callers pay anyway.
+    from numba.core.caching import FunctionCache
+    from numba.core.registry import CPUDispatcher
+
+    out = []
+    for dom in domains:
+        for name in KERNEL_MODULES[dom]:
+            mod: ModuleType = importlib.import_module(name)
+            for attr, obj in sorted(vars(mod).items()):
+                # inline="always" helpers are compiled into their callers, never on their own.
+                if (isinstance(obj, CPUDispatcher) and obj.py_func.__module__ == name
+                        and obj.targetoptions.get("inline") != "always"
+                        and isinstance(getattr(obj, "_cache", None), FunctionCache)):  # fmt: skip
+                    out.append((f"{name}.{attr}", obj))
+    return out
+
+
+def cached_signatures(dispatcher: Any) -> list[tuple]:
+    """Signatures whose machine code numba's cache holds for ``dispatcher``, for this source
+    file (its timestamp and bytecode) and this CPU: what a call would load instead of compile.
+
+    Reads the cache index through numba's cache object (``_cache``, an implementation detail
+    of numba 0.59-0.63, the versions pyproject allows)."""
+    cache = dispatcher._cache
+    codegen = dispatcher.targetctx.codegen()
+    index = cache._cache_file._load_index()  # {} when missing or stale (source changed)
+    return [key[0] for key in index if key == cache._index_key(key[0], codegen)]
+
+
+def load_cached_kernels(domains: Sequence[str] = ("scan", "render")) -> dict[str, int]:
+    """Load every cached signature of the kernels of ``domains`` into this process, without
+    running a kernel (no thread pool starts) and without compiling: kernels missing from
+    the cache are counted and logged. Returns ``{"loaded": n, "missing": m}`` (signatures,
+    kernels)."""
+    loaded = missing = 0
+    for name, d in kernel_dispatchers(domains):
+        sigs = cached_signatures(d)
+        if not sigs:
+            missing += 1
+            log.warning("numba kernel %s is not in the cache: it will compile on first use (run make setup)", name)
+        for sig in sigs:
+            d.compile(sig)  # a cache hit: loads the machine code
+            loaded += 1
+    return {"loaded": loaded, "missing": missing}
+
+
+def load_kernels_in_background(domains: Sequence[str] = ("scan", "render")) -> threading.Thread:
+    """:func:`load_cached_kernels` in a daemon thread, for a worker process that is starting:
+    its start-up is not held up (Celery gives a new pool process a few seconds to report),
+    and a job that arrives meanwhile waits only for the kernel it calls (numba's compiler
+    lock serialises loading). Nothing runs a kernel, so no thread pool starts."""
+    thread = threading.Thread(target=load_cached_kernels, args=(tuple(domains),), name="numba-kernels", daemon=True)
+    thread.start()
+    return thread
+
+
+@contextlib.contextmanager
+def _attribute(obj: Any, name: str, value: Any) -> Iterator[None]:
+    before = getattr(obj, name)
+    setattr(obj, name, value)
+    try:
+        yield
+    finally:
+        setattr(obj, name, before)
+
+
+# --------------------------------------------------------------------------- the workload
+
+#: Camera and projector sizes of the warm-up captures: large enough for every code path
+#: (several row bands, stripe edges), small enough to render and decode in a blink.
+_CAMERA = (96, 72)
+_PROJECTOR = (64, 48)
+
+
+def _captures(work: Path) -> list[Path]:
+    """Tiny simulated captures of every image kind the scanner reads, with rig and truth."""
+    from shared.sim.scenes import mesh_path
+    from shared.sim.simulate import ImagingParams, simulate_named
+
+    kinds = [
+        ("corner", {}),  # 8-bit grey, inverses, rows; planes with inter-reflection, a sphere
+        ("spheres", {"bits": 16, "colour": True}),
+        ("spheres", {"inverses": False}),
+        ("spheres", {"bits": 16, "inverses": False, "rows": False}),
+    ]
+    if mesh_path("stanford-bunny").is_file():  # the demo's scene, when the shared meshes exist
+        kinds.append(("bunny", {}))
+    out = []
+    for i, (scene, kw) in enumerate(kinds):
+        folder = work / f"capture_{i}"
+        simulate_named(scene, folder, size=_CAMERA, projector=_PROJECTOR, seed=i, imaging=ImagingParams(**kw))
+        out.append(folder)
+    return out
+
+
+def _warm_scan(work: Path, captures: list[Path]) -> list[Path]:
+    """Scan every capture (one-pass decoder, triangulation, outputs), decode them again
+    through the streaming decoder, and decode in-memory stacks; returns the clouds."""
+    from shared.formats.capture import load_capture
+    from shared.formats.images import read_grey
+    from shared.scan import decode
+    from shared.scan.pipeline import scan
+
+    clouds = []
+    for k, cap in enumerate(captures):
+        report = scan(cap, work / f"scan_{k}")
+        clouds.append(Path(report["files"]["cloud"]))
+        # The streaming path decodes axes larger than the one-pass budget (16-bit 15 MP).
+        with _attribute(decode, "_ONE_PASS_BYTES", 0), _attribute(decode, "_BATCH_BYTES", 1):
+            decode.decode_capture(load_capture(cap))
+        c = load_capture(cap)
+        white, black = read_grey(c.white), read_grey(c.black)
+        cols = [(e.bit, read_grey(e.pattern), read_grey(e.inverse) if e.inverse else None) for e in c.columns]
+        rows = [(e.bit, read_grey(e.pattern), read_grey(e.inverse) if e.inverse else None) for e in c.rows]
+        decode.decode_stack(white, black, cols, rows, (c.projector_width, c.projector_height))
+    return clouds
+
+
+def _warm_render(work: Path, clouds: list[Path]) -> None:
+    """Tiles of the scanned clouds (several chunks, deep nodes) and of an xyz-only cloud, in
+    this process and with a forked pool; preview frames of the tiles."""
+    import numpy as np
+
+    from shared.formats.ply import read_ply, write_ply
+    from shared.formats.potree import open_tiles
+    from shared.render.camera_path import make_path
+    from shared.render.octree import build_tiles, quantise
+    from shared.render.preview import frame_camera, frame_selection, load_scene, render_frames
+    from shared.render.raster import Rasterizer
+
+    # A cloud of positions only (other tools' PLYs): the tile passes carry no attributes then.
+    xyz = np.ascontiguousarray(read_ply(clouds[0]).xyz)
+    bare = write_ply(work / "xyz_only.ply", xyz)
+    quantise(xyz, xyz.min(axis=0).astype(np.float64), 0.001, 1 << 16)
+    for k, ply in enumerate([*clouds, bare]):
+        tiles = work / f"tiles_{k}"
+        build_tiles(ply, tiles, workers=1 if k else 2, max_chunk=500, max_leaf=100)
+        scene = load_scene(open_tiles(tiles))
+        poses = make_path("orbit", scene.bounds_min, scene.bounds_max, 4)
+        for edl in (0.0, 1.0):
+            for _ in render_frames(scene, poses, 64, 48, edl=edl):
+                pass
+        rz = Rasterizer(64, 48)
+        cam = frame_camera(poses[0], scene, 64, 48)
+        rz.render(cam, scene.xyz, scene.colour, scene.size, *frame_selection(scene, cam, 10_000))
+        rz.render(cam, scene.xyz, scene.colour, scene.size, edl=1.0)
+
+
+def warm(domains: Sequence[str] = DOMAINS, work: Path | None = None) -> dict[str, float]:
+    """Run the pipeline's stages on tiny inputs so that every kernel signature they use is
+    compiled and cached (or loaded, when the cache already has it). Returns seconds per part."""
+    seconds: dict[str, float] = {}
+    with contextlib.ExitStack() as stack:
+        if work is None:
+            work = Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="graylight-warmup-")))
+        t = time.perf_counter()
+        captures = _captures(work)
+        seconds["sim"] = time.perf_counter() - t
+        if "scan" in domains or "render" in domains:
+            t = time.perf_counter()
+            clouds = _warm_scan(work, captures)
+            seconds["scan"] = time.perf_counter() - t
+            if "render" in domains:
+                t = time.perf_counter()
+                _warm_render(work, clouds)
+                seconds["render"] = time.perf_counter() - t
+    return seconds
+
+
+def main(argv: list[str] | None = None) -> int:
+    """``python -m shared.warmup``: compile every kernel into numba's cache and say so."""
+    parser = argparse.ArgumentParser(prog="python -m shared.warmup", description=__doc__.splitlines()[0])
+    parser.parse_args(argv)
+    t0 = time.perf_counter()
+    seconds = warm()
+    kernels = kernel_dispatchers()
+    compiled = sum(len(d.stats.cache_misses) for _, d in kernels)
+    loaded = sum(len(d.stats.cache_hits) for _, d in kernels)
+    uncached = [name for name, d in kernels if not cached_signatures(d)]
+    parts = ", ".join(f"{k} {v:.1f} s" for k, v in seconds.items())
+    print(f"numba kernels: {len(kernels)} kernels, {compiled} signatures compiled, {loaded} loaded from the cache "
+          f"in {time.perf_counter() - t0:.1f} s ({parts})")
+    if uncached:
+        print(f"not cached (never called by the warm-up): {', '.join(uncached)}")
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
