@@ -36,6 +36,7 @@ from shared.service.artifacts import ArtifactError, ArtifactStore
 from shared.service.config import Settings
 from shared.service.jobs import CAPTURE, GRAPHS, base_name, fanout_index, root_file, row_key, stage_spec
 from shared.service.jobstore import Job, JobStore, Stage
+from shared.service.logs import reset_log_context, set_log_context
 from shared.service.queue import publish_stages
 from workers.stages import STAGE_FUNCS, StageContext
 
@@ -200,6 +201,7 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
     arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
     beat = Heartbeat(store, stage_id, token, settings.heartbeat_seconds)
     beat.start()
+    log_ids = set_log_context(job=job.id, stage=stage.name, stage_id=stage_id)  # JSON log lines carry them
     try:
         # The row's own dependencies: for a fan-in stage, every instance of the map stage.
         upstream = {d: _output_key(job, d) for d in stage.depends_on}
@@ -245,6 +247,7 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
         store.fail_stage(stage_id, token, msg)
         return Outcome("failed", stage_id, msg)
     finally:
+        reset_log_context(log_ids)
         beat.stop()
 
 

@@ -9,29 +9,32 @@ from typing import Annotated
 
 from fastapi import Depends, Header, HTTPException, Request
 from fastapi.concurrency import run_in_threadpool
+from prometheus_client import CollectorRegistry
 
 from services.api.intake import ID, Intake
 from shared.service.artifacts import ArtifactStore
 from shared.service.config import Settings
 from shared.service.jobstore import ApiKey, Batch, Job, JobStore, Upload
+from shared.service.metrics import service_registry
 
 __all__ = ["ID", "Key", "Service", "Svc", "current_key", "get_service", "owned_batch", "owned_job", "owned_upload"]
 
 @dataclass
 class Service:
-    """What every route works with: the configuration, the job store, the artifact store and
-    the intake (submissions -> stored captures -> queued jobs)."""
+    """What every route works with: the configuration, the job store, the artifact store,
+    the intake (submissions -> stored captures -> queued jobs) and the metrics registry."""
 
     settings: Settings
     store: JobStore
     arts: ArtifactStore
     intake: Intake
+    metrics: CollectorRegistry
 
     @classmethod
     def build(cls, settings: Settings) -> Service:
         store = JobStore(settings.database_url)
         arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
-        return cls(settings, store, arts, Intake(settings, store, arts))
+        return cls(settings, store, arts, Intake(settings, store, arts), service_registry(settings, store, arts))
 
 
 def get_service(request: Request) -> Service:

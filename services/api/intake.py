@@ -27,6 +27,7 @@ from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
 from starlette.datastructures import FormData, UploadFile
 
+from services.api.quota import Quota
 from shared.core.errors import InputError
 from shared.formats.rig import parse_rig
 from shared.service.archive import ArchiveLimits, inspect_archive
@@ -39,8 +40,11 @@ from shared.service.queue import publish_stages
 
 #: Ids of jobs, batches and uploads (UUIDs); anything else is 404 without a database query.
 ID = re.compile(r"^[0-9a-f-]{36}$")
-#: Names of jobs and batches (the OpenAPI document states the same pattern).
-NAME_PATTERN = r"^[\w .,:+@()\[\]-]{1,200}$"
+#: Names of jobs and batches: 1-200 ASCII letters, digits, spaces or ``.,:+@()[]-_``, or
+#: characters beyond ASCII but for its control characters (letters of every script). Written
+#: without ``\w``, which Python and the JSON Schema dialect of the OpenAPI document read
+#: differently, so the document states exactly what is accepted.
+NAME_PATTERN = r"^(?:[A-Za-z0-9_ .,:+@()\[\]-]|[^\x00-\x9f]){1,200}$"
 _NAME = re.compile(NAME_PATTERN)
 #: Internal prefixes of the store that a storage reference may not point into.
 _PRIVATE_PREFIXES = ("objects/", "uploads/")
@@ -143,6 +147,7 @@ class Intake:
         self.store = store
         self.arts = arts
         self.limits = ArchiveLimits.from_settings(settings)
+        self.quota = Quota(settings, store, arts)
 
     # ---- captures (blocking: run in the thread pool) ------------------------------------
     def store_archive(self, path: Path, label: str, kind: str) -> tuple[str, str]:
@@ -241,6 +246,8 @@ class Intake:
         params = _form_params(form, kind)
         capture, rig = form.get("capture"), form.get("rig")
         ref = None if isinstance(capture, UploadFile) else form_text(form.get("capture_ref"))
+        incoming = sum(f.size or 0 for f in (capture, rig) if isinstance(f, UploadFile))
+        await run_in_threadpool(self.quota.admit, key, 1, incoming)
         if isinstance(rig, UploadFile):
             params["rig"] = await run_in_threadpool(self.store_rig, await rig.read(1 << 20), rig.filename or "rig")
         elif rig is not None:
@@ -264,6 +271,7 @@ class Intake:
         name = check_name(body.name, "name")
         batch = check_name(body.batch, "batch")
         params = check_params(body.params, kind)
+        await run_in_threadpool(self.quota.admit, key, 1, 0)  # an upload's bytes are counted as it arrives
         if kind == "probe":
             cref, ckey = "none:", os.urandom(32).hex()
             name = name or "probe"
@@ -285,11 +293,14 @@ class Intake:
             raise InputError("name", "a batch needs a name")
         kind = check_kind(str(form.get("kind") or "scan"))
         params = _form_params(form, kind)
+        files = form.getlist("captures")
+        if any(not isinstance(f, UploadFile) for f in files):
+            raise InputError("captures", "must be files")
+        # The whole batch is admitted, or none of it.
+        await run_in_threadpool(self.quota.admit, key, len(files), sum(f.size or 0 for f in files))
         jobs: list[str] = []
         rejected: list[dict[str, str]] = []
-        for f in form.getlist("captures"):
-            if not isinstance(f, UploadFile):
-                raise InputError("captures", "must be files")
+        for f in files:
             try:
                 cref, ckey = await self._archive(f, kind)
             except InputError as exc:
@@ -311,6 +322,7 @@ class Intake:
             refs += await run_in_threadpool(self.read_manifest, body.manifest)
         if len(refs) > MAX_BATCH_REFS:
             raise InputError("captures", f"more than {MAX_BATCH_REFS} in one batch")
+        await run_in_threadpool(self.quota.admit, key, len(refs), 0)  # the whole batch, or none of it
         jobs: list[str] = []
         rejected: list[dict[str, str]] = []
         for ref in refs:
@@ -319,6 +331,6 @@ class Intake:
             except InputError as exc:
                 rejected.append({"capture": ref, "error": str(exc)})
                 continue
-            job = await run_in_threadpool(self.make_job, key, kind, cref, ckey, ref.rsplit("/", 1)[-1], params, name)
+            job = await run_in_threadpool(self.make_job, key, kind, cref, ckey, ref.strip(), params, name)
             jobs.append(job.id)
         return name, jobs, rejected

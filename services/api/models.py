@@ -173,3 +173,29 @@ def job_out(job: Job) -> JobOut:
 def batch_out(b: Batch, jobs: list[str] | None = None, rejected: list[dict[str, str]] | None = None) -> BatchOut:
     return BatchOut(id=b.id, name=b.name, created_at=b.created_at, total=b.total, counts=b.counts,
                     progress=b.progress, jobs=jobs or [], rejected=rejected or [])  # fmt: skip
+
+
+class ArtifactLink(BaseModel):
+    name: str
+    url: str
+
+
+class ReportRow(BaseModel):
+    """One capture of a batch, as a registrar files it."""
+
+    capture: str = Field(description="the capture's name as submitted (file name or storage reference)")
+    job: str
+    state: str
+    points: int | None = Field(None, description="points of its cloud (after triangulation)")
+    error: str | None = Field(None, description="the failure reason, one line")
+    artifacts: list[ArtifactLink]
+
+
+class BatchReport(BaseModel):
+    batch: BatchOut
+    rows: list[ReportRow]
+
+
+class BatchRetryOut(BaseModel):
+    batch: BatchOut
+    retried: list[str] = Field(description="ids of the jobs that run again (those that failed or were cancelled)")

@@ -72,6 +72,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--json", action="store_true", help="print the API's JSON")
     p.set_defaults(func=cmd_jobs)
 
+    p = sub.add_parser("batch", help="follow a batch on the job service: status, report, retry-failed")
+    bs = p.add_subparsers(dest="batch_command", required=True)
+    c = bs.add_parser("status", help="job counts by state and progress")
+    c.add_argument("batch_id", metavar="ID")
+    c.set_defaults(func=cmd_batch_status)
+    c = bs.add_parser("report", help="one row per capture: name, state, points, failure reason, artifact links")
+    c.add_argument("batch_id", metavar="ID")
+    c.add_argument("--format", choices=["csv", "json"], default="csv")
+    c.add_argument("--out", type=Path, default=None, help="write the report here (default: standard output)")
+    c.set_defaults(func=cmd_batch_report)
+    c = bs.add_parser("retry-failed", help="re-run the failed and cancelled jobs (only what failed)")
+    c.add_argument("batch_id", metavar="ID")
+    c.set_defaults(func=cmd_batch_retry)
+
     p = sub.add_parser("keys", help="manage API keys (in the job database)")
     ks = p.add_subparsers(dest="keys_command", required=True)
     c = ks.add_parser("create", help="create a key and print it (shown once)")
@@ -89,15 +103,23 @@ def cmd_serve(args: argparse.Namespace) -> int:
     import uvicorn
 
     from services.api.app import create_app
+    from shared.service.logs import configure_logging
 
-    uvicorn.run(create_app(), host=args.host, port=args.port, log_level="info", timeout_graceful_shutdown=10)
+    settings = get_settings()
+    configure_logging(settings, logging.INFO)
+    # With JSON logs uvicorn keeps its hands off logging: its records reach the root's JSON handler.
+    log_config = None if settings.log_format == "json" else uvicorn.config.LOGGING_CONFIG
+    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info", timeout_graceful_shutdown=10,
+                log_config=log_config)  # fmt: skip
     return 0
 
 
 def cmd_worker(args: argparse.Namespace) -> int:
+    from shared.service.logs import configure_logging
     from workers.celery_app import get_app
 
     settings = get_settings()
+    configure_logging(settings, args.loglevel.upper())
     logical = [q.strip() for q in args.queues.split(",") if q.strip()]
     for q in logical:
         if q not in QUEUES:
@@ -118,9 +140,12 @@ def cmd_worker(args: argparse.Namespace) -> int:
 
 
 def cmd_beat(args: argparse.Namespace) -> int:
+    from shared.service.logs import configure_logging
     from workers.beat import run_beat
 
-    run_beat(get_settings(), args.loglevel)
+    settings = get_settings()
+    configure_logging(settings, args.loglevel.upper())
+    run_beat(settings, args.loglevel)
     return 0
 
 
@@ -238,6 +263,22 @@ class Client:
     def job(self, job_id: str) -> dict[str, Any]:
         return self.request("GET", f"/v1/jobs/{job_id}")
 
+    def text(self, path: str) -> str:
+        """The body of ``GET path`` as text (a CSV report); :class:`ServiceError` on an error."""
+        import httpx
+
+        try:
+            r = self.http.request("GET", path)
+        except httpx.HTTPError as exc:
+            raise ServiceError(f"{self.url}{path}: {exc}") from None
+        if r.status_code >= 400:
+            try:
+                detail = error_text(r.json().get("detail"))
+            except ValueError:
+                detail = r.text[:300]
+            raise ServiceError(f"GET {path}: HTTP {r.status_code}: {detail}")
+        return r.text
+
 
 def error_text(detail: Any) -> str:
     """One line of an API error's ``detail``: the text itself, or a 422's list of
@@ -348,4 +389,46 @@ def cmd_jobs(args: argparse.Namespace) -> int:
         print(line)
     if page["total"] > len(page["jobs"]):
         print(f"({len(page['jobs'])} of {page['total']})", file=sys.stderr)
+    return 0
+
+
+# ---- batches ----------------------------------------------------------------------------------
+def _batch_id(raw: str) -> str:
+    value = raw.strip()
+    if not value or "/" in value:
+        raise InputError("ID", f"not a batch id: {raw!r}")
+    return value
+
+
+def cmd_batch_status(args: argparse.Namespace) -> int:
+    """Print a batch's counts by state and its progress; exit 1 when any job failed."""
+    b = Client().request("GET", f"/v1/batches/{_batch_id(args.batch_id)}")
+    counts = ", ".join(f"{n} {s}" for s, n in sorted(b["counts"].items())) or "no jobs"
+    print(f"{b['id']}  {b['name']}: {b['total']} captures, {counts}, {b['progress'] * 100:.1f} % done")
+    return 1 if b["counts"].get("failed") else 0
+
+
+def cmd_batch_report(args: argparse.Namespace) -> int:
+    """Write a batch's report (CSV or JSON) to ``--out`` (atomically) or standard output."""
+    from shared.core.files import atomic_file
+
+    client = Client()
+    path = f"/v1/batches/{_batch_id(args.batch_id)}/report.{args.format}"
+    if args.format == "csv":
+        text = client.text(path)
+    else:
+        text = json.dumps(client.request("GET", path), indent=2) + "\n"
+    if args.out is None:
+        sys.stdout.write(text)
+        return 0
+    with atomic_file(args.out) as tmp:
+        tmp.write_text(text, encoding="utf-8")
+    return 0
+
+
+def cmd_batch_retry(args: argparse.Namespace) -> int:
+    """Re-run a batch's failed and cancelled jobs; print their ids, one a line."""
+    r = Client().request("POST", f"/v1/batches/{_batch_id(args.batch_id)}/retry")
+    for job_id in r["retried"]:
+        print(job_id)
     return 0

@@ -28,6 +28,9 @@ Every variable has a working default, so ``graylight serve``, ``graylight worker
 ``GRAYLIGHT_RERENDER_HOUR``               UTC hour of the nightly preview re-render (3)
 ``GRAYLIGHT_RERENDER_MODE``               ``changed`` (default) or ``all``
 ``GRAYLIGHT_SECRET``                      signs viewer access tokens (default: a file in the data dir)
+``GRAYLIGHT_KEY_MAX_RUNNING_JOBS``        jobs one API key may have queued or running at once (0: no limit)
+``GRAYLIGHT_KEY_MAX_STORED_BYTES``        bytes one API key's captures, uploads and outputs may fill (0: no limit)
+``GRAYLIGHT_LOG_FORMAT``                  ``text`` (default) or ``json``: one JSON object a line, with job and stage ids
 ========================================  ==============================================
 """
 
@@ -103,6 +106,9 @@ class Settings:
     rerender_hour: int = 3
     rerender_mode: str = "changed"
     secret: str | None = field(default=None, repr=False)
+    key_max_running_jobs: int = 0
+    key_max_stored_bytes: int = 0
+    log_format: str = "text"
 
     def queue(self, name: str) -> str:
         """The broker queue name of a logical queue (``cpu``, ``render`` or ``control``)."""
@@ -143,6 +149,9 @@ def get_settings(env: dict[str, str] | None = None) -> Settings:
     if mode not in ("changed", "all"):
         raise InputError("GRAYLIGHT_RERENDER_MODE", f'must be "changed" or "all", got {mode!r}')
     hour = _int(env, "GRAYLIGHT_RERENDER_HOUR", 3)
+    log_format = env.get("GRAYLIGHT_LOG_FORMAT", "text") or "text"
+    if log_format not in ("text", "json"):
+        raise InputError("GRAYLIGHT_LOG_FORMAT", f'must be "text" or "json", got {log_format!r}')
     if hour > 23:
         raise InputError("GRAYLIGHT_RERENDER_HOUR", f"must be an hour 0..23, got {hour}")
     return Settings(
@@ -169,4 +178,7 @@ def get_settings(env: dict[str, str] | None = None) -> Settings:
         rerender_hour=hour,
         rerender_mode=mode,
         secret=env.get("GRAYLIGHT_SECRET") or None,
+        key_max_running_jobs=_int(env, "GRAYLIGHT_KEY_MAX_RUNNING_JOBS", 0),
+        key_max_stored_bytes=_int(env, "GRAYLIGHT_KEY_MAX_STORED_BYTES", 0),
+        log_format=log_format,
     )

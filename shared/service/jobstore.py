@@ -549,8 +549,9 @@ class JobStore:
                 # A failed stage ends the job: what waits downstream will never run.
                 for r in stages:
                     if r.state in STAGE_WAITING:
+                        old = r.state  # the ORM update below also changes r.state in the session
                         s.execute(update(StageRow).where(StageRow.id == r.id).values(state=StageState.CANCELLED))
-                        self._event(s, job_id, r.name, r.state, StageState.CANCELLED, "an earlier stage failed")
+                        self._event(s, job_id, r.name, old, StageState.CANCELLED, "an earlier stage failed")
                         r.state = StageState.CANCELLED
                         if r.id in newly:
                             newly.remove(r.id)

@@ -60,6 +60,8 @@ def _render(value: Any, field: str) -> bool:
 
 
 def _preview(value: Any, field: str) -> dict[str, Any]:
+    if not isinstance(value, Mapping):  # from_mapping takes None for the defaults; a job's params may not
+        raise InputError(field, f"must be an object of preview options, got {value!r}")
     PreviewOptions.from_mapping(value, prefix=f"{field}.")
     return dict(value)
 

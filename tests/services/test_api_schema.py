@@ -108,3 +108,10 @@ class Workflow(schema.as_state_machine()):  # type: ignore[misc]
 TestWorkflow = pytest.mark.slow(Workflow.TestCase)
 TestWorkflow.settings = settings(max_examples=8, stateful_step_count=4, deadline=None, database=None,
                                  suppress_health_check=list(HealthCheck))  # fmt: skip
+
+
+def test_documented_params_are_the_checked_ones() -> None:
+    from services.api import schema as documented
+    from shared.service.params import PARAMS
+
+    assert {k: set(documented.params_schema(k)["properties"]) for k in PARAMS} == {k: set(v) for k, v in PARAMS.items()}

@@ -3,16 +3,17 @@
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, HTTPException, Query, Request
 
-from services.api.deps import Key, Svc, owned_job
+from services.api.deps import Key, Service, Svc, owned_job
 from services.api.http import is_form, parse_body, read_form
 from services.api.intake import JobCreate, check_params
 from services.api.models import JobList, JobOut, RetryIn, errors, job_out
 from services.api.schema import job_body
 from shared.service.jobs import JobState, StageView, rows_to_rerun
+from shared.service.jobstore import Job
 from shared.service.queue import publish_stages
 
 router = APIRouter(tags=["jobs"])
@@ -69,10 +70,10 @@ def cancel_job(job_id: str, key: Key, svc: Svc) -> JobOut:
     return job_out(owned_job(svc, job_id, key))
 
 
-def retry(svc: Svc, job_id: str, key: Key, new_params: dict | None = None) -> JobOut:
+def rerun(svc: Service, job: Job, new_params: dict[str, Any] | None = None) -> bool:
     """Re-run the job's stages that failed or were cancelled, and those whose inputs changed
-    (``new_params``, a new stage version); 409 when the job is not final or nothing would re-run."""
-    job = owned_job(svc, job_id, key)
+    (``new_params``, a new stage version); their outputs already stored are found, not redone.
+    False when nothing would re-run; 409 when the job is not final."""
     if job.state in (JobState.QUEUED, JobState.RUNNING):
         raise HTTPException(409, f"job {job.id} is {job.state}; cancel it first")
     params = dict(job.params)
@@ -80,16 +81,20 @@ def retry(svc: Svc, job_id: str, key: Key, new_params: dict | None = None) -> Jo
         new = check_params(new_params, job.kind)
         params = {**new, **({"rig": job.params["rig"]} if "rig" in job.params else {})}
     rows = [StageView(st.name, st.state, st.depends_on, st.output_key) for st in job.stages]  # graph order
-    rerun = rows_to_rerun(job.kind, rows, job.capture_key, params)
-    if not rerun:
-        raise HTTPException(409, f"job {job.id}: nothing to retry (every stage succeeded with unchanged inputs)")
-    newly = svc.store.reset_stages(job.id, rerun, params=params)
+    todo = rows_to_rerun(job.kind, rows, job.capture_key, params)
+    if not todo:
+        return False
+    newly = svc.store.reset_stages(job.id, todo, params=params)
     publish_stages(newly, svc.settings)
-    return job_out(owned_job(svc, job_id, key))
+    return True
 
 
-@router.post("/v1/jobs/{job_id}/retry", response_model=JobOut, responses=errors(400, 401, 404, 409, 422))
+@router.post("/v1/jobs/{job_id}/retry", response_model=JobOut, responses=errors(400, 401, 404, 409, 422, 429, 507))
 def retry_job(job_id: str, key: Key, svc: Svc, body: RetryIn | None = None) -> JobOut:
     """Re-run the stages that failed or were cancelled, and those whose inputs changed
     (new parameters, a new stage version); finished stages with unchanged inputs are kept."""
-    return retry(svc, job_id, key, body.params if body is not None else None)
+    job = owned_job(svc, job_id, key)
+    svc.intake.quota.admit(key, jobs=1)
+    if not rerun(svc, job, body.params if body is not None else None):
+        raise HTTPException(409, f"job {job.id}: nothing to retry (every stage succeeded with unchanged inputs)")
+    return job_out(owned_job(svc, job_id, key))

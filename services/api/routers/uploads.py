@@ -40,7 +40,7 @@ _CHUNK_BODY = {
 
 
 @router.patch("/v1/uploads/{upload_id}", response_model=UploadOut, openapi_extra=_CHUNK_BODY,
-              responses=errors(401, 404, 409, 413, 422))  # fmt: skip
+              responses=errors(401, 404, 409, 413, 422, 507))  # fmt: skip
 async def append_upload(
     upload_id: str, request: Request, key: Key, svc: Svc, upload_offset: Annotated[int, Header(ge=0)]
 ) -> UploadOut:
@@ -62,6 +62,7 @@ async def append_upload(
                 out.write(block)
         if size == 0:
             raise InputError("body", "an empty chunk")
+        await run_in_threadpool(svc.intake.quota.admit, key, 0, size)
         await run_in_threadpool(svc.arts.put_chunk, up.id, up.chunks, path)
     if not await run_in_threadpool(svc.store.advance_upload, up.id, up.offset, up.offset + size):
         now = owned_upload(svc, upload_id, key)

@@ -1,0 +1,95 @@
+"""The report of a batch: one row per capture, for a registrar to file.
+
+In: the jobs of one batch (:class:`~shared.service.jobstore.Job` records with their stages).
+Out: :class:`CaptureRow` records — the capture's name as submitted, its job's state, the
+number of points its cloud holds, the failure reason in one line, and the names of the
+artifacts it published (``cloud.ply``, ``preview.mp4``, ...) — and their CSV and JSON forms.
+
+Reads nothing but the job records: the points come from the triangulation stage's summary
+and the artifact names from the job graph's ``publish`` lists of the stages that succeeded,
+so a report of a thousand captures costs one query.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+from collections.abc import Callable, Iterable
+from dataclasses import asdict, dataclass, field
+from typing import Any
+
+from shared.service.jobs import JOB_TERMINAL, JobState, StageState, stage_spec
+from shared.service.jobstore import Job
+
+__all__ = ["CSV_COLUMNS", "CaptureRow", "capture_row", "report_csv", "report_rows", "summarize"]
+
+#: Columns of the CSV report, in order (``artifacts`` is space-separated).
+CSV_COLUMNS = ("capture", "job", "state", "points", "error", "artifacts")
+
+
+@dataclass(frozen=True)
+class CaptureRow:
+    """One capture of a batch: ``capture`` is its name as submitted, ``points`` the size of
+    its cloud (None before triangulation), ``error`` the one-line failure reason (None unless
+    failed or cancelled), ``artifacts`` the short names it published, in graph order."""
+
+    capture: str
+    job: str
+    state: str
+    points: int | None
+    error: str | None
+    artifacts: list[str] = field(default_factory=list)
+
+
+def _one_line(text: str | None) -> str | None:
+    return " ".join(text.split()) if text else None
+
+
+def capture_row(job: Job) -> CaptureRow:
+    """The report row of one job."""
+    points: int | None = None
+    published: list[str] = []
+    for st in job.stages:
+        if st.state != StageState.SUCCEEDED:
+            continue
+        summary = st.summary or {}
+        if st.name == "triangulate" and isinstance(summary.get("points"), int):
+            points = int(summary["points"])
+        for name in stage_spec(job.kind, st.name).publish:
+            if name not in published:
+                published.append(name)
+    error = _one_line(job.error)
+    if error is None and job.state == JobState.CANCELLED:
+        error = "cancelled"
+    return CaptureRow(capture=job.name, job=job.id, state=job.state, points=points, error=error, artifacts=published)
+
+
+def report_rows(jobs: Iterable[Job]) -> list[CaptureRow]:
+    """Rows of a batch's jobs, in submission order (oldest first)."""
+    return [capture_row(j) for j in sorted(jobs, key=lambda j: (j.created_at, j.id))]
+
+
+def summarize(rows: Iterable[CaptureRow]) -> dict[str, Any]:
+    """Counts by state, the total, and the finished fraction (1.0 for an empty batch)."""
+    counts: dict[str, int] = {}
+    for r in rows:
+        counts[r.state] = counts.get(r.state, 0) + 1
+    total = sum(counts.values())
+    done = sum(n for s, n in counts.items() if s in JOB_TERMINAL)
+    return {"total": total, "counts": counts, "progress": done / total if total else 1.0}
+
+
+def report_csv(rows: Iterable[CaptureRow], link: Callable[[CaptureRow, str], str] | None = None) -> str:
+    """The CSV text of ``rows`` (header :data:`CSV_COLUMNS`); ``link(row, name)`` turns an
+    artifact name into its URL (default: the bare name)."""
+    out = io.StringIO()
+    w = csv.writer(out, lineterminator="\n")
+    w.writerow(CSV_COLUMNS)
+    for r in rows:
+        links = [link(r, a) if link else a for a in r.artifacts]
+        w.writerow([r.capture, r.job, r.state, "" if r.points is None else r.points, r.error or "", " ".join(links)])
+    return out.getvalue()
+
+
+def row_json(row: CaptureRow) -> dict[str, Any]:
+    return asdict(row)

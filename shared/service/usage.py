@@ -1,0 +1,92 @@
+"""What an API key uses of the service, for its limits and for the metrics: its unfinished
+jobs, and the bytes its captures, upload sessions and stage outputs fill in the store.
+
+Objects in the store are content-addressed and never change, so the size of each (the sum of
+its manifest's file sizes) is read once per process and kept (:class:`ObjectSizes`). An object
+shared by two keys (the same capture submitted twice) counts for both; an object counts once
+for one key however many of its jobs use it.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+from sqlalchemy import func, select
+
+from shared.service.artifacts import ArtifactStore
+from shared.service.jobs import JobState, StageState
+from shared.service.jobstore import JobRow, JobStore, StageRow, UploadRow
+
+__all__ = ["ObjectSizes", "Usage", "key_usage", "running_jobs", "stored_keys"]
+
+#: Job states that count against a key's limit of running jobs.
+UNFINISHED = (JobState.QUEUED, JobState.RUNNING)
+
+
+@dataclass(frozen=True)
+class Usage:
+    """A key's use: ``running`` jobs queued or running, ``stored_bytes`` in the store."""
+
+    running: int
+    stored_bytes: int
+
+
+class ObjectSizes:
+    """Sizes in bytes of stored objects by key, read from their manifests once (thread-safe)."""
+
+    def __init__(self, arts: ArtifactStore, limit: int = 200_000) -> None:
+        self.arts = arts
+        self.limit = limit
+        self._sizes: dict[str, int] = {}
+        self._lock = threading.Lock()
+
+    def size(self, key: str) -> int:
+        with self._lock:
+            if key in self._sizes:
+                return self._sizes[key]
+        m = self.arts.manifest(key)
+        if m is None:
+            return 0  # not (yet, or no longer) stored: not cached, it may appear
+        n = sum(e.size for e in m.files.values())
+        with self._lock:
+            if len(self._sizes) >= self.limit:
+                self._sizes.clear()
+            self._sizes[key] = n
+        return n
+
+    def total(self, keys: Iterable[str]) -> int:
+        return sum(self.size(k) for k in set(keys))
+
+
+def running_jobs(store: JobStore, owner_id: int) -> int:
+    """How many of ``owner_id``'s jobs are queued or running."""
+    with store.session() as s:
+        q = select(func.count()).select_from(JobRow).where(JobRow.owner_id == owner_id, JobRow.state.in_(UNFINISHED))
+        return int(s.scalar(q) or 0)
+
+
+def stored_keys(store: JobStore, owner_id: int | None = None) -> tuple[set[str], int]:
+    """The object keys ``owner_id``'s jobs hold (captures stored as objects, outputs of
+    succeeded stages; everyone's when None) and the bytes of its unfinished upload sessions."""
+    with store.session() as s:
+        jq = select(JobRow.capture_ref)
+        sq = select(StageRow.output_key).join(JobRow, JobRow.id == StageRow.job_id).where(
+            StageRow.state == StageState.SUCCEEDED, StageRow.output_key.is_not(None)
+        )
+        uq = select(func.coalesce(func.sum(UploadRow.offset), 0)).where(UploadRow.finished.is_(False))
+        if owner_id is not None:
+            jq, sq, uq = jq.where(JobRow.owner_id == owner_id), sq.where(JobRow.owner_id == owner_id), uq.where(
+                UploadRow.owner_id == owner_id
+            )
+        keys = {ref.split(":", 1)[1] for ref in s.scalars(jq.distinct()) if ref.startswith("object:")}
+        keys |= {k for k in s.scalars(sq.distinct()) if k}
+        uploads = int(s.scalar(uq) or 0)
+    return keys, uploads
+
+
+def key_usage(store: JobStore, sizes: ObjectSizes, owner_id: int) -> Usage:
+    """``owner_id``'s :class:`Usage`."""
+    keys, uploads = stored_keys(store, owner_id)
+    return Usage(running=running_jobs(store, owner_id), stored_bytes=sizes.total(keys) + uploads)
