@@ -54,6 +54,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "parse_scanset": "scanset",
         "write_scanset": "scanset",
         "write_las": "las",
+        "coordinate_scale": "las",
         "write_copc": "las",
         "write_e57": "e57",
         "read_e57": "e57",

@@ -1,5 +1,6 @@
 """Rendering: Potree 2.0 level-of-detail tiles (out-of-core, parallel), the CPU point
-rasteriser, camera paths and preview flythrough videos, and the render stages.
+rasteriser, camera paths and preview flythrough videos, the render stages, and the cloud
+exports (LAZ, COPC, E57, PLY) that build on the tiles' octree.
 
 Names resolve lazily: the numba kernels load on first use."""
 
@@ -26,6 +27,9 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "orbit_path": "camera_path",
         "dolly_path": "camera_path",
         "load_path_file": "camera_path",
+        "arc_path": "camera_path",
+        "is_single_view": "camera_path",
+        "export_cloud": "export",
         "render_preview": "preview",
         "load_scene": "preview",
         "tiles_stage": "stages",
