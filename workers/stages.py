@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import logging
+import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
@@ -24,7 +25,7 @@ from shared.core.files import write_json_atomic
 from shared.formats.capture import load_capture
 from shared.render.options import PreviewOptions
 from shared.service.jobs import base_name
-from shared.service.params import check_job_params, tiles_options
+from shared.service.params import check_job_params, compress_options, tiles_options
 
 log = logging.getLogger(__name__)
 
@@ -152,6 +153,22 @@ def run_export(ctx: StageContext) -> dict[str, Any]:
                       "copc_bytes": copc["bytes"], "copc_nodes": copc["nodes"]})  # fmt: skip
 
 
+def run_compress(ctx: StageContext) -> dict[str, Any]:
+    """The range image as ``range.glr`` (and ``compress.json``); a copy of the raw ``range.npz``
+    too unless ``params.compress.keep_range`` is false."""
+    from shared.compress.files import compress_file
+
+    options = compress_options(ctx.params.get("compress"))
+    raw = ctx.inputs["triangulate"] / "range.npz"
+    summary = compress_file(raw, ctx.out_dir / "range.glr", quantum=options.get("quantum"), max_error=options.get("max_error"))
+    summary["kept_range"] = bool(options.get("keep_range", True))
+    if summary["kept_range"]:
+        shutil.copyfile(raw, ctx.out_dir / "range.npz")  # a link would not be stored with the output
+    summary["input"], summary["output"] = "range.npz", "range.glr"
+    write_json_atomic(ctx.out_dir / "compress.json", summary)
+    return _jsonable(summary)
+
+
 def run_calibrate(ctx: StageContext) -> dict[str, Any]:
     from shared.calib.session import calibrate_session
 
@@ -183,6 +200,7 @@ STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
     "tiles": run_tiles,
     "preview": run_preview,
     "export": run_export,
+    "compress": run_compress,
     "calibrate": run_calibrate,
     "probe": run_probe,
 }

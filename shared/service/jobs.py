@@ -152,7 +152,11 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("ingest", "cpu", (CAPTURE,), 600, publish=("capture.json",), params=("rig",)),
         StageSpec("decode", "cpu", (CAPTURE, "ingest"), 3600, publish=("decoded.npz",)),
         StageSpec("triangulate", "cpu", (CAPTURE, "ingest", "decode"), 3600,
-                  publish=("cloud.ply", "range.npz", "triangulate.json"), params=("rig",)),
+                  publish=("cloud.ply", "triangulate.json"), params=("rig",)),
+        # The range image compressed (range.glr); the raw range.npz is published from here
+        # unless params.compress.keep_range is false.
+        StageSpec("compress", "cpu", ("triangulate",), 3600, publish=("range.glr", "range.npz", "compress.json"),
+                  params=("compress",)),
         # Tiles fan out: a plan, one task per chunk (subtree), a merge (fan-in counted in the
         # database). The merge keeps the name "tiles": its folder is what viewers load.
         StageSpec("tiles_plan", "render", ("triangulate",), 7200, switch="render", params=("tiles",)),

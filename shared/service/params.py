@@ -12,6 +12,9 @@ key                       kinds      meaning
 ``tiles``                 scan       ``{"max_chunk": int >= 100, "max_leaf": int >= 100}``
 ``preview``               scan       ``{"path", "size": [w, h], "seconds", "fps"}``
                                      (:class:`shared.render.options.PreviewOptions`)
+``compress``              scan       ``{"quantum": q}`` or ``{"max_error": e}`` (rig units, > 0; default
+                                     lossless at 0.02 mm) and ``"keep_range"``: false publishes
+                                     ``range.glr`` only, not the raw ``range.npz`` (default true)
 ``seconds``               probe      how long the self-test stage sleeps, 0..60
 ========================  =========  =============================================================
 
@@ -29,7 +32,8 @@ from typing import Any
 from shared.core.errors import InputError
 from shared.render.options import PreviewOptions
 
-__all__ = ["MAX_PARAMS_BYTES", "MAX_PROBE_SECONDS", "PARAMS", "SERVICE_PARAMS", "check_job_params", "tiles_options"]
+__all__ = ["MAX_PARAMS_BYTES", "MAX_PROBE_SECONDS", "PARAMS", "SERVICE_PARAMS", "check_job_params", "compress_options",
+           "tiles_options"]
 
 #: Largest ``params`` object accepted, as JSON.
 MAX_PARAMS_BYTES = 16384
@@ -73,9 +77,28 @@ def _seconds(value: Any, field: str) -> float:
     return value
 
 
+def compress_options(value: Any, field: str = "params.compress") -> dict[str, Any]:
+    """``params.compress`` checked: at most one of ``quantum`` / ``max_error`` (positive numbers)
+    and ``keep_range`` (true or false)."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping) or set(value) - {"quantum", "max_error", "keep_range"}:
+        raise InputError(field, f"must be an object with quantum or max_error and keep_range, got {value!r}")
+    if "quantum" in value and "max_error" in value:
+        raise InputError(field, "give quantum or max_error, not both")
+    for k in ("quantum", "max_error"):
+        v = value.get(k)
+        if k in value and (not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v) or v <= 0):
+            raise InputError(f"{field}.{k}", f"must be a positive number, got {v!r}")
+    if "keep_range" in value and not isinstance(value["keep_range"], bool):
+        raise InputError(f"{field}.keep_range", f"must be true or false, got {value['keep_range']!r}")
+    return dict(value)
+
+
 #: What each job kind accepts: key -> checker(value, field name) that raises InputError.
 PARAMS: dict[str, dict[str, Callable[[Any, str], Any]]] = {
-    "scan": {"render": _render, "tiles": lambda v, f: tiles_options(v, f), "preview": _preview},
+    "scan": {"render": _render, "tiles": lambda v, f: tiles_options(v, f), "preview": _preview,
+             "compress": lambda v, f: compress_options(v, f)},
     "calibrate": {},
     "probe": {"seconds": _seconds},
 }

@@ -36,7 +36,7 @@ def test_export_stage_publishes_laz_and_copc(tmp_path: Path, small_capture: Path
             if st.state == "queued":
                 run_stage(st.id, settings, publish=False)
     assert job.state == "succeeded", job
-    assert [s.name for s in job.stages] == ["ingest", "decode", "triangulate", "export"]
+    assert [s.name for s in job.stages] == ["ingest", "decode", "triangulate", "compress", "export"]
     cloud = read_ply(arts.fetch(job.stage("triangulate").output_key, tmp_path / "c1") / "cloud.ply")
     out = arts.fetch(job.stage("export").output_key, tmp_path / "c2")
     assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [
