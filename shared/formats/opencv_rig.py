@@ -6,7 +6,10 @@ Two namings are read (and written):
   ``camera_distortion``, ``projector_matrix``, ``projector_distortion``, ``R``, ``T``, with
   ``camera_width``/``camera_height``, ``projector_width``/``projector_height`` and ``units``;
 - ``stereo`` (what ``cv2.stereoCalibrate`` users save): ``K1``, ``D1`` (the camera), ``K2``,
-  ``D2`` (the projector, or the second camera), ``R``, ``T``.
+  ``D2`` (the projector, or the second camera), ``R``, ``T``;
+- ``procam`` (read only: the structured-light calibration tool whose result ships with
+  ``procam-kamino410``): ``cam_int``, ``cam_dist``, ``proj_int``, ``proj_dist``, ``roration``
+  (sic; ``rotation`` accepted), ``translation``, and the camera's ``img_shape`` = [rows, cols].
 
 ``R``/``T`` map the first device's frame to the second's (``X_2 = R X_1 + T``, OpenCV's
 convention and rig.json's). Image sizes come from the file when present (the ``*_width`` /
@@ -35,6 +38,11 @@ NAMINGS = {
     "graylight": ("camera_matrix", "camera_distortion", "projector_matrix", "projector_distortion"),
     "stereo": ("K1", "D1", "K2", "D2"),
 }
+#: Namings read (not written): the same four keys.
+READ_NAMINGS = {**NAMINGS, "procam": ("cam_int", "cam_dist", "proj_int", "proj_dist")}
+#: Rotation and translation keys of each naming, the first present is read.
+_RT_KEYS = {"procam": (("roration", "rotation"), ("translation",))}
+_RT_DEFAULT = (("R",), ("T",))
 _SIZE_KEYS = {
     1: (("camera_width", "camera_height"), ("image_width", "image_height"), ("imageSize",), ("image_size",)),
     2: (("projector_width", "projector_height"), ("image_width2", "image_height2"), ("imageSize2",), ("image_size2",)),
@@ -108,6 +116,11 @@ def _int(fs: cv2.FileStorage, path: Path, key: str) -> int:
 
 
 def _size(fs: cv2.FileStorage, path: Path, device: int) -> tuple[int, int] | None:
+    if device == 1 and _has(fs, "img_shape"):  # procam naming: [rows, cols], as numpy's shape
+        vals = list(_mat(fs, path, "img_shape").ravel())
+        if len(vals) != 2 or any(v != int(v) or v < 1 for v in vals):
+            raise InputError(path, 'field "img_shape" must be [rows, cols] in pixels')
+        return int(vals[1]), int(vals[0])
     for keys in _SIZE_KEYS[device]:
         if len(keys) == 2 and all(_has(fs, k) for k in keys):
             return _int(fs, path, keys[0]), _int(fs, path, keys[1])
@@ -129,10 +142,13 @@ def _size(fs: cv2.FileStorage, path: Path, device: int) -> tuple[int, int] | Non
 
 def detect_naming(fs: cv2.FileStorage, path: Path) -> str:
     """``"graylight"`` or ``"stereo"``: which naming the file uses (InputError when neither)."""
-    for name, keys in NAMINGS.items():
+    for name, keys in READ_NAMINGS.items():
         if _has(fs, keys[0]):
             return name
-    raise InputError(path, 'has neither "camera_matrix" (graylight naming) nor "K1" (stereoCalibrate naming)')
+    raise InputError(
+        path,
+        'has none of "camera_matrix" (graylight naming), "K1" (stereoCalibrate naming), "cam_int" (procam)',
+    )
 
 
 def read_opencv_rig(
@@ -152,24 +168,29 @@ def read_opencv_rig(
     fs = _open(path)
     try:
         naming = detect_naming(fs, path)
-        k1, d1, k2, d2 = NAMINGS[naming]
+        k1, d1, k2, d2 = READ_NAMINGS[naming]
+        r_keys, t_keys = _RT_KEYS.get(naming, _RT_DEFAULT)
+        r_key = next((k for k in r_keys if _has(fs, k)), r_keys[0])
+        t_key = next((k for k in t_keys if _has(fs, k)), t_keys[0])
         K1 = _camera_matrix(fs, path, k1)
         D1 = _distortion(fs, path, d1)
         K2 = _camera_matrix(fs, path, k2)
         D2 = _distortion(fs, path, d2)
-        R = _mat(fs, path, "R")
+        R = _mat(fs, path, r_key)
         if R.shape == (3, 1) or R.shape == (1, 3):  # a Rodrigues vector
             R = cv2.Rodrigues(R)[0]
         if R.shape != (3, 3):
-            raise InputError(path, f'field "R" has shape {R.shape}, expected (3, 3) or a Rodrigues vector')
+            raise InputError(
+                path, f'field "{r_key}" has shape {R.shape}, expected (3, 3) or a Rodrigues vector'
+            )
         if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
-            raise InputError(path, 'field "R" is not a rotation matrix')
-        T = _mat(fs, path, "T")
+            raise InputError(path, f'field "{r_key}" is not a rotation matrix')
+        T = _mat(fs, path, t_key)
         if T.size != 3:
-            raise InputError(path, f'field "T" has shape {T.shape}, expected (3, 1)')
+            raise InputError(path, f'field "{t_key}" has shape {T.shape}, expected (3, 1)')
         T = T.ravel()
         if np.linalg.norm(T) == 0:
-            raise InputError(path, 'field "T" is zero: the two devices cannot share an optical centre')
+            raise InputError(path, f'field "{t_key}" is zero: the two devices cannot share an optical centre')
         sizes = []
         for device, given, flag in (
             (1, camera_size, "--camera-size"),

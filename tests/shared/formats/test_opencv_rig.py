@@ -163,3 +163,19 @@ def test_cli_import_export(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -
     assert main(["rig", "import", str(stereo), "--out", str(tmp_path / "x.json"), "--camera-size", "1280x1024",
                  "--projector-size", "1024x768", "--units", "m"]) == 0  # fmt: skip
     assert load_rig(tmp_path / "x.json").units == "m"
+
+
+def test_reads_the_real_procam_calibration() -> None:
+    """The calibration committed with the real session (its own tool's naming, XML): the data
+    README gives its camera as 1280x1024 with fx about 3452, cx about 587, cy about 521."""
+    from shared.core.datapaths import shared_data_dir
+
+    path = shared_data_dir() / "procam-kamino410" / "calibration_result.xml"
+    with pytest.raises(InputError, match="--projector-size"):
+        read_opencv_rig(path)  # the file has no projector size
+    rig = read_opencv_rig(path, projector_size=(1024, 768))
+    assert (rig.camera.width, rig.camera.height) == (1280, 1024)
+    assert rig.camera.fx == pytest.approx(3452, abs=1) and rig.camera.cx == pytest.approx(587, abs=1)
+    assert rig.camera.cy == pytest.approx(521, abs=1)
+    assert (rig.projector.width, rig.projector.height) == (1024, 768)
+    assert np.allclose(rig.R @ rig.R.T, np.eye(3), atol=1e-6)
