@@ -103,3 +103,20 @@ def test_json_log_lines_carry_job_and_stage(tmp_path: Path) -> None:
         mine = [d for d in lines if d["logger"] == "graylight.test"]
         assert mine == [{**mine[0], "level": "WARNING", "message": "outside any stage", "job": "j-1", "stage": "s-1"}]
         assert mine[0]["time"].endswith("Z") and "T" in mine[0]["time"]
+
+
+def test_compose_watches_the_service() -> None:
+    """The compose file runs Flower on the workers' own Celery app and a Prometheus that
+    scrapes the API's /metrics; a worker serves the control queue beside those that skip it."""
+    import yaml
+
+    deploy = Path(__file__).resolve().parents[2] / "deploy"
+    services = yaml.safe_load((deploy / "compose.yaml").read_text())["services"]
+    assert "workers.celery_app:app" in services["flower"]["command"] and "flower" in services["flower"]["command"]
+    mount = next(v for v in services["prometheus"]["volumes"] if v.endswith("/etc/prometheus/prometheus.yml:ro"))
+    config = yaml.safe_load((deploy / mount.split(":")[0]).read_text())
+    [job] = config["scrape_configs"]
+    api_port = services["api"]["command"][services["api"]["command"].index("--port") + 1]
+    assert job["metrics_path"] == "/metrics" and job["static_configs"][0]["targets"] == [f"api:{api_port}"]
+    assert services["worker-control"]["command"][3] == "control"
+    assert all("--no-control" in services[w]["command"] for w in ("worker-cpu", "worker-render"))
