@@ -27,6 +27,7 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.formats.potree import PotreeTiles, open_tiles, tight_bounds
+from shared.render._shading import shade_kernel
 from shared.render.camera_path import DEFAULT_UP, SCANNER, CameraPose, make_path
 from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
 from shared.render.raster import Camera, GLRasterizer, NodeTable, Rasterizer, select_nodes
@@ -78,16 +79,11 @@ class LoadedScene:
 def shade_colours(colour: np.ndarray, normal: np.ndarray, light: np.ndarray) -> np.ndarray:
     """Colours (N,) packed 0x00BBGGRR lit by a distant light along ``light`` (3,) unit:
     ``AMBIENT + (1 - AMBIENT) * |n . light|`` (two-sided: a normal's sign is not trusted).
-    Points whose normal is zero (none estimated) keep their colour."""
-    n = np.asarray(normal, np.float32)
-    lit = np.abs(n @ np.asarray(light, np.float32))
-    unknown = np.einsum("ij,ij->i", n, n) < 0.25
-    f = np.where(unknown, 1.0, AMBIENT + (1.0 - AMBIENT) * np.minimum(lit, 1.0))
-    c = colour.astype(np.uint32)
-    r = ((c & 0xFF) * f).astype(np.uint32)
-    g = (((c >> 8) & 0xFF) * f).astype(np.uint32)
-    b = (((c >> 16) & 0xFF) * f).astype(np.uint32)
-    return r | (g << 8) | (b << 16)
+    Points whose normal is zero (none estimated) keep their colour. ``normal`` (N, 3) float32."""
+    out = np.empty(colour.shape[0], np.uint32)
+    shade_kernel(np.ascontiguousarray(colour, np.uint32), np.asarray(normal, np.float32),
+                 np.asarray(light, np.float32), np.float32(AMBIENT), out)  # fmt: skip
+    return out
 
 
 def key_light(centre: np.ndarray, viewpoint=SCANNER, up=DEFAULT_UP) -> np.ndarray:
