@@ -34,6 +34,7 @@ from shared.core.errors import InputError
 from shared.service.archive import ArchiveLimits, extract_archive
 from shared.service.artifacts import ArtifactError, ArtifactStore
 from shared.service.config import Settings
+from shared.service.faults import storage_fault
 from shared.service.jobs import CAPTURE, GRAPHS, base_name, fanout_index, root_file, row_key, stage_spec
 from shared.service.jobstore import Job, JobStore, Stage
 from shared.service.logs import reset_log_context, set_log_context
@@ -241,6 +242,9 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
 
         if isinstance(exc, SoftTimeLimitExceeded):
             msg = f"stage {stage.name} exceeded its time limit of {spec.time_limit} s"
+        elif (fault := storage_fault(exc, stage.name)) is not None:
+            log.error("job %s stage %s: %s", job.id, stage.name, fault)
+            msg = fault
         else:
             log.exception("job %s stage %s failed", job.id, stage.name)
             msg = f"{type(exc).__name__}: {exc}"

@@ -265,13 +265,18 @@ class ArtifactStore:
         prefix = uuid.uuid4().hex
         base = f"{self._obj(key)}/{prefix}"
         entries: dict[str, FileEntry] = {}
-        for name, src in sorted(files.items()):
-            name = _check_name(name)
-            src = Path(src)
-            entries[name] = FileEntry(name, src.stat().st_size, sha256_file(src))
-            self.fs.put_file(str(src), f"{base}/{name}")
-        manifest = Manifest(key, prefix, entries, time.time())
-        self._write_manifest(key, manifest)
+        try:
+            for name, src in sorted(files.items()):
+                name = _check_name(name)
+                src = Path(src)
+                entries[name] = FileEntry(name, src.stat().st_size, sha256_file(src))
+                self.fs.put_file(str(src), f"{base}/{name}")
+            manifest = Manifest(key, prefix, entries, time.time())
+            self._write_manifest(key, manifest)
+        except BaseException:
+            # A full disk, a failing store: no manifest, so no object; take the files back too.
+            self._remove_quietly(base)
+            raise
         won = self.manifest(key)
         if won is not None and won.prefix != prefix:
             # A concurrent writer's manifest landed first; drop our copy.
@@ -302,7 +307,11 @@ class ArtifactStore:
         except OSError:
             return self.put_files(key, files)  # another filesystem: copy instead
         manifest = Manifest(key, prefix, entries, time.time())
-        self._write_manifest(key, manifest)
+        try:
+            self._write_manifest(key, manifest)
+        except BaseException:
+            shutil.rmtree(target, ignore_errors=True)  # no manifest, no object: its files go too
+            raise
         won = self.manifest(key)
         if won is not None and won.prefix != prefix:
             shutil.rmtree(target, ignore_errors=True)
@@ -328,6 +337,13 @@ class ArtifactStore:
                 os.unlink(tmp)
         else:
             self.fs.pipe_file(final, data)
+
+    def _remove_quietly(self, path: str) -> None:
+        """:meth:`_remove` while another error is on its way up: that error is the one to report."""
+        try:
+            self._remove(path)
+        except Exception as exc:
+            log.warning("could not remove the partial object %s: %s", path, exc)
 
     def _remove(self, path: str) -> None:
         try:
