@@ -176,7 +176,7 @@ def encode_chunk(vox, counts, depth, chan, log2d):
     cap = 2 * vox.shape[0] * 2 + npts * (chan.shape[1] + 1) + 4096
     while True:
         tab = np.empty(cap, np.int8)
-        val = np.empty(cap, np.int64)
+        val = np.empty(cap, np.int16)
         nb = np.empty(cap, np.int8)
         n = _events(vox, counts, depth, chan, log2d, tab, val, nb)
         if n >= 0:

@@ -439,6 +439,24 @@ def _fill_prediction(H, W, leaves, lcoef, nleaf):
 
 
 @njit(cache=True, nogil=True)
+def quantise(z, scale, lossless):
+    """Fine-unit targets of a band of depth ``z`` (float32, NaN holes) and its mask: lossless,
+    ``round(z / scale) * FINE``; bounded, ``round(z / scale)`` (scale is then the fine unit)."""
+    H, W = z.shape
+    t = np.zeros((H, W), np.int64)
+    valid = np.zeros((H, W), np.bool_)
+    for y in range(H):
+        for x in range(W):
+            v = z[y, x]
+            if v == v:
+                valid[y, x] = True
+                # divide (not multiply by 1/scale): the same rounding as numpy's z / q
+                q = np.int64(np.rint(np.float64(v) / scale))
+                t[y, x] = q << F_SHIFT if lossless else q
+    return t, valid
+
+
+@njit(cache=True, nogil=True)
 def encode_band(t, valid, lossless):
     """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool.
     Returns (packed tables uint8, rANS words uint16)."""
@@ -446,7 +464,7 @@ def encode_band(t, valid, lossless):
     cap = 2 * H * W + 64 * (H + 1) + 4096
     while True:
         tab = np.empty(cap, np.int8)
-        val = np.empty(cap, np.int64)
+        val = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
         nb = np.empty(cap, np.int8)
         n = _encode_events(t, valid, lossless, tab, val, nb)
         if n >= 0:
@@ -522,7 +540,7 @@ def _decode_mask(xa, xb, pos, words, nw, sym, fb, valid):
 @njit(cache=True, nogil=True)
 def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef):
     H, W = valid.shape
-    ii = np.zeros((H + 1, W + 1), np.int64)
+    ii = np.zeros((H + 1, W + 1), np.int32)
     for y in range(H):
         acc = 0
         for x in range(W):

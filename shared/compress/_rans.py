@@ -167,7 +167,7 @@ def encode_events(tab, val, nb, n, freq):
         else:
             sh = PROB_BITS - nb[i]
             f = np.int64(1) << sh
-            c = val[i] << sh
+            c = np.int64(val[i]) << sh
         x = st[i & 1]
         x_max = ((RANS_L >> PROB_BITS) << 16) * f
         if x >= x_max:  # one word always suffices: x < 2**32

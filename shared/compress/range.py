@@ -115,12 +115,7 @@ def check_range(z: np.ndarray, where: str = "z") -> np.ndarray:
 
 
 def _encode_band(zb: np.ndarray, plan: _Plan) -> bytes:
-    valid = ~np.isnan(zb)
-    if plan.lossless:
-        q = np.rint(np.where(valid, zb, 0).astype(np.float64) / plan.scale)
-        t = q.astype(np.int64) << qt.F_SHIFT
-    else:
-        t = np.rint(np.where(valid, zb, 0).astype(np.float64) / plan.scale).astype(np.int64)
+    t, valid = qt.quantise(zb, plan.scale, plan.lossless)
     tables, words = qt.encode_band(t, valid, plan.lossless)
     return _U32.pack(len(tables)) + tables.tobytes() + words.astype("<u2").tobytes()
 
