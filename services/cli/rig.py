@@ -8,11 +8,13 @@ import argparse
 from pathlib import Path
 
 from services.cli.args import parse_size
-from shared.formats.opencv_rig import NAMINGS, read_opencv_rig, write_opencv_rig
-from shared.formats.rig import load_rig, save_rig
 
 
 def _import(args: argparse.Namespace) -> int:
+    # OpenCV and numpy load here, not at start-up: every other command (and --help) stays without them.
+    from shared.formats.opencv_rig import read_opencv_rig
+    from shared.formats.rig import save_rig
+
     cam = parse_size(args.camera_size, "--camera-size", lo=1) if args.camera_size else None
     proj = parse_size(args.projector_size, "--projector-size", lo=1) if args.projector_size else None
     rig = read_opencv_rig(Path(args.file), camera_size=cam, projector_size=proj, units=args.units)
@@ -26,6 +28,9 @@ def _import(args: argparse.Namespace) -> int:
 
 
 def _export(args: argparse.Namespace) -> int:
+    from shared.formats.opencv_rig import write_opencv_rig  # OpenCV, numpy: loaded only for this command
+    from shared.formats.rig import load_rig
+
     rig = load_rig(Path(args.rig))
     write_opencv_rig(rig, Path(args.out), naming=args.naming)
     print(f"opencv ({args.naming} naming): {args.out}")
@@ -46,6 +51,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     q.add_argument("rig", help="rig.json")
     q.add_argument("--out", required=True, help="YAML (or .xml) file to write")
     q.add_argument(
-        "--naming", choices=list(NAMINGS), default="graylight", help="key names (default graylight)"
+        "--naming", default="graylight",
+        help="key names: graylight (default) or stereo (others are refused with a one-line error)"
     )
     q.set_defaults(func=_export)

@@ -1,5 +1,5 @@
-"""Bench of the render service: tile building against py3dtiles (3 M points, and the 15 M-point
-scan), the CPU point rasteriser against moderngl GL_POINTS on llvmpipe, and the whole preview
+"""Bench of the render service: tile building against PotreeConverter 2 and py3dtiles (2 M and
+15 M points; ours as a warm stage and as the ``graylight tiles`` command), the CPU point rasteriser against moderngl GL_POINTS on llvmpipe, and the whole preview
 stage on a 15 M-point scan.
 
 The clouds are synthetic single-view scans (:func:`tests.support.clouds.synthetic_scan`): a
@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from shared.core.datapaths import shared_data_dir
+from shared.formats.las import write_las
 from shared.formats.ply import read_header
 from shared.formats.potree import open_tiles
 from shared.render.camera_path import make_path
@@ -32,7 +34,7 @@ from tests.support.clouds import synthetic_scan
 
 # --------------------------------------------------------------------------- bench sections
 
-TILE_POINTS = 3_000_000  # py3dtiles takes ~6 s on this many here
+TILE_POINTS = 2_000_000  # the issue's 2 M points (a 2048x1536 scan gives about that many)
 SCAN_POINTS = 15_000_000
 SIZE = (1280, 720)
 GL_FRAMES = 4
@@ -70,35 +72,69 @@ def _cpu_seconds() -> float:
     return me.ru_utime + me.ru_stime + kids.ru_utime + kids.ru_stime
 
 
-def bench_tiles(work: Path) -> None:
-    cloud = synthetic_scan(work / "tiles_cloud.ply", TILE_POINTS, seed=11)
+def _potree_converter() -> Path | None:
+    """The reference PotreeConverter 2 built by ../shared/tools/potreeconverter/build.sh (about
+    a minute the first time, then instant), or None when it cannot be built here."""
+    script = shared_data_dir().parent / "tools" / "potreeconverter" / "build.sh"
+    if not script.is_file():
+        return None
+    res = subprocess.run(["bash", str(script)], capture_output=True, text=True)
+    exe = Path(res.stdout.strip().splitlines()[-1]) if res.returncode == 0 and res.stdout.strip() else None
+    if exe is None or not exe.is_file():
+        print(f"  PotreeConverter could not be built: {res.stderr.strip()[-300:]}")
+        return None
+    return exe
+
+
+def _tile_comparison(cloud: Path, work: Path, *, stage: bool = True) -> None:
+    """Tiles of ``cloud`` by our stage (warm process), our CLI (a new process, numba's cache
+    warm), PotreeConverter (the same points as uncompressed LAS, its default Poisson sampling)
+    and py3dtiles, each in turn; prints wall and CPU seconds and the ratios."""
     n = read_header(cloud).count
-    # As a job-service worker runs it: a warm process (kernels loaded), chunk processes forked.
-    build_tiles(synthetic_scan(work / "warm.ply", 20_000), work / "warm_tiles")
-    _settle()
-    c0, t0 = _cpu_seconds(), time.perf_counter()
-    build_tiles(cloud, work / "ours_tiles")
-    ours, ours_cpu = time.perf_counter() - t0, _cpu_seconds() - c0
     bin_dir = Path(sys.executable).parent
+    rows: list[tuple[str, float, float]] = []
+    if stage:
+        # As a job-service worker runs it: a warm process (kernels loaded), chunk processes forked.
+        build_tiles(synthetic_scan(work / "warm.ply", 20_000), work / "warm_tiles")
+        _settle()
+        c0, t0 = _cpu_seconds(), time.perf_counter()
+        build_tiles(cloud, work / "ours_tiles")
+        rows.append(("graylight build_tiles (stage, warm)", time.perf_counter() - t0, _cpu_seconds() - c0))
+        shutil.rmtree(work / "ours_tiles", ignore_errors=True)
     _settle()
-    cli, cli_cpu = _run([str(bin_dir / "graylight"), "tiles", str(cloud), "--out", str(work / "cli_tiles")])
+    cli = _run([str(bin_dir / "graylight"), "tiles", str(cloud), "--out", str(work / "cli_tiles")])
+    rows.append(("graylight tiles (CLI, new process)", *cli))
+    shutil.rmtree(work / "cli_tiles", ignore_errors=True)
+    exe = _potree_converter()
+    potree = (float("nan"), float("nan"))
+    if exe is not None:
+        las = work / f"{cloud.stem}.las"
+        write_las(cloud, las, compressed=False, scale=0.001)  # PotreeConverter reads LAS/LAZ, not PLY
+        _settle()
+        potree = _run([str(exe), str(las), "-o", str(work / "potree"), "--method", "poisson"])
+        las.unlink()
+        shutil.rmtree(work / "potree", ignore_errors=True)
+    rows.append(("PotreeConverter 2 (C++, LAS input)", *potree))
     _settle()
-    peer, peer_cpu = _py3dtiles(cloud, work / "py3dtiles")
-    print(
-        f"tile build, {n / 1e6:.1f} M points, {os.cpu_count()} cores (CPU = user + system of all processes):"
-    )
-    print(
-        f"  graylight build_tiles (stage, warm)  {ours:6.2f} s wall {n / ours / 1e6:5.2f} M pts/s  {ours_cpu:6.2f} s CPU"
-    )
-    print(
-        f"  graylight tiles (CLI, cold start)    {cli:6.2f} s wall {n / cli / 1e6:5.2f} M pts/s  {cli_cpu:6.2f} s CPU"
-    )
-    print(
-        f"  py3dtiles convert (CLI)              {peer:6.2f} s wall {n / peer / 1e6:5.2f} M pts/s  {peer_cpu:6.2f} s CPU"
-    )
-    print(f"  ratio stage/py3dtiles {peer / ours:.1f}x wall, {peer_cpu / ours_cpu:.1f}x CPU; "
-          f"CLI/py3dtiles {peer / cli:.1f}x wall, {peer_cpu / cli_cpu:.1f}x CPU   (target >= 10x)")  # fmt: skip
+    p3 = _py3dtiles(cloud, work / "py3dtiles")
+    rows.append(("py3dtiles convert (CLI)", *p3))
+    shutil.rmtree(work / "py3dtiles", ignore_errors=True)
+    print(f"tile build, {n / 1e6:.1f} M points, {os.cpu_count()} cores (CPU = user + system of all processes; "
+          f"load average {os.getloadavg()[0]:.1f}):")  # fmt: skip
+    for name, wall, cpu in rows:
+        print(f"  {name:37s} {wall:6.2f} s wall {n / wall / 1e6:5.2f} M pts/s  {cpu:6.2f} s CPU")
+    for name, wall, cpu in rows[: len(rows) - 2]:
+        short = name.split(" (")[0] + (" stage" if "stage" in name else " CLI")
+        print(f"  {short}: PotreeConverter/ours {potree[0] / wall:.2f}x wall, {potree[1] / cpu:.2f}x CPU "
+              f"(target >= 2x both); py3dtiles/ours {p3[0] / wall:.1f}x wall, {p3[1] / cpu:.1f}x CPU "
+              f"(target >= 15x)")  # fmt: skip
+    if n <= 2_500_000:
+        print(f"  graylight tiles CLI wall {cli[0]:.2f} s (target <= 1.2 s at 2 M points)")
     _note_load()
+
+
+def bench_tiles(work: Path) -> None:
+    _tile_comparison(synthetic_scan(work / "tiles_cloud.ply", TILE_POINTS, seed=11), work)
 
 
 def _note_load() -> None:
@@ -122,25 +158,13 @@ def _batch_fps(rz: Rasterizer, cams: list, sel: list, scene: LoadedScene) -> flo
 def bench_preview(work: Path) -> None:
     cloud = synthetic_scan(work / "scan15m.ply", SCAN_POINTS, seed=5)
     n = read_header(cloud).count
+    _tile_comparison(cloud, work, stage=False)
     _settle()
     c0 = _cpu_seconds()
-    rep = build_tiles(cloud, work / "scan15m_tiles")
-    ours_cpu = _cpu_seconds() - c0
-    # Throughput at scale is what the issue asks for: the peer converts the same 15 M points.
-    _settle()
-    peer, peer_cpu = _py3dtiles(cloud, work / "scan15m_py3dtiles")
-    ours = rep["seconds"]
-    print(f"tile build, {n / 1e6:.1f} M-point scan, {os.cpu_count()} cores:")
-    print(
-        f"  graylight build_tiles (stage, warm)  {ours:6.2f} s wall {n / ours / 1e6:5.2f} M pts/s  {ours_cpu:6.2f} s CPU"
-    )
-    print(
-        f"  py3dtiles convert (CLI)              {peer:6.2f} s wall {n / peer / 1e6:5.2f} M pts/s  {peer_cpu:6.2f} s CPU"
-    )
-    print(f"  ratio {peer / ours:.1f}x wall, {peer_cpu / ours_cpu:.1f}x CPU   (target >= 10x)")
-    _note_load()
+    rep = build_tiles(cloud, work / "scan15m_tiles")  # the preview's tiles, by a warm stage as a worker runs it
+    print(f"  graylight build_tiles (stage, warm)   {rep['seconds']:6.2f} s wall {n / rep['seconds'] / 1e6:5.2f} M pts/s  "
+          f"{_cpu_seconds() - c0:6.2f} s CPU")  # fmt: skip
     cloud.unlink()
-    shutil.rmtree(work / "scan15m_py3dtiles", ignore_errors=True)
 
     width, height = SIZE
     scene = load_scene(open_tiles(work / "scan15m_tiles"))
@@ -190,7 +214,7 @@ def bench_preview(work: Path) -> None:
         f"  moderngl GL_POINTS           {gl_fps:7.2f} fps  {gl_fps * mean_pts / 1e6:7.1f} M pts/s   ({renderer})"
     )
     print(f"  ratio {ratios[len(ratios) // 2]:.1f}x median of {len(ratios)} alternating rounds "
-          f"({', '.join(f'{r:.1f}' for r in ratios)})   (target >= 10x and >= 10 fps)")  # fmt: skip
+          f"({', '.join(f'{r:.1f}' for r in ratios)})   (target >= 15x and >= 10 fps)")  # fmt: skip
     print(
         f"  (all {scene.points / 1e6:.1f} M points in one frame: {full * 1e3:.0f} ms, {scene.points / full / 1e6:.0f} M pts/s)"
     )
