@@ -9,10 +9,12 @@ before anything is stored. OpenAPI docs at ``/docs``; the document lists every s
 route can answer (errors: :mod:`services.api.errors`).
 
 Layout: one router per resource in ``services/api/routers/`` (``health``, ``jobs``,
-``artifacts``, ``batches``, ``uploads``), the dependencies they share in
+``artifacts``, ``batches`` with their reports and retries, ``uploads``, ``metrics`` for
+Prometheus), the dependencies they share in
 :mod:`services.api.deps`, response models in :mod:`services.api.models`, HTTP plumbing
-(body limit, byte ranges, body parsing) in :mod:`services.api.http`, and intake (forms and
-bodies -> stored captures -> queued jobs) in :mod:`services.api.intake`. The viewer
+(body limit, byte ranges, body parsing) in :mod:`services.api.http`, the documented request
+bodies in :mod:`services.api.schema`, the limits per key in :mod:`services.api.quota`, and
+intake (forms and bodies -> stored captures -> queued jobs) in :mod:`services.api.intake`. The viewer
 (``services.viewer.routes``) is mounted at ``/viewer/{job}``.
 """
 

@@ -24,6 +24,7 @@ from pathlib import Path
 import pytest
 import schemathesis
 from hypothesis import HealthCheck, settings
+from schemathesis.checks import not_a_server_error
 from schemathesis.config import SchemathesisConfig
 from schemathesis.specs.openapi import checks as oa
 
@@ -88,8 +89,6 @@ def _cleanup() -> Iterator[None]:
 @schema.parametrize()
 @settings(max_examples=12, deadline=None, database=None, suppress_health_check=list(HealthCheck))
 def test_api_honours_its_document(case) -> None:
-    from schemathesis.checks import not_a_server_error
-
     case.call_and_validate(headers=AUTH, checks=[not_a_server_error, *CHECKS])
 
 
@@ -100,8 +99,6 @@ class Workflow(schema.as_state_machine()):  # type: ignore[misc]
         return {"headers": AUTH}
 
     def validate_response(self, response, case, **kwargs) -> None:
-        from schemathesis.checks import not_a_server_error
-
         case.validate_response(response, checks=[not_a_server_error, *CHECKS], headers=AUTH)
 
 
