@@ -15,6 +15,9 @@ irregular sampling, so splats drawn ``SPLAT_SCALE`` times that wide still close 
 
 from __future__ import annotations
 
+import math
+
+import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
@@ -48,6 +51,73 @@ def spacing_size(xyz: np.ndarray, k: int = SIZE_NEIGHBOURS, tree: cKDTree | None
     return out
 
 
+@numba.njit(cache=True, inline="always")
+def _smallest_eigenvector(a00, a01, a02, a11, a12, a22):
+    """Unit eigenvector of the smallest eigenvalue of a symmetric 3x3 matrix: the eigenvalues
+    in closed form (Smith 1961), then the longest cross product of two rows of A - l I."""
+    p1 = a01 * a01 + a02 * a02 + a12 * a12
+    q = (a00 + a11 + a22) / 3.0
+    b00, b11, b22 = a00 - q, a11 - q, a22 - q
+    p2 = b00 * b00 + b11 * b11 + b22 * b22 + 2.0 * p1
+    if p2 <= 1e-300:  # a multiple of the identity: no preferred direction
+        return 0.0, 0.0, 0.0
+    p = math.sqrt(p2 / 6.0)
+    det = b00 * (b11 * b22 - a12 * a12) - a01 * (a01 * b22 - a12 * a02) + a02 * (a01 * a12 - b11 * a02)
+    r = min(max(det / (2.0 * p * p * p), -1.0), 1.0)
+    phi = math.acos(r) / 3.0
+    lam = q + 2.0 * p * math.cos(phi + 2.0 * math.pi / 3.0)  # the smallest of the three
+    r0 = (a00 - lam, a01, a02)
+    r1 = (a01, a11 - lam, a12)
+    r2 = (a02, a12, a22 - lam)
+    best = -1.0
+    vx = vy = vz = 0.0
+    for u, w in ((r0, r1), (r0, r2), (r1, r2)):
+        cx = u[1] * w[2] - u[2] * w[1]
+        cy = u[2] * w[0] - u[0] * w[2]
+        cz = u[0] * w[1] - u[1] * w[0]
+        n = cx * cx + cy * cy + cz * cz
+        if n > best:
+            best, vx, vy, vz = n, cx, cy, cz
+    if best <= 0.0:
+        return 0.0, 0.0, 0.0
+    inv = 1.0 / math.sqrt(best)
+    return vx * inv, vy * inv, vz * inv
+
+
+@numba.njit(parallel=True, cache=True, nogil=True)
+def _normals_kernel(xyz, idx, viewpoint, out) -> None:
+    """Normal of point ``i`` from its neighbours ``idx[i]`` (the points' covariance), facing
+    ``viewpoint``."""
+    k = idx.shape[1]
+    for i in numba.prange(idx.shape[0]):
+        mx = my = mz = 0.0
+        for j in range(k):
+            p = idx[i, j]
+            mx += xyz[p, 0]
+            my += xyz[p, 1]
+            mz += xyz[p, 2]
+        mx /= k
+        my /= k
+        mz /= k
+        c00 = c01 = c02 = c11 = c12 = c22 = 0.0
+        for j in range(k):
+            p = idx[i, j]
+            dx, dy, dz = xyz[p, 0] - mx, xyz[p, 1] - my, xyz[p, 2] - mz
+            c00 += dx * dx
+            c01 += dx * dy
+            c02 += dx * dz
+            c11 += dy * dy
+            c12 += dy * dz
+            c22 += dz * dz
+        nx, ny, nz = _smallest_eigenvector(c00, c01, c02, c11, c12, c22)
+        q = idx[i, 0]  # the point itself (its own nearest neighbour)
+        if nx * (viewpoint[0] - xyz[q, 0]) + ny * (viewpoint[1] - xyz[q, 1]) + nz * (viewpoint[2] - xyz[q, 2]) < 0:
+            nx, ny, nz = -nx, -ny, -nz
+        out[i, 0] = nx
+        out[i, 1] = ny
+        out[i, 2] = nz
+
+
 def pca_normals(
     xyz: np.ndarray,
     viewpoint: np.ndarray | None = None,
@@ -56,7 +126,9 @@ def pca_normals(
 ) -> np.ndarray:
     """(N, 3) float32 unit normals: the least-variance axis of each point's ``k`` nearest
     points, turned to face ``viewpoint`` (3,) (default the origin: a Graylight cloud's scanner).
-    Points with fewer than three neighbours get a zero normal (unknown)."""
+    Points whose neighbourhood has no least-variance axis (fewer than three points, or all
+    coincident) get a zero normal (unknown)."""
+    xyz = np.ascontiguousarray(xyz, np.float64)
     n = xyz.shape[0]
     out = np.zeros((n, 3), np.float32)
     if n < 3:
@@ -65,14 +137,8 @@ def pca_normals(
     vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint, np.float64)
     tree = tree or kdtree(xyz)
     for a in range(0, n, BLOCK):
-        p = np.asarray(xyz[a : a + BLOCK], np.float64)
-        _, idx = tree.query(p, k=k, workers=-1)
-        nb = np.asarray(xyz, np.float64)[idx]  # (B, k, 3)
-        nb -= nb.mean(axis=1, keepdims=True)
-        cov = np.einsum("bki,bkj->bij", nb, nb)
-        _w, v = np.linalg.eigh(cov)  # eigenvalues ascending: column 0 is the normal
-        normal = v[:, :, 0]
-        flip = np.einsum("bi,bi->b", normal, vp - p) < 0
-        normal[flip] *= -1
-        out[a : a + BLOCK] = normal
+        _, idx = tree.query(xyz[a : a + BLOCK], k=k, workers=-1)
+        # The query lists each point first (distance 0) unless a coincident point ties with it.
+        idx[:, 0] = np.arange(a, a + idx.shape[0])
+        _normals_kernel(xyz, np.ascontiguousarray(idx, np.int64), vp, out[a : a + BLOCK])
     return out
