@@ -37,7 +37,7 @@ import logging
 import math
 import os
 import struct
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -394,18 +394,38 @@ def potree_layout(tiles) -> LasLayout:
     return LasLayout(point_format=7 if "rgb" in names else 6, extra=tuple(extra))
 
 
-def write_copc(tiles, out: str | os.PathLike[str], *, units: str = "mm") -> dict:
+def write_copc(
+    tiles,
+    out: str | os.PathLike[str],
+    *,
+    units: str = "mm",
+    extras: tuple[tuple[str, str, str], ...] = (),
+    lookup: Callable[[np.ndarray], dict[str, np.ndarray]] | None = None,
+) -> dict:
     """Write opened Potree 2.0 tiles (``shared.formats.potree.PotreeTiles``) as one COPC file.
 
     The LAS scale and offset are the tiles' own (build the tiles with the scale wanted, e.g.
-    :func:`coordinate_scale`); the root cube is the tiles' cubic bounding box.
+    :func:`coordinate_scale`); the root cube is the tiles' cubic bounding box. ``extras``
+    (LAS name, source name, dtype) are dimensions the tiles do not carry; ``lookup(ixyz)``
+    returns them, by LAS name, for a node's (N, 3) int32 positions.
     """
-    layout = potree_layout(tiles)
+    base = potree_layout(tiles)
+    layout = LasLayout(point_format=base.point_format, extra=base.extra + tuple(extras))
     scales = np.asarray(tiles.scale, np.float64)
     if not np.allclose(scales, scales[0], rtol=0, atol=0):
         raise InputError(tiles.root / "metadata.json", "COPC needs one scale for the three axes")
+
+    def nodes() -> Iterator[CopcNode]:
+        for node in iter_potree_nodes(tiles, base):
+            if extras and lookup is not None and len(node.ixyz):
+                node = CopcNode(node.key, node.ixyz, node.rgb, {**node.extra, **lookup(node.ixyz)})
+            elif extras:
+                node = CopcNode(node.key, node.ixyz, node.rgb,
+                                {**node.extra, **{e[0]: np.empty(0, e[2]) for e in extras}})  # fmt: skip
+            yield node
+
     return write_copc_nodes(
-        out, iter_potree_nodes(tiles, layout), layout=layout, scale=float(scales[0]), offset=tiles.offset,
+        out, nodes(), layout=layout, scale=float(scales[0]), offset=tiles.offset,
         cube_min=tiles.box_min, cube_size=float(tiles.box_max[0] - tiles.box_min[0]),
         spacing=float(tiles.metadata["spacing"]), points=tiles.points, units=units,
     )  # fmt: skip

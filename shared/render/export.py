@@ -5,11 +5,11 @@ written under a temporary name and renamed when complete:
 
 - ``laz``: LAS 1.4 compressed with LASzip, every property kept (:func:`shared.formats.las.write_las`);
 - ``las``: the same, uncompressed;
-- ``copc``: cloud-optimised LAZ. The octree is the Potree tiles builder's
-  (:func:`shared.render.octree.build_tiles`, out of core and in parallel), built at the LAS
-  scale of :func:`shared.formats.las.coordinate_scale`, then written node by node
-  (:func:`shared.formats.las.write_copc`). It carries what the tiles carry: colour, normal and
-  ``size``;
+- ``copc``: cloud-optimised LAZ with the same dimensions as ``laz``. The octree is the Potree
+  tiles builder's (:func:`shared.render.octree.build_tiles`, out of core and in parallel),
+  built at the LAS scale of :func:`shared.formats.las.coordinate_scale`, then written node by
+  node (:func:`shared.formats.las.write_copc`); properties the tiles do not carry
+  (``confidence``, ``view``...) are looked up in the source by position;
 - ``e57``: one scan with colour and normals (:func:`shared.formats.e57.write_e57`);
 - ``ply``: binary little-endian PLY with every property and comment of the source.
 
@@ -23,14 +23,52 @@ import tempfile
 import time
 from pathlib import Path
 
+import numpy as np
+
 from shared.core.errors import InputError
 from shared.formats.e57 import write_e57
-from shared.formats.las import cloud_bounds, coordinate_scale, ply_units, write_copc, write_las
+from shared.formats.las import cloud_bounds, coordinate_scale, las_layout, ply_units, write_copc, write_las
 from shared.formats.ply import iter_ply_records, read_header, write_ply_records
 from shared.formats.potree import open_tiles
-from shared.render.octree import build_tiles
+from shared.render._match import match_points
+from shared.render.octree import build_tiles, quantise
 
 FORMATS = ("laz", "las", "copc", "e57", "ply")
+#: PLY properties the tiles carry; the COPC export looks the others up in the source.
+TILE_PROPERTIES = frozenset({"x", "y", "z", "red", "green", "blue", "nx", "ny", "nz", "size"})
+
+
+def _source_lookup(cloud_ply: Path, tiles, extras: tuple[tuple[str, str, str], ...]):
+    """A function from a tile node's (N, 3) int32 positions to the source cloud's ``extras``
+    properties of those points (by LAS name).
+
+    The source points are quantised exactly as the tiles builder does and sorted by position
+    (memory: 20 bytes a point); each tile point then finds its own source point by binary
+    search, coincident points each taking a different one."""
+    header = read_header(cloud_ply)
+    offset = np.asarray(tiles.offset, np.float64)
+    scale = float(np.asarray(tiles.scale, np.float64)[0])
+    qsize = int(round(float(tiles.box_max[0] - tiles.box_min[0]) / scale))
+    q = np.empty((header.count, 3), np.int32)
+    pos = 0
+    for rec in iter_ply_records(cloud_ply):
+        xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1)
+        q[pos : pos + len(rec)] = quantise(xyz, offset, scale, qsize)
+        pos += len(rec)
+    order = np.lexsort((q[:, 2], q[:, 1], q[:, 0]))
+    sorted_q = np.ascontiguousarray(q[order])
+    del q
+    used = np.zeros(header.count, bool)
+    source = next(iter_ply_records(cloud_ply, max(header.count, 1)))  # a memory map, not a copy
+
+    def lookup(ixyz: np.ndarray) -> dict[str, np.ndarray]:
+        idx = np.empty(ixyz.shape[0], np.int64)
+        missing = match_points(sorted_q, order, np.ascontiguousarray(ixyz, np.int32), used, idx)
+        if missing:
+            raise RuntimeError(f"{missing} tile points have no source point in {cloud_ply}")
+        return {las: np.asarray(source[src][idx]) for las, src, _t in extras}
+
+    return lookup
 
 
 def export_cloud(
@@ -60,7 +98,10 @@ def export_cloud(
         work = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tiles", dir=out.parent))
         try:
             build_tiles(cloud_ply, work / "tiles", workers=workers, scale=scale, max_leaf=max_leaf)
-            report = write_copc(open_tiles(work / "tiles"), out, units=units)
+            tiles = open_tiles(work / "tiles")
+            extras = tuple(e for e in las_layout(header.dtype, cloud_ply).extra if e[1] not in TILE_PROPERTIES)
+            lookup = _source_lookup(cloud_ply, tiles, extras) if extras else None
+            report = write_copc(tiles, out, units=units, extras=extras, lookup=lookup)
         finally:
             shutil.rmtree(work, ignore_errors=True)
     elif fmt == "e57":

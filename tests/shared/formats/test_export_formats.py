@@ -141,6 +141,25 @@ def test_copc_hierarchy_reaches_every_point_once(full: Path, arrays: dict, tmp_p
     )
     assert np.array_equal(np.asarray(all_pts.NormalZ)[order_las], arrays["normal"][order_src, 2])
     assert np.array_equal(np.asarray(all_pts.size)[order_las], arrays["size"][order_src])
+    # The properties the tiles do not carry come along too (looked up by position).
+    assert set(all_pts.point_format.extra_dimension_names) >= {"confidence", "view"}
+    assert np.array_equal(np.asarray(all_pts.confidence)[order_las], arrays["confidence"][order_src])
+    assert np.array_equal(np.asarray(all_pts.view)[order_las], arrays["view"][order_src])
+
+
+def test_copc_extras_of_coincident_points(tmp_path: Path) -> None:
+    a = surface_points(60, 45, seed=3)
+    a["xyz"][10:30] = a["xyz"][5]  # twenty-one points at one place, each with its own confidence
+    cloud = write_cloud(tmp_path / "dup.ply", a, ALL_FIELDS)
+    export_cloud(cloud, tmp_path / "dup.copc.laz", "copc", workers=1)
+    with laspy.CopcReader.open(tmp_path / "dup.copc.laz") as r:
+        pts = r.query()
+        q = _quantised(a["xyz"], r.header.scales[0], r.header.offsets)
+    stored = np.stack([pts.X, pts.Y, pts.Z], axis=1).astype(np.int64)
+    src = np.lexsort((a["confidence"], q[:, 2], q[:, 1], q[:, 0]))
+    got = np.lexsort((np.asarray(pts.confidence), stored[:, 2], stored[:, 1], stored[:, 0]))
+    assert np.array_equal(q[src], stored[got])
+    assert np.array_equal(a["confidence"][src], np.asarray(pts.confidence)[got])  # none lost, none doubled
 
 
 def test_copc_of_a_big_tree_with_several_compression_batches(
