@@ -11,10 +11,11 @@ Return number and number of returns are 1 (one return a sample, as LAS 1.4 requi
 
 Coordinates stay in the rig's frame and units (millimetres for Graylight: LAS has no unit
 field, the VLR ``graylight``/1 says it in text). They are stored as integers
-``X = floor((x - offset) / scale + 0.5)`` with ``offset`` the cloud's minimum corner and
-``scale`` from :func:`coordinate_scale`: the largest power of ten not above the float32 step
-at the cloud's largest coordinate magnitude. The PLY holds float32 positions, so no
-coordinate moves by more than half the step the PLY itself rounded to (for an object within
+``X = floor((x - offset) * (1 / scale) + 0.5)`` (the tiles builder's own quantisation) with
+``offset`` the cloud's minimum corner and ``scale`` from :func:`coordinate_scale`: the
+largest power of ten not above the float32 step at the cloud's largest coordinate magnitude.
+The PLY holds float32 positions, so no coordinate moves by more than half the float32 step
+at the cloud's largest coordinate, the PLY's own coarsest rounding (for an object within
 600 mm of the camera the scale is 1e-5 mm = 10 nm, three to four orders of magnitude below
 the scanner's depth noise), while the integers span at most 20 * 2**24 steps, well inside
 int32.
@@ -25,7 +26,9 @@ hierarchy (one page: ``VoxelKey`` level, x, y, z; offset; byte size; point count
 extended VLR after the points. :func:`write_copc` takes the octree from Potree 2.0 tiles
 (:mod:`shared.formats.potree`, built with the same scale and offset), whose nodes are cubes of
 the same root cube and which hold every point once (additive level of detail, as COPC). The
-integer positions are copied, so every point lies inside its node's bounds exactly.
+integer positions are copied, so every point lies inside its node's bounds exactly. Dimensions
+the tiles do not carry come from a ``lookup`` of the source (:func:`shared.render.export`
+finds each tile point's source point by position), so COPC holds what LAZ holds.
 
 Both writers stream: chunks of the PLY (memory-mapped) or one node group at a time.
 """
