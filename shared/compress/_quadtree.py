@@ -71,6 +71,8 @@ L_RES = 8
 
 #: Parameters of the models 0..3 (constant, plane, bilinear, quadratic) and their estimated bits.
 K_OF = np.array([1, 3, 4, 6], np.int64)
+IDX6 = np.arange(6)
+WS_SIZE = 96
 MODEL_BITS = np.array([8.0, 24.0, 32.0, 48.0])
 TWO_PI_E = 2.0 * math.pi * math.e
 
@@ -101,9 +103,9 @@ def model_eval(m, c, X, Y):
 
 
 @njit(cache=True, nogil=True)
-def _solve(M, r, idx, k, a):
-    """Least squares by Cholesky on the k x k sub-system ``idx``; False if singular."""
-    L = np.zeros((6, 6))
+def _solve(M, r, idx, k, a, L, y):
+    """Least squares by Cholesky on the k x k sub-system ``idx``; False if singular. ``L``
+    (6, 6) and ``y`` (6,) are scratch (no allocation per block)."""
     tr = 0.0
     for i in range(k):
         tr += M[idx[i], idx[i]]
@@ -121,7 +123,6 @@ def _solve(M, r, idx, k, a):
                 L[i, i] = math.sqrt(s)
             else:
                 L[i, j] = s / L[j, j]
-    y = np.zeros(6)
     for i in range(k):
         s = r[idx[i]]
         for m in range(i):
@@ -135,10 +136,11 @@ def _solve(M, r, idx, k, a):
     return True
 
 
-@njit(cache=True, nogil=True)
-def fit_block(t, valid, y0, x0, B, coef):
+@njit(cache=True, nogil=True, fastmath=True)  # encoder only: the decoder never fits
+def fit_block(t, valid, y0, x0, B, coef, ws):
     """Choose and fit the model of one block: returns (model, estimated bits, valid count);
-    ``coef`` receives the integer coefficients. Model -1 and count 0 for an empty block."""
+    ``coef`` receives the integer coefficients. Model -1 and count 0 for an empty block.
+    ``ws`` is a float64 scratch array of :data:`WS_SIZE` (no allocation per block)."""
     H, W = t.shape
     # The normal equations of the quadratic basis (1, X, Y, XY, X^2, Y^2) in scalars: the
     # compiler keeps them in registers (an array accumulator costs about 3x).
@@ -149,33 +151,47 @@ def fit_block(t, valid, y0, x0, B, coef):
     n = 0
     tref = 0.0
     inv = 1.0 / B
+    found = False
+    for y in range(y0, min(y0 + B, H)):
+        for x in range(x0, min(x0 + B, W)):
+            if valid[y, x]:
+                tref = float(t[y, x])
+                found = True
+                break
+        if found:
+            break
+    if not found:
+        return -1, 0.0, 0
+    sn = 0.0
     for y in range(y0, min(y0 + B, H)):
         Y = (2 * (y - y0) - (B - 1)) * inv
         YY = Y * Y
+        # Branch-free (invalid samples weigh 0) so that the compiler vectorises the row.
         for x in range(x0, min(x0 + B, W)):
-            if not valid[y, x]:
-                continue
-            if n == 0:
-                tref = float(t[y, x])
+            wv = 1.0 if valid[y, x] else 0.0
             X = (2 * (x - x0) - (B - 1)) * inv
-            d = float(t[y, x]) - tref
+            d = (float(t[y, x]) - tref) * wv
             XX = X * X
             XY = X * Y
-            s1 += 1.0
-            sx += X
-            sy += Y
-            sxx += XX
-            sxy += XY
-            syy += YY
-            sxxx += XX * X
-            sxxy += XX * Y
-            sxyy += X * YY
-            syyy += YY * Y
-            sxxxx += XX * XX
-            sxxxy += XX * XY
-            sxxyy += XX * YY
-            sxyyy += XY * YY
-            syyyy += YY * YY
+            wX = wv * X
+            wXX = wv * XX
+            wXY = wv * XY
+            wYY = wv * YY
+            sn += wv
+            sx += wX
+            sy += wv * Y
+            sxx += wXX
+            sxy += wXY
+            syy += wYY
+            sxxx += wXX * X
+            sxxy += wXX * Y
+            sxyy += wX * YY
+            syyy += wYY * Y
+            sxxxx += wXX * XX
+            sxxxy += wXX * XY
+            sxxyy += wXX * YY
+            sxyyy += wXY * YY
+            syyyy += wYY * YY
             r0 += d
             r1 += d * X
             r2 += d * Y
@@ -183,10 +199,11 @@ def fit_block(t, valid, y0, x0, B, coef):
             r4 += d * XX
             r5 += d * YY
             dd += d * d
-            n += 1
+    n = int(sn + 0.5)
+    s1 = sn
     if n == 0:
         return -1, 0.0, 0
-    M = np.empty((6, 6))
+    M = ws[0:36].reshape((6, 6))
     # rows: 1, X, Y, XY, XX, YY
     M[0, 0] = s1
     M[0, 1] = sx
@@ -212,23 +229,26 @@ def fit_block(t, valid, y0, x0, B, coef):
     for i in range(6):
         for j in range(i):
             M[i, j] = M[j, i]
-    r = np.empty(6)
+    r = ws[36:42]
     r[0] = r0
     r[1] = r1
     r[2] = r2
     r[3] = r3
     r[4] = r4
     r[5] = r5
-    idx = np.array([0, 1, 2, 3, 4, 5])
+    idx = IDX6
     best_m = 0
     best_cost = 1e300
-    best_a = np.zeros(6)
-    a = np.zeros(6)
+    best_a = ws[42:48]
+    best_a[:] = 0.0
+    a = ws[48:54]
+    L = ws[54:90].reshape((6, 6))
+    yv = ws[90:96]
     for m in range(4):
         k = K_OF[m]
         if m > 0 and n < 2 * k:
             break
-        if not _solve(M, r, idx, k, a):
+        if not _solve(M, r, idx, k, a, L, yv):
             continue
         sse = dd
         for i in range(k):
@@ -305,9 +325,10 @@ def _encode_events(t, valid, lossless, tab, val, nb):
     kids = np.zeros((4, 6), np.int64)
     kid_m = np.zeros(4, np.int64)
     kid_cost = np.zeros(4)
+    ws = np.empty(WS_SIZE)
     for ty in range(0, H, TOP):
         for tx in range(0, W, TOP):
-            m, cost, cnt = fit_block(t, valid, ty, tx, TOP, coef)
+            m, cost, cnt = fit_block(t, valid, ty, tx, TOP, coef, ws)
             if cnt == 0:
                 continue
             sp = 0
@@ -335,7 +356,7 @@ def _encode_events(t, valid, lossless, tab, val, nb):
                     for k in range(4):
                         kx = x0 + (k & 1) * h
                         ky = y0 + (k >> 1) * h
-                        kid_m[k], kid_cost[k], kc = fit_block(t, valid, ky, kx, h, kids[k])
+                        kid_m[k], kid_cost[k], kc = fit_block(t, valid, ky, kx, h, kids[k], ws)
                         if kc > 0:
                             split_cost += kid_cost[k]
                     split = split_cost < cost
