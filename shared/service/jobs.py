@@ -165,7 +165,8 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
                   params=("preview", "preview_epoch"), switch="render"),
         # The cloud in the formats GIS and survey software read (LAS 1.4 LAZ, COPC).
-        StageSpec("export", "render", ("triangulate",), 7200, publish=("cloud.laz", "cloud.copc.laz")),
+        # CPU work (LAZ compression), so it runs on the cpu queue; {"export": false} skips it.
+        StageSpec("export", "cpu", ("triangulate",), 7200, publish=("cloud.laz", "cloud.copc.laz"), switch="export"),
     ),
     "calibrate": (
         StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json")),

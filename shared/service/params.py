@@ -9,6 +9,7 @@ and tiles have run. The stage adapters read the same checked values.
 key                       kinds      meaning
 ========================  =========  =============================================================
 ``render``                scan       ``false`` leaves out tiles and preview (and what follows them)
+``export``                scan       ``false`` leaves out the LAZ / COPC export
 ``tiles``                 scan       ``{"max_chunk": int >= 100, "max_leaf": int >= 100}``
 ``preview``               scan       ``{"path", "size": [w, h], "seconds", "fps"}``
                                      (:class:`shared.render.options.PreviewOptions`)
@@ -57,7 +58,7 @@ def tiles_options(value: Any, field: str = "params.tiles") -> dict[str, int]:
     return dict(value)
 
 
-def _render(value: Any, field: str) -> bool:
+def _switch(value: Any, field: str) -> bool:
     if not isinstance(value, bool):
         raise InputError(field, f"must be true or false, got {value!r}")
     return value
@@ -97,7 +98,7 @@ def compress_options(value: Any, field: str = "params.compress") -> dict[str, An
 
 #: What each job kind accepts: key -> checker(value, field name) that raises InputError.
 PARAMS: dict[str, dict[str, Callable[[Any, str], Any]]] = {
-    "scan": {"render": _render, "tiles": lambda v, f: tiles_options(v, f), "preview": _preview,
+    "scan": {"render": _switch, "export": _switch, "tiles": lambda v, f: tiles_options(v, f), "preview": _preview,
              "compress": lambda v, f: compress_options(v, f)},
     "calibrate": {},
     "probe": {"seconds": _seconds},

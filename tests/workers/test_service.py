@@ -39,7 +39,8 @@ pytestmark = pytest.mark.slow
 
 #: Render stages at a tiny size so they take a fraction of a second.
 FAST = '{"preview": {"size": [96, 72], "seconds": 0.5, "fps": 4}}'
-NO_RENDER = '{"render": false}'
+# These tests are about the job service, not the products: the scan stages only.
+NO_RENDER = '{"render": false, "export": false}'
 
 
 def client_for(senv: ServiceEnv) -> tuple[TestClient, dict[str, str]]:

@@ -67,15 +67,24 @@ def _keys(params: dict) -> dict[str, str]:
     return keys
 
 
+def _downstream(name: str) -> set[str]:
+    out: set[str] = set()
+    for s in graph_for("scan", {"render": False}):
+        if name in s.depends_on or out & set(s.depends_on):
+            out.add(s.name)
+    return out
+
+
 def test_rows_to_rerun() -> None:
     keys = _keys({"render": False})
     assert rows_to_rerun("scan", _rows(keys), "cap", {"render": False}) == set()
     # A failed stage re-runs with everything downstream of it, nothing upstream.
     failed = rows_to_rerun("scan", _rows(keys, {"decode": StageState.FAILED}), "cap", {"render": False})
-    assert failed == {"decode", "triangulate", "export"}
-    # A parameter that only ingest and triangulate read (the rig) re-runs them and what follows.
+    assert failed == {"decode"} | _downstream("decode")
+    assert "ingest" not in failed and {"triangulate", "compress", "export"} <= failed
+    # A parameter that ingest and triangulate read (the rig) re-runs them and what follows.
     rig = rows_to_rerun("scan", _rows(keys), "cap", {"render": False, "rig": "other"})
-    assert rig == {"ingest", "decode", "triangulate", "export"}
+    assert rig == {"ingest"} | _downstream("ingest")
 
 
 def test_graphs_declare_known_queues() -> None:
