@@ -35,8 +35,8 @@ from shared.compress._rans import (
     zigzag,
 )
 
-T_OCC = 0  # 8 parent counts x 4 sibling-neighbour counts
-N_OCC = 32
+T_OCC = 0  # 8 parent counts x 8 patterns of the three sibling face neighbours
+N_OCC = 64
 T_DUP = T_OCC + N_OCC
 T_ATTR = T_DUP + 1
 MAX_CHANNELS = 16
@@ -46,6 +46,12 @@ L_DUP = 2
 MAX_DEPTH = 21
 
 POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.int64)
+#: REFLECT[i, byte]: the occupancy byte seen from octant i (child bit b moves to b ^ i). Coding
+#: every node's byte as if the node were child 0 of its parent makes the byte distributions of
+#: all eight positions one (a floor's pattern looks the same from every octant), so a context's
+#: table learns from eight times the nodes. Self-inverse.
+REFLECT = np.array([[sum(((byte >> b) & 1) << (b ^ i) for b in range(8)) for byte in range(256)] for i in range(8)],
+                   np.int64)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -96,8 +102,8 @@ def unmorton(codes):
 def _context(pbyte, idx):
     if pbyte == 0:
         return 0
-    nsib = ((pbyte >> (idx ^ 1)) & 1) + ((pbyte >> (idx ^ 2)) & 1) + ((pbyte >> (idx ^ 4)) & 1)
-    return (POPCOUNT[pbyte] - 1) * 4 + nsib
+    sib = ((pbyte >> (idx ^ 1)) & 1) | (((pbyte >> (idx ^ 2)) & 1) << 1) | (((pbyte >> (idx ^ 4)) & 1) << 2)
+    return (POPCOUNT[pbyte] - 1) * 8 + sib
 
 
 @njit(cache=True, nogil=True)
@@ -148,7 +154,7 @@ def _events(vox, counts, depth, chan, log2d, tab, val, nb):
             for k in range(j0, j):
                 npb[k - c0] = byte
             ctx = _context(pb[i], key & 7) if d > 0 else 0
-            n = put(tab, val, nb, n, T_OCC + ctx, byte - 1, 0)
+            n = put(tab, val, nb, n, T_OCC + ctx, REFLECT[key & 7, byte] - 1, 0)
         pb = npb
     if n < 0:
         return -1
@@ -208,8 +214,10 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
             key = cur[i]
             ctx = _context(cpb[i], key & 7) if d > 0 else 0
             s, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_OCC + ctx)
-            byte = s + 1
-            if byte > 255 or m + POPCOUNT[byte] > nvox:
+            if s > 254:
+                return -1
+            byte = REFLECT[key & 7, s + 1]
+            if m + POPCOUNT[byte] > nvox:
                 return -1
             for b in range(8):
                 if (byte >> b) & 1:

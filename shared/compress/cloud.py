@@ -39,8 +39,9 @@ from shared.formats.ply import iter_ply_records, read_header, write_ply_records
 log = logging.getLogger(__name__)
 
 CODEC = "octree-rans-1"
-#: Points per chunk: about 100 MB of working memory per chunk in flight.
-CHUNK_POINTS = 1 << 22
+#: Points per chunk: a few tens of MB of working memory per chunk in flight, and enough chunks
+#: in a scan-sized cloud (2-3 M points) for both cores to decode.
+CHUNK_POINTS = 1 << 20
 NORMAL_BITS = 12
 #: Largest angle between a normal and its decoded value, degrees (measured bound of 12-bit octahedral).
 NORMAL_MAX_DEG = 0.05
