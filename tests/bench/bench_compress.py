@@ -429,8 +429,11 @@ def section_views_vs_merged() -> None:
         views = sum(len(encode_range(load_range_npz(p), max_error=e)) for p in ranges) + 16 * 8 * len(ranges)
         cloud = len(encode_cloud(geo, 2 * e))
         smaller = "per-view range images" if views < cloud else "the merged cloud"
-        print(f"  within {e} mm: views {views / 1e3:.0f} kB, merged cloud geometry {cloud / 1e3:.0f} kB:"
-              f" {smaller} smaller by {max(views, cloud) / min(views, cloud):.2f}x")
+        print(f"  within {e} mm: views {views / 1e3:.0f} kB ({views * 8 / nvalid:.2f} bits/sample), merged cloud geometry"
+              f" {cloud / 1e3:.0f} kB ({cloud * 8 / len(geo):.2f} bits/point): {smaller} smaller by"
+              f" {max(views, cloud) / min(views, cloud):.2f}x")
+    print(f"  (the fused cloud keeps {len(geo) / nvalid:.0%} of the views' samples: it is a resampling, not the raw data;"
+          " the views are what can be re-fused later)")
 
 
 def main() -> None:
