@@ -15,59 +15,12 @@ from __future__ import annotations
 from typing import Any
 
 from services.api.intake import NAME_PATTERN
-from shared.render.options import MAX_FPS, MAX_HEIGHT, MAX_SECONDS, MAX_WIDTH, MIN_SIDE
 from shared.service.jobs import GRAPHS
-from shared.service.params import MAX_PROBE_SECONDS
+from shared.service.params import params_schema
 
 __all__ = ["any_params_schema", "batch_body", "job_body", "params_schema"]
 
 _NAME = {"type": "string", "pattern": NAME_PATTERN}
-
-_PREVIEW = {
-    "type": "object",
-    "description": "preview video options",
-    "properties": {
-        "path": {"type": "string", "minLength": 1, "description": "orbit, dolly or a keyframe file"},
-        "size": {
-            "type": "array",
-            "description": "[width, height] in pixels, even",
-            "prefixItems": [
-                {"type": "integer", "minimum": MIN_SIDE, "maximum": MAX_WIDTH, "multipleOf": 2},
-                {"type": "integer", "minimum": MIN_SIDE, "maximum": MAX_HEIGHT, "multipleOf": 2},
-            ],
-            "items": False,
-            "minItems": 2,
-            "maxItems": 2,
-        },
-        "seconds": {"type": "number", "exclusiveMinimum": 0, "maximum": MAX_SECONDS},
-        "fps": {"type": "number", "minimum": 1, "maximum": MAX_FPS},
-    },
-    "additionalProperties": False,
-}
-
-_TILES = {
-    "type": ["object", "null"],
-    "description": "Potree tiling options (null: the defaults)",
-    "properties": {"max_chunk": {"type": "integer", "minimum": 100}, "max_leaf": {"type": "integer", "minimum": 100}},
-    "additionalProperties": False,
-}
-
-#: The parameters each kind of job accepts (:data:`shared.service.params.PARAMS`).
-_PARAMS: dict[str, dict[str, Any]] = {
-    "scan": {
-        "render": {"type": "boolean", "description": "false leaves out tiles and preview"},
-        "tiles": _TILES,
-        "preview": _PREVIEW,
-    },
-    "calibrate": {},
-    "probe": {"seconds": {"type": "number", "minimum": 0, "maximum": MAX_PROBE_SECONDS}},
-}
-
-
-def params_schema(kind: str) -> dict[str, Any]:
-    """The JSON Schema of a ``kind`` job's ``params``."""
-    return {"type": "object", "properties": _PARAMS[kind], "additionalProperties": False}
-
 
 def _kinds(build: Any) -> list[dict[str, Any]]:
     """One ``anyOf`` branch per kind: its ``kind`` (required but for ``scan``, the default)

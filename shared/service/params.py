@@ -28,12 +28,13 @@ from __future__ import annotations
 import json
 import math
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 from shared.core.errors import InputError
-from shared.render.options import PreviewOptions
+from shared.render.options import MAX_FPS, MAX_HEIGHT, MAX_SECONDS, MAX_WIDTH, MIN_SIDE, PreviewOptions
 
-__all__ = ["MAX_PARAMS_BYTES", "MAX_PROBE_SECONDS", "PARAMS", "SERVICE_PARAMS", "check_job_params", "compress_options",
+__all__ = ["MAX_PARAMS_BYTES", "MAX_PROBE_SECONDS", "PARAMS", "Param", "params_schema", "SERVICE_PARAMS", "check_job_params", "compress_options",
            "tiles_options"]
 
 #: Largest ``params`` object accepted, as JSON.
@@ -96,13 +97,77 @@ def compress_options(value: Any, field: str = "params.compress") -> dict[str, An
     return dict(value)
 
 
-#: What each job kind accepts: key -> checker(value, field name) that raises InputError.
-PARAMS: dict[str, dict[str, Callable[[Any, str], Any]]] = {
-    "scan": {"render": _switch, "export": _switch, "tiles": lambda v, f: tiles_options(v, f), "preview": _preview,
-             "compress": lambda v, f: compress_options(v, f)},
-    "calibrate": {},
-    "probe": {"seconds": _seconds},
+_POSITIVE = {"type": "number", "exclusiveMinimum": 0}
+_PREVIEW_SCHEMA = {
+    "type": "object",
+    "description": "preview video options",
+    "properties": {
+        "path": {"type": "string", "minLength": 1, "description": "auto, arc, orbit, dolly or a keyframe file"},
+        "size": {
+            "type": "array",
+            "description": "[width, height] in pixels, even",
+            "prefixItems": [
+                {"type": "integer", "minimum": MIN_SIDE, "maximum": MAX_WIDTH, "multipleOf": 2},
+                {"type": "integer", "minimum": MIN_SIDE, "maximum": MAX_HEIGHT, "multipleOf": 2},
+            ],
+            "items": False,
+            "minItems": 2,
+            "maxItems": 2,
+        },
+        "seconds": {"type": "number", "exclusiveMinimum": 0, "maximum": MAX_SECONDS},
+        "fps": {"type": "number", "minimum": 1, "maximum": MAX_FPS},
+    },
+    "additionalProperties": False,
 }
+_TILES_SCHEMA = {
+    "type": ["object", "null"],
+    "description": "Potree tiling options (null: the defaults)",
+    "properties": {k: {"type": "integer", "minimum": 100} for k in _TILE_OPTIONS},
+    "additionalProperties": False,
+}
+# Two shapes (quantum, or max_error), not a "not" clause: the bodies are multipart, and
+# schemathesis cannot evaluate "not" beside a binary part.
+_COMPRESS_SCHEMA = {
+    "description": "range compression: quantum (lossless at that step) or max_error (bounded), rig units",
+    "anyOf": [
+        {"type": "null"},
+        *({"type": "object", "properties": {mode: _POSITIVE, "keep_range": {"type": "boolean"}}, "additionalProperties": False}
+          for mode in ("quantum", "max_error")),
+    ],
+}
+
+
+@dataclass(frozen=True)
+class Param:
+    """One job parameter: its check (raises :class:`InputError` naming the field) and the JSON
+    Schema of its value, which the API's OpenAPI document states (``services/api/schema.py``)."""
+
+    check: Callable[[Any, str], Any]
+    schema: dict[str, Any]
+
+
+def _bool(description: str) -> Param:
+    return Param(_switch, {"type": "boolean", "description": description})
+
+
+#: What each job kind accepts, the one table the intake and the OpenAPI document read.
+PARAMS: dict[str, dict[str, Param]] = {
+    "scan": {
+        "render": _bool("false leaves out tiles and preview"),
+        "export": _bool("false leaves out the LAZ / COPC export"),
+        "tiles": Param(lambda v, f: tiles_options(v, f), _TILES_SCHEMA),
+        "preview": Param(_preview, _PREVIEW_SCHEMA),
+        "compress": Param(lambda v, f: compress_options(v, f), _COMPRESS_SCHEMA),
+    },
+    "calibrate": {},
+    "probe": {"seconds": Param(_seconds, {"type": "number", "minimum": 0, "maximum": MAX_PROBE_SECONDS})},
+}
+
+
+def params_schema(kind: str) -> dict[str, Any]:
+    """The JSON Schema of a ``kind`` job's ``params`` object."""
+    props = {k: p.schema for k, p in PARAMS.get(kind, {}).items()}
+    return {"type": "object", "properties": props, "additionalProperties": False}
 
 
 def check_job_params(kind: str, params: Any, *, allow_service: bool = False) -> dict[str, Any]:
@@ -123,7 +188,7 @@ def check_job_params(kind: str, params: Any, *, allow_service: bool = False) -> 
                 raise InputError(field, hint)
             out[key] = value
         elif key in accepted:
-            accepted[key](value, field)
+            accepted[key].check(value, field)
             out[key] = value
         else:
             allowed = ", ".join(sorted(accepted)) or "none"

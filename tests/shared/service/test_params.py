@@ -41,3 +41,14 @@ def test_bad_params_name_the_field(kind: str, params: object, field: str, proble
 
 def test_service_params_from_the_store_are_allowed() -> None:
     assert check_job_params("scan", {"rig": "object:abc", "preview_epoch": 2}, allow_service=True)["rig"] == "object:abc"
+
+
+def test_every_kind_and_parameter_has_a_schema() -> None:
+    from shared.service.jobs import GRAPHS
+    from shared.service.params import PARAMS, params_schema
+
+    assert set(PARAMS) == set(GRAPHS)
+    for kind, accepted in PARAMS.items():
+        schema = params_schema(kind)
+        assert schema["additionalProperties"] is False and set(schema["properties"]) == set(accepted)
+        assert all(p.schema.get("type") or p.schema.get("anyOf") for p in accepted.values()), kind
