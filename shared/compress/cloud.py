@@ -42,6 +42,8 @@ CODEC = "octree-rans-1"
 #: Points per chunk: a few tens of MB of working memory per chunk in flight, and enough chunks
 #: in a scan-sized cloud (2-3 M points) for both cores to decode.
 CHUNK_POINTS = 1 << 20
+#: Largest chunk a reader accepts (the writer's CHUNK_POINTS may change between versions).
+MAX_CHUNK_POINTS = 1 << 24
 NORMAL_BITS = 12
 #: Largest angle between a normal and its decoded value, degrees (measured bound of 12-bit octahedral).
 NORMAL_MAX_DEG = 0.05
@@ -256,7 +258,7 @@ def _decode_chunk(payload: bytes, i: int, dtype: np.dtype, plan: list[tuple[str,
         raise InputError(where, f"corrupt chunk {i} (too short)")
     npts, nvox, depth, ox, oy, oz, nraw = _CHUNK_HEAD.unpack_from(payload)
     pos = _CHUNK_HEAD.size
-    if not (0 < nvox <= npts <= CHUNK_POINTS and 1 <= depth <= ot.MAX_DEPTH) or pos + nraw + 4 > len(payload):
+    if not (0 < nvox <= npts <= MAX_CHUNK_POINTS and 1 <= depth <= ot.MAX_DEPTH) or pos + nraw + 4 > len(payload):
         raise InputError(where, f"corrupt chunk {i} (bad chunk header)")
     raw = payload[pos : pos + nraw]
     pos += nraw
@@ -320,8 +322,9 @@ def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Itera
     meta = header.meta
     try:
         dtype = np.dtype([(str(n), str(t)) for n, t in meta["fields"]])
-        ok = (meta.get("codec") == CODEC and int(meta["chunk_points"]) == CHUNK_POINTS
-              and float(meta["precision"]) > 0 and meta["chunks"] == -(-int(meta["points"]) // CHUNK_POINTS))
+        per = int(meta["chunk_points"])
+        ok = (meta.get("codec") == CODEC and 0 < per <= MAX_CHUNK_POINTS
+              and float(meta["precision"]) > 0 and meta["chunks"] == -(-int(meta["points"]) // per))
     except (KeyError, TypeError, ValueError):
         ok = False
     if not ok:
