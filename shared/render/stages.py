@@ -19,7 +19,6 @@ from pathlib import Path
 
 from shared.render.octree import build_tiles
 from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
-from shared.render.preview import render_preview
 
 
 def tiles_stage(
@@ -47,6 +46,10 @@ def preview_stage(
     ``renderer``: "auto" (OpenGL on a hardware GPU, else the CPU rasteriser), "cpu" or "gl";
     ``progress`` is called with the fraction of frames written.
     """
+    # Imported here: the preview's OpenCV, shading and rasteriser modules cost a tile build
+    # (``graylight tiles``, a tiles task) half a second of start-up it does not need.
+    from shared.render.preview import render_preview
+
     return render_preview(
         Path(tiles_dir), Path(out_path), path=options.path, size=options.size, seconds=options.seconds,
         fps=options.fps, renderer=renderer,

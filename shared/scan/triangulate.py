@@ -21,18 +21,21 @@ image (isolated spikes of a wrong code) are rejected too. Normals come from the 
 
 from __future__ import annotations
 
+import hashlib
 import logging
 import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import cv2
 import numba
 import numpy as np
 
+from shared.core.files import atomic_file
 from shared.formats.rig import Device, Rig
 from shared.scan.decode import Decoded, kernel_thread_scope
 
@@ -133,11 +136,58 @@ def _rig_key(rig: Rig) -> tuple:
 
 _TABLES: dict[tuple, RigTables] = {}
 _TABLES_LOCK = threading.Lock()
+_TABLE_FIELDS = ("cam_a", "cam_b", "pa", "pb", "pta", "ptb")
+#: Rigs whose tables the cache folder keeps (about 30 MB each for a 1024x768 projector).
+_TABLES_KEPT = 8
+
+
+def _tables_file(key: tuple) -> Path | None:
+    """Where the tables of a rig are kept between processes: ``$GRAYLIGHT_CACHE_DIR`` (default
+    ``$XDG_CACHE_HOME/graylight``, ``~/.cache/graylight``), named by a hash of everything they
+    depend on (devices, the undistortion criteria and OpenCV's version); None without a home."""
+    root = os.environ.get("GRAYLIGHT_CACHE_DIR")
+    if not root:
+        base = os.environ.get("XDG_CACHE_HOME") or (str(Path.home() / ".cache") if Path.home().is_dir() else "")
+        if not base:
+            return None
+        root = str(Path(base) / "graylight")
+    h = hashlib.sha256(repr((key, _UNDISTORT_CRITERIA, _MARGIN, cv2.__version__)).encode())
+    return Path(root) / "rig-tables" / f"{h.hexdigest()[:32]}.npz"
+
+
+def _load_tables(path: Path | None) -> RigTables | None:
+    if path is None or not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in _TABLE_FIELDS}
+            scalars = z["scalars"]
+    except (OSError, ValueError, KeyError):
+        return None  # unreadable (another version, a cut-off write): computed again
+    return RigTables(arrays["cam_a"], arrays["cam_b"], float(scalars[0]), float(scalars[1]), arrays["pa"],
+                     arrays["pb"], arrays["pta"], arrays["ptb"], float(scalars[2]))  # fmt: skip
+
+
+def _save_tables(path: Path | None, t: RigTables) -> None:
+    if path is None:
+        return
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        with atomic_file(path, suffix=".tmp.npz") as tmp:
+            np.savez(tmp, **{k: getattr(t, k) for k in _TABLE_FIELDS},
+                     scalars=np.array([t.cam_stride, t.cam_org, t.p_org], np.float64))  # fmt: skip
+        # Tens of MB a rig: only the most recently written few are kept.
+        for old in sorted(path.parent.glob("*.npz"), key=lambda f: f.stat().st_mtime)[:-_TABLES_KEPT]:
+            old.unlink(missing_ok=True)
+    except OSError as exc:  # a read-only home: the tables are only not kept
+        log.debug("rig tables not cached at %s: %s", path, exc)
 
 
 def rig_tables(rig: Rig) -> RigTables:
-    """The :class:`RigTables` of ``rig``, computed once per rig and process (the last few
-    rigs are kept: a job-service worker triangulates many scans of one calibration).
+    """The :class:`RigTables` of ``rig``, computed once per rig: kept in this process (the
+    last few rigs: a job-service worker triangulates many scans of one calibration) and in a
+    file of the user's cache folder (:func:`_tables_file`), so that the next ``graylight scan``
+    with the same calibration reads them (the same values, bit for bit) instead of computing.
 
     Thread-safe: :func:`shared.scan.pipeline.scan` computes them on a thread while the
     images are decoded."""
@@ -145,12 +195,18 @@ def rig_tables(rig: Rig) -> RigTables:
     with _TABLES_LOCK:
         if key in _TABLES:
             return _TABLES[key]
-    stride = 4
-    cam_a, cam_b, cam_org = _undistort_table(rig.camera, stride)
-    pa, pb, p_org = _undistort_table(rig.projector, 1)
-    # Tangent of the undistorted column curve along the projector row (per projector pixel).
-    tables = RigTables(cam_a, cam_b, float(stride), cam_org, pa, pb, np.gradient(pa, axis=0), np.gradient(pb, axis=0),
-                       p_org)  # fmt: skip
+    path = _tables_file(key)
+    tables = _load_tables(path)
+    if tables is None:
+        stride = 4
+        cam_a, cam_b, cam_org = _undistort_table(rig.camera, stride)
+        pa, pb, p_org = _undistort_table(rig.projector, 1)
+        # Tangent of the undistorted column curve along the projector row (per projector pixel).
+        # C order throughout (the same as tables read from the cache): one kernel signature.
+        c = np.ascontiguousarray
+        tables = RigTables(c(cam_a), c(cam_b), float(stride), cam_org, c(pa), c(pb), c(np.gradient(pa, axis=0)),
+                           c(np.gradient(pb, axis=0)), p_org)  # fmt: skip
+        _save_tables(path, tables)
     with _TABLES_LOCK:
         while len(_TABLES) >= 4:
             _TABLES.pop(next(iter(_TABLES)))
