@@ -23,6 +23,7 @@ COMMAND_MODULES = [
     "services.cli.export",
     "services.cli.rig",
     "services.cli.compress",
+    "services.cli.merge",
 ]
 
 

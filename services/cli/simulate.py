@@ -46,6 +46,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--no-rows", action="store_true", help="capture column patterns only")
     p.add_argument("--no-inverses", action="store_true", help="leave out the inverse patterns")
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
+    p.add_argument("--views", type=int, default=1,
+                   help="N > 1: a graylight-scanset-v1 scan set of N views with their true poses (shared.sim.scanset)")
+    motion = p.add_mutually_exclusive_group()
+    motion.add_argument("--turntable", dest="motion", action="store_const", const="turntable",
+                        help="the object turns on a turntable before a fixed rig (default with --views)")
+    motion.add_argument("--orbit", dest="motion", action="store_const", const="orbit",
+                        help="the rig moves around the object")
     p.set_defaults(func=run)
 
 
@@ -56,6 +63,14 @@ def run(args: argparse.Namespace) -> int:
     projector = parse_size(args.projector, "--projector", lo=2)
     imaging = ImagingParams(colour=args.colour, bits=args.bits, rows=not args.no_rows, inverses=not args.no_inverses)
     t0 = time.perf_counter()
+    if args.views != 1 or args.motion:
+        from shared.sim.scanset import simulate_scanset
+
+        path = simulate_scanset(args.scene, args.out, views=args.views, mode=args.motion or "turntable", size=size,
+                                projector=projector, seed=args.seed, imaging=imaging, overwrite=args.force)
+        print(f"{path}: scene {args.scene}, {args.views} views ({args.motion or 'turntable'}), camera "
+              f"{size[0]}x{size[1]}, projector {projector[0]}x{projector[1]}, truth.npz with the true poses")
+        return 0
     capture = simulate_named(args.scene, args.out, size=size, projector=projector, seed=args.seed,
                              imaging=imaging, overwrite=args.force)
     log.info("simulated %s in %.1f s", args.scene, time.perf_counter() - t0)

@@ -37,7 +37,7 @@ log = logging.getLogger(__name__)
 
 __all__ = [
     "Registration", "RegistrationParams", "Samples", "TurntableAxis", "axis_from_poses", "pose_error",
-    "prepare_samples", "refine_poses", "register_views",
+    "prepare_samples", "refine_poses", "refine_registration", "register_views",
 ]  # fmt: skip
 
 
@@ -48,6 +48,9 @@ class RegistrationParams:
     voxel : fine sampling step in mm (None: chosen so the largest view keeps ``fine_samples`` samples).
     fine_samples : target samples per view of the fine fits.
     coarse_samples : target samples per view of the global feature matching.
+    target_density : the fits' targets are this many times finer than their sources (in spacing).
+    min_view_cos : captured samples seen more obliquely than this cosine are left out of the fits.
+    max_edges_per_view : each view keeps its strongest overlapping pairs for the joint refinement.
     min_overlap : least share of a view's samples that must meet the other view (within
         ``2 * voxel``, normals agreeing) for a pair to count as overlapping.
     max_rms_voxels : a pair whose fine fit leaves more than this many voxels of RMS is rejected.
@@ -60,9 +63,12 @@ class RegistrationParams:
     voxel: float | None = None
     fine_samples: int = 12000
     coarse_samples: int = 2500
+    target_density: float = 3.0
+    min_view_cos: float = 0.3
+    max_edges_per_view: int = 4
     min_overlap: float = 0.2
     max_rms_voxels: float = 0.6
-    iterations: int = 60
+    iterations: int = 30
     tolerance_deg: float = 2e-4
     tolerance_mm: float = 2e-4
     normal_agreement: float = 0.5
@@ -71,11 +77,15 @@ class RegistrationParams:
 
 @dataclass
 class Samples:
-    """One view's samples in its own frame: fine (with a k-d tree) and coarse (for features)."""
+    """One view's samples in its own frame: sources of the fine fits, dense targets (with a k-d
+    tree: point-to-plane against sparse targets would cut the corners of curved surfaces) and
+    coarse samples for the features."""
 
-    xyz: np.ndarray  # (n, 3) float64 mm
+    xyz: np.ndarray  # (n, 3) float64 mm, sources
     normals: np.ndarray  # (n, 3) float64 unit
-    tree: cKDTree
+    target_xyz: np.ndarray  # (t, 3) float64 mm, about ``target_density`` times denser
+    target_normals: np.ndarray  # (t, 3)
+    tree: cKDTree  # over target_xyz
     coarse_xyz: np.ndarray  # (m, 3)
     coarse_normals: np.ndarray  # (m, 3)
     centroid: np.ndarray  # (3,)
@@ -207,20 +217,25 @@ def _about_axis(a: np.ndarray, p: np.ndarray, deg: float) -> np.ndarray:
 
 
 def _voxel_mean(xyz: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """Mean position and renormalised mean normal of the points in each voxel."""
+    """One sample per voxel: the point nearest the voxel's mean (a real surface point: the mean
+    itself would sit inside curved surfaces) with the voxel's renormalised mean normal."""
     keys = np.floor(xyz / voxel).astype(np.int64)
     keys -= keys.min(axis=0)
     dims = keys.max(axis=0) + 1
     flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
     _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    out = np.zeros((len(counts), 3))
+    inv = inv.ravel()
+    mean = np.zeros((len(counts), 3))
     nrm = np.zeros((len(counts), 3))
     for a in range(3):
-        out[:, a] = np.bincount(inv, weights=xyz[:, a], minlength=len(counts)) / counts
+        mean[:, a] = np.bincount(inv, weights=xyz[:, a], minlength=len(counts)) / counts
         nrm[:, a] = np.bincount(inv, weights=normals[:, a], minlength=len(counts))
+    d = np.sum((xyz - mean[inv]) ** 2, axis=1)
+    order = np.lexsort((d, inv))
+    first = order[np.searchsorted(inv[order], np.arange(len(counts)))]
     length = np.linalg.norm(nrm, axis=1)
     ok = length > 1e-9
-    return out[ok], nrm[ok] / length[ok, None]
+    return xyz[first][ok], nrm[ok] / length[ok, None]
 
 
 def _voxel_for(views: Sequence[ViewCloud], target: int) -> float:
@@ -240,10 +255,19 @@ def prepare_samples(views: Sequence[ViewCloud], params: RegistrationParams) -> t
     out = []
     for v in views:
         n64 = v.normals.astype(np.float64)
-        xyz, nrm = _voxel_mean(v.xyz, n64, voxel)
-        cxyz, cnrm = _voxel_mean(v.xyz, n64, coarse)
-        out.append(Samples(xyz=xyz, normals=nrm, tree=cKDTree(xyz), coarse_xyz=cxyz, coarse_normals=cnrm,
-                           centroid=v.xyz.mean(axis=0)))
+        pts = v.xyz
+        if v.K is not None and params.min_view_cos > 0:
+            # Grazing samples of a structured-light scan carry most of its systematic error.
+            cos = -np.einsum("ij,ij->i", n64, pts) / np.maximum(np.linalg.norm(pts, axis=1), 1e-9)
+            good = cos >= params.min_view_cos
+            if np.count_nonzero(good) > 0.3 * len(pts):
+                pts, n64 = pts[good], n64[good]
+        xyz, nrm = _voxel_mean(pts, n64, voxel)
+        fine = max(voxel / params.target_density, 1.2 * float(np.median(v.size)))
+        txyz, tnrm = _voxel_mean(pts, n64, fine) if fine < 0.8 * voxel else (xyz, nrm)
+        cxyz, cnrm = _voxel_mean(pts, n64, coarse)
+        out.append(Samples(xyz=xyz, normals=nrm, target_xyz=txyz, target_normals=tnrm, tree=cKDTree(txyz),
+                           coarse_xyz=cxyz, coarse_normals=cnrm, centroid=v.xyz.mean(axis=0)))
     return out, voxel
 
 
@@ -270,12 +294,12 @@ def _correspond(S: list[Samples], poses: np.ndarray, i: int, j: int, dmax: float
     ok = np.isfinite(d)
     idx = idx[ok]
     n_src_j = nsrc[ok] @ rel[:3, :3].T
-    m_j = S[j].normals[idx]
+    m_j = S[j].target_normals[idx]
     ok2 = np.einsum("ij,ij->i", n_src_j, m_j) >= cos_min
     idx = idx[ok2]
     q_in_j = q_in_j[ok][ok2]
     m_j = m_j[ok2]
-    r = np.einsum("ij,ij->i", m_j, q_in_j - S[j].xyz[idx])
+    r = np.einsum("ij,ij->i", m_j, q_in_j - S[j].target_xyz[idx])
     Rj = poses[j][:3, :3]
     p_set = _transform(poses[j], q_in_j)
     return p_set, m_j @ Rj.T, r, len(src)
@@ -304,7 +328,7 @@ def refine_poses(S: list[Samples], poses: np.ndarray, edges: Sequence[tuple[int,
     for the small motions of all views but ``fixed``. Returns the poses and the last fit of every edge.
     """
     poses = poses.copy()
-    d_final = 1.5 * voxel
+    d_final = 0.5 * voxel
     dmax = max(start_dist or 4.0 * voxel, d_final)
     movable = [v for v in sorted({a for e in edges for a in e}) if v != fixed]
     col = {v: k for k, v in enumerate(movable)}
@@ -478,14 +502,22 @@ def _turntable_init(S: list[Samples], feats: _Features, angles: np.ndarray, voxe
 
 def _all_overlap_edges(S: list[Samples], poses: np.ndarray, voxel: float, params: RegistrationParams,
                        views: Sequence[int]) -> list[tuple[int, int]]:
-    edges = []
+    """Pairs whose overlap (the smaller of the two directions) reaches ``min_overlap``; of those,
+    each view keeps its ``max_edges_per_view`` strongest (weak, low-overlap edges are the ones
+    that bend a pose graph)."""
+    found: dict[tuple[int, int], float] = {}
     for x, i in enumerate(views):
         for j in views[x + 1:]:
             _, _, r_ij, n_i = _correspond(S, poses, i, j, 2.0 * voxel, params.normal_agreement, 4)
             _, _, r_ji, n_j = _correspond(S, poses, j, i, 2.0 * voxel, params.normal_agreement, 4)
-            if min(len(r_ij) / n_i, len(r_ji) / n_j) >= params.min_overlap:
-                edges.append((i, j))
-    return edges
+            ov = min(len(r_ij) / n_i, len(r_ji) / n_j)
+            if ov >= params.min_overlap:
+                found[(i, j)] = ov
+    keep: set[tuple[int, int]] = set()
+    for v in views:
+        mine = sorted((e for e in found if v in e), key=lambda e: -found[e])
+        keep.update(mine[: params.max_edges_per_view])
+    return sorted(keep)
 
 
 def _view_stats(S: list[Samples], poses: np.ndarray, voxel: float, params: RegistrationParams,
@@ -531,6 +563,25 @@ def _loop_closure(S: list[Samples], poses: np.ndarray, axis: TurntableAxis, voxe
     deg, mm = pose_error(chain, np.eye(4), ref)
     # The global solution closes the loop exactly by construction; what it spread is the chain's error.
     return {"order": [int(v) for v in order], "chained_pairwise_deg": round(deg, 5), "chained_pairwise_mm": round(mm, 5)}
+
+
+def refine_registration(S: list[Samples], init: np.ndarray, voxel: float, params: RegistrationParams,
+                        views: Sequence[int] | None = None, tree_edges: Sequence[tuple[int, int]] = (),
+                        wide: bool = True) -> tuple[np.ndarray, dict[tuple[int, int], _EdgeFit]]:
+    """Fine and global steps from coarse poses: the overlapping pairs (plus ``tree_edges``), a joint
+    robust point-to-plane refinement (every third source sample, reaching ``6 * voxel``), then the
+    pairs re-found at the refined poses, the weak ones pruned, and a second joint pass on every sample.
+    ``wide`` widens the first search for pairs (poses from hints or a turntable model are rougher
+    than fitted ones)."""
+    views = list(range(len(S))) if views is None else list(views)
+    edges = _all_overlap_edges(S, init, 4.0 * voxel if wide else voxel, params, views)
+    edges = sorted(set(edges) | {(min(e), max(e)) for e in tree_edges})
+    first = RegistrationParams(**{**params.__dict__, "iterations": min(params.iterations, 30),
+                                  "tolerance_deg": 1e-3, "tolerance_mm": 1e-3})
+    poses, _ = refine_poses(S, init, edges, voxel, first, start_dist=6.0 * voxel, stride=3)
+    edges = _all_overlap_edges(S, poses, voxel, params, views)
+    poses, fits = refine_poses(S, poses, edges, voxel, params, start_dist=1.0 * voxel)
+    return poses, fits
 
 
 def register_views(
@@ -587,14 +638,8 @@ def register_views(
     report(0.5)
     init = np.stack([placed.get(v, np.eye(4)) for v in range(V)])
     active = sorted(placed)
-    # Views placed by hints or the table get a first pairwise-free joint pass with a wide reach.
-    edges = _all_overlap_edges(S, init, 4.0 * voxel if not tree_edges else voxel, params, active)
-    edges = sorted(set(edges) | {tuple(sorted(e)) for e in tree_edges})
-    poses, fits = refine_poses(S, init, edges, voxel, params, start_dist=6.0 * voxel, stride=2)
+    poses, fits = refine_registration(S, init, voxel, params, active, tree_edges, wide=not tree_edges)
     report(0.75)
-    # Re-find the overlapping pairs at the refined poses, prune the weak ones, refine once more.
-    edges = _all_overlap_edges(S, poses, voxel, params, active)
-    poses, fits = refine_poses(S, poses, edges, voxel, params, start_dist=2.0 * voxel)
     fits = {e: f for e, f in fits.items() if f.overlap >= params.min_overlap}
     t_fine = time.perf_counter()
     connected = {0}
