@@ -528,8 +528,8 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     nleaf, xa, xb, pos = _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef)
     if nleaf < 0 or pos > nw:
         return -1
-    pf = _fill_prediction(H, W, leaves, lcoef, nleaf)
-    xa, xb, pos = _decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, pf, lossless, scale, out)
+    cells = _leaf_cells(H, W, leaves, nleaf)
+    xa, xb, pos = _decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, scale, out)
     # A sound stream ends exactly at its last word, both states back where the encoder began.
     if pos != nw or xa != RANS_L or xb != RANS_L:
         return -1
@@ -643,13 +643,67 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef):
 
 
 @njit(cache=True, nogil=True)
-def _decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, pf, lossless, scale, out):
+def _leaf_cells(H, W, leaves, nleaf):
+    """Which leaf covers each MINB x MINB cell: (ceil(H / MINB), ceil(W / MINB)) int32, -1 for none."""
+    ch = (H + MINB - 1) // MINB
+    cw = (W + MINB - 1) // MINB
+    cells = np.full((ch, cw), -1, np.int32)
+    for i in range(nleaf):
+        cx0 = leaves[i, 0] // MINB
+        cy0 = leaves[i, 1] // MINB
+        n = leaves[i, 2] // MINB
+        cells[cy0 : min(cy0 + n, ch), cx0 : min(cx0 + n, cw)] = i
+    return cells
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _row_prediction(y, W, cells, leaves, lcoef, row):
+    """Every leaf's prediction along row y into ``row`` (W,) int64: the integers of
+    :func:`_fill_prediction`, one row at a time so that they stay in cache."""
+    cy = y // MINB
+    x = 0
+    while x < W:
+        i = cells[cy, x // MINB]
+        if i < 0:
+            x = (x // MINB + 1) * MINB
+            continue
+        x0 = leaves[i, 0]
+        y0 = leaves[i, 1]
+        B = leaves[i, 2]
+        m = leaves[i, 3]
+        c0, c1, c2, c3, c4, c5 = lcoef[i, 0], lcoef[i, 1], lcoef[i, 2], lcoef[i, 3], lcoef[i, 4], lcoef[i, 5]
+        if m < 2:
+            c3 = 0
+        if m < 3:
+            c4 = 0
+            c5 = 0
+        if m < 1:
+            c1 = 0
+            c2 = 0
+        X = 2 * (x - x0) - (B - 1)
+        Y = 2 * (y - y0) - (B - 1)
+        lin = c1 * X + c2 * Y
+        quad = c3 * X * Y + c4 * X * X + c5 * Y * Y
+        dq = c3 * 2 * Y + c4 * (4 * X + 4)
+        end = min(x0 + B, W)
+        for k in range(x, end):
+            row[k] = c0 + (lin >> A_SHIFT) + (quad >> Q_SHIFT)
+            lin += 2 * c1
+            quad += dq
+            dq += 8 * c4
+        x = end
+
+
+@njit(cache=True, nogil=True)
+def _decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, scale, out):
     H, W = valid.shape
     up = np.zeros(W + 2, np.uint64)  # zigzag residuals of the row above, one pad either side
     cur = np.zeros(W + 2, np.uint64)
+    pf = np.zeros(W, np.int64)
     half = FINE >> 1
     nan = np.float32(np.nan)
     for y in range(H):
+        _row_prediction(y, W, cells, leaves, lcoef, pf)
         for x in range(W):
             if not valid[y, x]:
                 cur[x + 1] = up[x + 1]
@@ -658,7 +712,7 @@ def _decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, pf, lossless, scal
             ctx = _ctx(up[x] + up[x + 1] + up[x + 2])
             u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_RES + ctx, L_RES)
             r = unzigzag(u)
-            p = pf[y, x]
+            p = pf[x]
             if lossless:
                 out[y, x] = np.float32((((p + half) >> F_SHIFT) + r) * scale)
             else:
