@@ -4,8 +4,10 @@ The API service includes :data:`router`. The page for a job loads that job's Pot
 from the URL made by ``tiles_url_template`` (default ``/v1/jobs/{job}/artifacts/tiles/``,
 under the app's root path); the browser sends the API key it was given in the page URL's
 fragment (``/viewer/{job}#key=...``), the ``key`` query parameter or the ``graylight_key``
-cookie as ``Authorization: Bearer`` to that same-origin URL. ``/viewer/?tiles=URL`` shows any
-tiles folder. Assets come from ``services/viewer/dist`` (``make viewer`` builds them with npm).
+cookie as ``Authorization: Bearer`` to that same-origin URL, and lists the job's artifacts
+(``artifacts_url_template``) for a ``mesh.glb`` to offer. ``/viewer/?tiles=URL`` shows any
+tiles folder (``&mesh=URL`` a mesh with it). Assets come from ``services/viewer/dist``
+(``make viewer`` builds them with npm).
 """
 
 from __future__ import annotations
@@ -21,6 +23,8 @@ from fastapi.responses import FileResponse, HTMLResponse, RedirectResponse
 VIEWER_DIST = Path(__file__).resolve().parent / "dist"
 #: Where the API serves a job's tiles folder; ``{job}`` is replaced by the job id.
 TILES_URL_TEMPLATE = "/v1/jobs/{job}/artifacts/tiles/"
+#: Where the API lists a job's artifacts (the viewer looks there for ``mesh.glb``, ``mesh_lod*.glb``).
+ARTIFACTS_URL_TEMPLATE = "/v1/jobs/{job}/artifacts"
 #: Marker in ``index.html`` replaced by the page configuration.
 CONFIG_MARKER = "<!--graylight-config-->"
 
@@ -40,7 +44,7 @@ def _config_script(config: dict[str, str]) -> str:
 
 
 def render_page(dist: Path, config: dict[str, str] | None = None) -> str:
-    """The viewer page with ``config`` (``tiles``, ``job``) embedded for the page's script.
+    """The viewer page with ``config`` (``tiles``, ``job``, ``artifacts``) embedded for the page's script.
 
     Raises HTTP 503 when the assets have not been built.
     """
@@ -51,8 +55,10 @@ def render_page(dist: Path, config: dict[str, str] | None = None) -> str:
     return html.replace(CONFIG_MARKER, _config_script(config) if config else "", 1)
 
 
-def create_router(dist: Path = VIEWER_DIST, tiles_url_template: str = TILES_URL_TEMPLATE) -> APIRouter:
-    """Routes serving the viewer from ``dist``, pointing job pages at ``tiles_url_template``."""
+def create_router(dist: Path = VIEWER_DIST, tiles_url_template: str = TILES_URL_TEMPLATE,
+                  artifacts_url_template: str = ARTIFACTS_URL_TEMPLATE) -> APIRouter:
+    """Routes serving the viewer from ``dist``, pointing job pages at ``tiles_url_template``
+    and ``artifacts_url_template``."""
     router = APIRouter(tags=["viewer"])
     assets = (dist / "assets").resolve()
 
@@ -83,8 +89,10 @@ def create_router(dist: Path = VIEWER_DIST, tiles_url_template: str = TILES_URL_
     def viewer_job(job: str, request: Request) -> HTMLResponse:
         if not _JOB_ID.match(job):
             raise HTTPException(404, f"job id {job!r} is not valid")
-        tiles = request.scope.get("root_path", "") + tiles_url_template.format(job=job)
-        return HTMLResponse(render_page(dist, {"tiles": tiles, "job": job}), headers={"Cache-Control": "no-cache"})
+        root = request.scope.get("root_path", "")
+        config = {"tiles": root + tiles_url_template.format(job=job), "job": job,
+                  "artifacts": root + artifacts_url_template.format(job=job)}  # fmt: skip
+        return HTMLResponse(render_page(dist, config), headers={"Cache-Control": "no-cache"})
 
     return router
 

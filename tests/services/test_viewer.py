@@ -212,6 +212,14 @@ def make_app(tiles_root: Path, requests_log: list[tuple[str, str | None, str | N
             raise HTTPException(404, f"{name} not found")
         return FileResponse(path)
 
+    @app.get("/v1/jobs/{job}/artifacts")
+    def job_artifacts(job: str, authorization: str | None = Header(None)) -> dict:
+        # The job page lists the artifacts for a mesh to offer; these jobs have tiles only.
+        if authorization != f"Bearer {API_KEY}":
+            raise HTTPException(401, "missing or wrong API key")
+        files = sorted((tiles_root / job).glob("*")) if (tiles_root / job).is_dir() else []
+        return {"job": job, "artifacts": [{"name": f"tiles/{p.name}", "stage": "tiles", "size": p.stat().st_size} for p in files]}
+
     @app.get("/whole/{folder}/{name}")
     def whole_file(folder: str, name: str) -> Response:
         # Like a store that cannot serve byte ranges: the whole file, status 200, every time.

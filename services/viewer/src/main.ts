@@ -12,6 +12,9 @@
  * splats by 1 / cos of the scanner's incidence angle, from normals; on by default), scanner (x,y,z world, default
  * the origin), mode (fly|orbit),
  * pos and look (x,y,z world), up (x,y,z or -y etc.), bg (hex colour), ui (0 hides the panel).
+ * Mesh: `mesh` (a .glb URL; repeated for level-of-detail meshes, finest first), else a job's
+ * `mesh.glb` / `mesh_lod*.glb` artifacts; showmesh (0|1: start with the mesh shown), meshpoints
+ * (0|1: draw the points too, depth-tested with the mesh, instead of the mesh alone).
  * `window.graylight` exposes state, idle detection, settings and a capture for tests.
  */
 
@@ -19,6 +22,7 @@ import { glMatrix, mat4 } from "gl-matrix";
 import { Camera, Controls, type NavMode, parseVector } from "./camera";
 import { DecoderUnavailable } from "./decode";
 import { selectNodes, type Selection, type ViewInfo } from "./lod";
+import { MeshLayer, orderLevels } from "./mesh";
 import { type TileNode, TileSource } from "./potree";
 import { type DrawItem, type FrameSettings, type GpuNode, Renderer } from "./renderer";
 
@@ -39,6 +43,10 @@ interface Settings {
   background: [number, number, number];
   /** Scanner position in world coordinates (Graylight clouds: the origin of the camera frame). */
   scanner: [number, number, number];
+  /** Show the mesh (when there is one). */
+  mesh: boolean;
+  /** With the mesh shown, draw the points too (depth-tested with it) rather than the mesh alone. */
+  meshPoints: boolean;
 }
 
 const MAX_CONCURRENT_LOADS = 6;
@@ -51,11 +59,18 @@ function params(): URLSearchParams {
   return p;
 }
 
-function injectedConfig(): { tiles?: string; job?: string } {
+interface PageConfig {
+  tiles?: string;
+  job?: string;
+  /** The job's artifact list (`GET /v1/jobs/{job}/artifacts`). */
+  artifacts?: string;
+}
+
+function injectedConfig(): PageConfig {
   const el = document.getElementById("graylight-config");
   if (!el || !el.textContent) return {};
   try {
-    return JSON.parse(el.textContent) as { tiles?: string; job?: string };
+    return JSON.parse(el.textContent) as PageConfig;
   } catch {
     return {};
   }
@@ -89,6 +104,10 @@ class Viewer {
   readonly settings: Settings;
   source: TileSource | null = null;
   error: string | null = null;
+  /** The mesh and its levels of detail, when the job or the page has one. */
+  mesh: MeshLayer | null = null;
+  /** The last non-fatal problem (a mesh that failed to load), shown in one line. */
+  notice: string | null = null;
   private loaded = new Set<TileNode>();
   private loading = 0;
   private loadedPoints = 0;
@@ -123,6 +142,8 @@ class Viewer {
       grazing: p.get("grazing") !== "0",
       scanner: parseVector(p.get("scanner")) ?? [0, 0, 0],
       background: parseColor(p.get("bg"), [0.08, 0.09, 0.11]),
+      mesh: p.get("showmesh") === "1",
+      meshPoints: p.get("meshpoints") === "1",
     };
     this.camera.fovDeg = this.settings.fov;
     this.statsEl = document.getElementById("stats");
@@ -296,6 +317,25 @@ class Viewer {
     }
   }
 
+  /** Attach a mesh (levels finest first); `headersFor` gives each URL's request headers. */
+  setMesh(levels: { url: string; name?: string; bytes?: number | null }[], headersFor: (url: string) => Record<string, string>): MeshLayer {
+    this.mesh = new MeshLayer(levels, headersFor, this.renderer, () => this.invalidate(), (m) => this.warn(m));
+    window.dispatchEvent(new Event("graylight-mesh"));
+    this.invalidate();
+    return this.mesh;
+  }
+
+  /** A one-line message that leaves the point view running (unlike `fail`). */
+  warn(message: string): void {
+    this.notice = message;
+    console.warn(`graylight viewer: ${message}`);
+    const el = document.getElementById("notice");
+    if (el) {
+      el.textContent = message;
+      el.hidden = false;
+    }
+  }
+
   fail(message: string): void {
     this.error = message;
     console.error(`graylight viewer: ${message}`);
@@ -327,17 +367,28 @@ class Viewer {
     const origin = src ? src.origin : [0, 0, 0];
     const model = mat4.fromTranslation(mat4.create(), origin as [number, number, number]);
     const modelView = mat4.multiply(mat4.create(), view, model);
-    // Near and far planes from the cloud's extent, so depth precision follows the scene scale.
+    // Near and far planes from the cloud's extent (and the mesh's), so depth precision follows the scene scale.
     let near = 0.01;
     let far = 1000;
     if (src) {
-      const c = [0, 1, 2].map((i) => origin[i] + (src.tightMin[i] + src.tightMax[i]) / 2);
-      const r = 0.5 * Math.hypot(...[0, 1, 2].map((i) => src.tightMax[i] - src.tightMin[i])) || 1;
+      const lo = [0, 1, 2].map((i) => origin[i] + src.tightMin[i]);
+      const hi = [0, 1, 2].map((i) => origin[i] + src.tightMax[i]);
+      if (this.mesh?.min && this.mesh.max && this.settings.mesh) {
+        for (let i = 0; i < 3; i++) {
+          lo[i] = Math.min(lo[i], this.mesh.min[i]);
+          hi[i] = Math.max(hi[i], this.mesh.max[i]);
+        }
+      }
+      const c = [0, 1, 2].map((i) => (lo[i] + hi[i]) / 2);
+      const r = 0.5 * Math.hypot(...[0, 1, 2].map((i) => hi[i] - lo[i])) || 1;
       const d = Math.hypot(c[0] - cam.position[0], c[1] - cam.position[1], c[2] - cam.position[2]);
       far = d + r * 1.5 + 1e-6;
       near = Math.max(far * 1e-5, (d - r * 1.5) * 0.5);
     }
     const projection = mat4.perspective(mat4.create(), fovY, width / height, near, far);
+    const meshes = this.mesh?.select(this.settings.mesh ? { eye: cam.position, focalPx } : null) ?? [];
+    // The mesh stands in for the points unless both were asked for (points keep loading meanwhile).
+    const drawPoints = meshes.length === 0 || this.settings.meshPoints;
     const items: DrawItem[] = [];
     let drawnPoints = 0;
     if (src) {
@@ -345,7 +396,7 @@ class Viewer {
       const eyeLocal: [number, number, number] = [0, 1, 2].map((i) => cam.position[i] - origin[i]) as [number, number, number];
       const sel = selectNodes(src.root, { viewProj, eye: eyeLocal, focalPx }, this.settings.budget, MIN_NODE_PX);
       this.lastSelection = sel;
-      for (const node of sel.visible) {
+      for (const node of drawPoints ? sel.visible : []) {
         node.lastVisibleFrame = this.frame;
         // Coarse nodes stand in for finer ones not drawn: size their splats from the node spacing.
         const fill = sel.coarse.has(node) || !src.hasSize ? node.spacing : 0;
@@ -372,8 +423,9 @@ class Viewer {
       background: s.background,
       grazing: s.grazing,
       scanner: [0, 1, 2].map((i) => s.scanner[i] - origin[i]) as [number, number, number],
+      view,
     };
-    this.renderer.render(items, frame);
+    this.renderer.render(items, frame, meshes);
     this.frame++;
     this.drawnPoints = drawnPoints;
     this.drawnNodes = items.length;
@@ -406,6 +458,7 @@ class Viewer {
   idle(): boolean {
     if (this.error) return true;
     if (!this.source || this.loading > 0 || this.dirty) return false;
+    if (this.mesh && this.settings.mesh && (this.mesh.loading > 0 || this.mesh.wanted?.state === "unloaded")) return false;
     const wanted = this.lastSelection?.toLoad.filter((n) => n.state === "unloaded").length ?? 0;
     return wanted === 0 && this.quietFrames > 0;
   }
@@ -427,15 +480,19 @@ class Viewer {
       camera: { position: this.camera.position, forward: this.camera.forward(), mode: this.camera.mode, fov: this.camera.fovDeg },
       settings: { ...this.settings },
       maxPointPx: this.renderer.maxPointPx,
+      notice: this.notice,
+      mesh: this.mesh ? { shown: this.settings.mesh, ...this.mesh.state() } : null,
     };
   }
 
   private updateStats(): void {
     if (!this.statsEl) return;
     const total = this.source?.metadata.points ?? 0;
+    const drawnMesh = this.settings.mesh ? this.mesh?.drawn : null;
+    const mesh = drawnMesh ? ` · mesh ${drawnMesh.name}: ${(drawnMesh.triangles ?? 0).toLocaleString()} triangles` : "";
     this.statsEl.textContent =
       `${this.drawnPoints.toLocaleString()} of ${total.toLocaleString()} points · ${this.drawnNodes} nodes` +
-      ` · ${this.loading} loading · ${this.frameMs.toFixed(0)} ms a frame`;
+      ` · ${this.loading} loading · ${this.frameMs.toFixed(0)} ms a frame${mesh}`;
   }
 }
 
@@ -537,6 +594,82 @@ function bindUi(viewer: Viewer, p: URLSearchParams): void {
   });
 }
 
+const MESH_ARTIFACT = /^mesh(_lod\d+)?\.glb$/;
+
+/**
+ * Find the mesh: the page's `mesh` URLs, else the job's `mesh.glb` / `mesh_lod*.glb` artifacts
+ * (listed with the Bearer key). Nothing to find is not an error; a failed listing is a notice.
+ */
+async function attachMesh(viewer: Viewer, p: URLSearchParams, config: PageConfig, tilesUrl: URL, key: string | null): Promise<void> {
+  const headersFor = (url: string): Record<string, string> =>
+    key && new URL(url, document.baseURI).origin === location.origin ? { Authorization: `Bearer ${key}` } : {};
+  const urls = p.getAll("mesh").filter((u) => u.trim());
+  let levels: { url: string; name?: string; bytes?: number | null }[] = [];
+  if (urls.length) {
+    levels = urls.map((u) => ({ url: new URL(u, document.baseURI).toString() }));
+  } else if (config.job) {
+    // The artifact list sits beside the tiles folder: .../artifacts/tiles/ -> .../artifacts.
+    const listUrl = new URL(config.artifacts ?? new URL("..", tilesUrl).toString().replace(/\/$/, ""), document.baseURI);
+    const response = await fetch(listUrl, { headers: headersFor(listUrl.toString()) });
+    if (!response.ok) throw new Error(`listing the job's artifacts: HTTP ${response.status} from ${listUrl.pathname}`);
+    const list = (await response.json()) as { artifacts?: { name: string; size?: number }[] };
+    const found = (list.artifacts ?? []).filter((a) => MESH_ARTIFACT.test(a.name));
+    // Short names only: a file under the artifacts URL, like the tiles folder.
+    levels = orderLevels(found).map((a) => ({
+      url: `${listUrl.toString().replace(/\/$/, "")}/${encodeURIComponent(a.name)}`,
+      name: a.name,
+      bytes: a.size ?? null,
+    }));
+  }
+  if (!levels.length) return;
+  viewer.setMesh(levels, headersFor);
+  bindMeshUi(viewer, levels[0].url, headersFor(levels[0].url));
+}
+
+/** The mesh section of the panel: the toggle, points-with-mesh, and a download of the finest level. */
+function bindMeshUi(viewer: Viewer, downloadUrl: string, headers: Record<string, string>): void {
+  const section = document.getElementById("mesh-controls");
+  if (!section) return;
+  section.hidden = false;
+  const s = viewer.settings;
+  for (const [id, key] of [["mesh", "mesh"], ["mesh-points", "meshPoints"]] as const) {
+    const el = document.getElementById(id) as HTMLInputElement | null;
+    if (!el) continue;
+    el.checked = s[key];
+    el.addEventListener("change", () => {
+      s[key] = el.checked;
+      viewer.invalidate();
+    });
+  }
+  const link = document.getElementById("mesh-download") as HTMLAnchorElement | null;
+  if (!link) return;
+  const layer = viewer.mesh!;
+  const finest = layer.levels[0];
+  link.href = downloadUrl;
+  link.download = finest.name;
+  link.textContent = `Download ${finest.name}` + (finest.bytes ? ` (${(finest.bytes / 1e6).toFixed(1)} MB)` : "");
+  if (!headers.Authorization) return;
+  // A plain link cannot carry the Bearer key: fetch the file with it and save the blob.
+  link.addEventListener("click", (e) => {
+    e.preventDefault();
+    fetch(downloadUrl, { headers })
+      .then((r) => {
+        if (!r.ok) throw new Error(`HTTP ${r.status}`);
+        return r.blob();
+      })
+      .then((blob) => {
+        const a = document.createElement("a");
+        a.href = URL.createObjectURL(blob);
+        a.download = finest.name;
+        document.body.appendChild(a);
+        a.click();
+        a.remove();
+        setTimeout(() => URL.revokeObjectURL(a.href), 60_000);
+      })
+      .catch((err: unknown) => viewer.warn(`downloading ${finest.name}: ${err instanceof Error ? err.message : String(err)}`));
+  });
+}
+
 function start(): void {
   const p = params();
   const canvas = document.getElementById("view") as HTMLCanvasElement;
@@ -595,6 +728,9 @@ function start(): void {
   if (title && config.job) title.textContent = `Graylight · ${config.job}`;
   viewer.open(tilesUrl.toString(), headers, p).catch((err: unknown) => {
     viewer.fail(err instanceof Error ? err.message : String(err));
+  });
+  attachMesh(viewer, p, config, tilesUrl, key).catch((err: unknown) => {
+    viewer.warn(err instanceof Error ? err.message : String(err));
   });
 }
 

@@ -5,15 +5,30 @@
  * pass (background, optional eye-dome lighting) onto the canvas. High-quality mode: a depth
  * pre-pass with splats pushed back by their radius, an additive weighted pass of colour * w and
  * w into a half-float target, and the composite pass normalises c = sum(w_i c_i) / sum(w_i).
+ *
+ * Meshes (binary glTF, `gltf.ts`) draw into the same targets and depth buffer as the points, so
+ * points and mesh hide each other correctly and eye-dome lighting applies to both; in high
+ * quality mode the mesh writes the depth pre-pass and adds weight 1 per pixel in the blend.
  */
 
+import { mat3, mat4 } from "gl-matrix";
+import type { GlbMesh, MeshDraw } from "./gltf";
 import type { DecodedPoints } from "./potree";
-import { COMPOSITE_FS, POINT_FS, POINT_VS, QUAD_VS } from "./shaders";
+import { COMPOSITE_FS, MESH_FS, MESH_VS, POINT_FS, POINT_VS, QUAD_VS } from "./shaders";
 
 export interface GpuNode {
   vao: WebGLVertexArrayObject;
   buffers: WebGLBuffer[];
   count: number;
+}
+
+/** A mesh on the GPU: one vertex buffer and one index buffer shared by all its draws. */
+export interface GpuMesh {
+  vertexBuffer: WebGLBuffer;
+  indexBuffer: WebGLBuffer | null;
+  draws: { vao: WebGLVertexArrayObject; draw: MeshDraw }[];
+  triangles: number;
+  bytes: number;
 }
 
 export interface DrawItem {
@@ -38,6 +53,8 @@ export interface FrameSettings {
   grazing: boolean;
   /** Scanner position in the local frame (for the grazing-angle correction). */
   scanner: [number, number, number];
+  /** World-to-view matrix (float64, column-major) for meshes, which are in world coordinates. */
+  view?: ArrayLike<number>;
 }
 
 function compile(gl: WebGL2RenderingContext, type: number, source: string): WebGLShader {
@@ -96,6 +113,9 @@ export class Renderer {
   private fboDepth: WebGLFramebuffer | null = null;
   private fboAccum: WebGLFramebuffer | null = null;
   private emptyVao: WebGLVertexArrayObject;
+  private meshColor: Program;
+  private meshDepth: Program;
+  private meshAccum: Program;
 
   constructor(readonly canvas: HTMLCanvasElement) {
     const gl = canvas.getContext("webgl2", { antialias: false, alpha: false, depth: false, preserveDrawingBuffer: false });
@@ -109,6 +129,9 @@ export class Renderer {
     this.depthPass = new Program(gl, POINT_VS, POINT_FS, ["PASS_DEPTH"]);
     this.accumPass = new Program(gl, POINT_VS, POINT_FS, ["PASS_ACCUM"]);
     this.composite = new Program(gl, QUAD_VS, COMPOSITE_FS);
+    this.meshColor = new Program(gl, MESH_VS, MESH_FS, ["PASS_COLOR"]);
+    this.meshDepth = new Program(gl, MESH_VS, MESH_FS, ["PASS_DEPTH"]);
+    this.meshAccum = new Program(gl, MESH_VS, MESH_FS, ["PASS_ACCUM"]);
     this.emptyVao = gl.createVertexArray()!;
   }
 
@@ -177,6 +200,89 @@ export class Renderer {
     return { vao, buffers, count: points.count };
   }
 
+  /**
+   * Upload a parsed GLB: its vertex byte range in one ARRAY_BUFFER and its index range in one
+   * ELEMENT_ARRAY_BUFFER (32-bit indices as stored), one vertex array object per draw.
+   * Throws when the GPU refuses the buffers (out of memory).
+   */
+  uploadMesh(mesh: GlbMesh): GpuMesh {
+    const gl = this.gl;
+    while (gl.getError() !== gl.NO_ERROR); // start from a clean error state
+    const vertexBuffer = gl.createBuffer()!;
+    gl.bindBuffer(gl.ARRAY_BUFFER, vertexBuffer);
+    gl.bufferData(gl.ARRAY_BUFFER, mesh.vertexBytes, gl.STATIC_DRAW);
+    let indexBuffer: WebGLBuffer | null = null;
+    const draws: GpuMesh["draws"] = [];
+    for (const draw of mesh.draws) {
+      const vao = gl.createVertexArray()!;
+      gl.bindVertexArray(vao);
+      gl.bindBuffer(gl.ARRAY_BUFFER, vertexBuffer);
+      for (const a of draw.attributes) {
+        gl.enableVertexAttribArray(a.location);
+        gl.vertexAttribPointer(a.location, a.size, a.type, a.normalized, a.stride, a.offset);
+      }
+      if (draw.indexType !== null) {
+        if (!indexBuffer) {
+          // Element buffers must be bound inside a VAO before their data goes in.
+          indexBuffer = gl.createBuffer()!;
+          gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, indexBuffer);
+          gl.bufferData(gl.ELEMENT_ARRAY_BUFFER, mesh.indexBytes, gl.STATIC_DRAW);
+        } else {
+          gl.bindBuffer(gl.ELEMENT_ARRAY_BUFFER, indexBuffer);
+        }
+      }
+      draws.push({ vao, draw });
+    }
+    gl.bindVertexArray(null);
+    gl.bindBuffer(gl.ARRAY_BUFFER, null);
+    const gpu: GpuMesh = {
+      vertexBuffer,
+      indexBuffer,
+      draws,
+      triangles: mesh.triangles,
+      bytes: mesh.vertexBytes.byteLength + mesh.indexBytes.byteLength,
+    };
+    const error = gl.getError();
+    if (error !== gl.NO_ERROR) {
+      this.releaseMesh(gpu);
+      throw new Error(`the GPU refused the mesh buffers (${(gpu.bytes / 1e6).toFixed(0)} MB, GL error 0x${error.toString(16)})`);
+    }
+    return gpu;
+  }
+
+  releaseMesh(mesh: GpuMesh): void {
+    const gl = this.gl;
+    for (const d of mesh.draws) gl.deleteVertexArray(d.vao);
+    gl.deleteBuffer(mesh.vertexBuffer);
+    if (mesh.indexBuffer) gl.deleteBuffer(mesh.indexBuffer);
+  }
+
+  private drawMeshes(program: Program, meshes: GpuMesh[], s: FrameSettings): void {
+    if (!meshes.length || !s.view) return;
+    const gl = this.gl;
+    gl.useProgram(program.program);
+    gl.uniformMatrix4fv(program.loc("uProjection"), false, s.projection);
+    // Constant attributes where a primitive lacks colour or normal (not part of VAO state).
+    gl.vertexAttrib4f(1, 0.8, 0.8, 0.8, 1);
+    gl.vertexAttrib3f(2, 0, 0, 1);
+    const modelView = mat4.create();
+    const normal = mat3.create();
+    for (const mesh of meshes) {
+      for (const { vao, draw } of mesh.draws) {
+        // view * node in float64, rounded to float32 once.
+        mat4.multiply(modelView, s.view as mat4, draw.matrix as unknown as mat4);
+        mat3.normalFromMat4(normal, modelView);
+        gl.uniformMatrix4fv(program.loc("uModelView"), false, new Float32Array(modelView));
+        gl.uniformMatrix3fv(program.loc("uNormalMatrix"), false, new Float32Array(normal));
+        gl.uniform1i(program.loc("uHasNormal"), draw.hasNormal ? 1 : 0);
+        gl.bindVertexArray(vao);
+        if (draw.indexType !== null) gl.drawElements(draw.mode, draw.count, draw.indexType, draw.indexOffset);
+        else gl.drawArrays(draw.mode, 0, draw.count);
+      }
+    }
+    gl.bindVertexArray(null);
+  }
+
   release(node: GpuNode): void {
     const gl = this.gl;
     gl.deleteVertexArray(node.vao);
@@ -210,7 +316,7 @@ export class Renderer {
     gl.bindVertexArray(null);
   }
 
-  render(items: DrawItem[], s: FrameSettings): void {
+  render(items: DrawItem[], s: FrameSettings, meshes: GpuMesh[] = []): void {
     const gl = this.gl;
     gl.viewport(0, 0, this.width, this.height);
     gl.disable(gl.BLEND);
@@ -222,6 +328,7 @@ export class Renderer {
       gl.clearBufferfv(gl.DEPTH, 0, [1]);
       gl.depthFunc(gl.LESS);
       this.drawPoints(this.depthPass, items, s);
+      this.drawMeshes(this.meshDepth, meshes, s);
       gl.bindFramebuffer(gl.FRAMEBUFFER, this.fboAccum);
       gl.clearBufferfv(gl.COLOR, 0, [0, 0, 0, 0]);
       gl.depthFunc(gl.LEQUAL);
@@ -229,6 +336,7 @@ export class Renderer {
       gl.enable(gl.BLEND);
       gl.blendFunc(gl.ONE, gl.ONE);
       this.drawPoints(this.accumPass, items, s);
+      this.drawMeshes(this.meshAccum, meshes, s);
       gl.disable(gl.BLEND);
       gl.depthMask(true);
     } else {
@@ -238,6 +346,7 @@ export class Renderer {
       gl.clearBufferfv(gl.DEPTH, 0, [1]);
       gl.depthFunc(gl.LESS);
       this.drawPoints(this.colorPass, items, s);
+      this.drawMeshes(this.meshColor, meshes, s);
     }
     gl.bindFramebuffer(gl.FRAMEBUFFER, null);
     gl.disable(gl.DEPTH_TEST);

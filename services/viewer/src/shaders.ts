@@ -152,3 +152,63 @@ void main() {
   oColor = vec4(c.rgb, 1.0);
 }
 `;
+
+/**
+ * Mesh shaders (same passes as the points, chosen by the same #defines): a headlight Lambert
+ * term |N · V| (two-sided, so open Poisson borders and inverted normals still light) times the
+ * vertex colour, and the linear view depth for eye-dome lighting. Without NORMAL the face normal
+ * comes from the screen-space derivatives of the view position (flat shading).
+ */
+export const MESH_VS = `
+layout(location = 0) in vec3 aPosition;
+layout(location = 1) in vec4 aColor;
+layout(location = 2) in vec3 aNormal;
+uniform mat4 uModelView;
+uniform mat4 uProjection;
+uniform mat3 uNormalMatrix;
+out vec3 vViewPos;
+out vec3 vNormal;
+out vec3 vColor;
+void main() {
+  vec4 viewPos = uModelView * vec4(aPosition, 1.0);
+  vViewPos = viewPos.xyz;
+  vNormal = uNormalMatrix * aNormal;
+  vColor = aColor.rgb;
+  gl_Position = uProjection * viewPos;
+}
+`;
+
+export const MESH_FS = `
+precision highp float;
+in vec3 vViewPos;
+in vec3 vNormal;
+in vec3 vColor;
+uniform int uHasNormal;
+#ifdef PASS_COLOR
+layout(location = 0) out vec4 oColor;
+layout(location = 1) out float oDepth;
+#endif
+#ifdef PASS_DEPTH
+layout(location = 0) out float oDepth;
+#endif
+#ifdef PASS_ACCUM
+layout(location = 0) out vec4 oAccum;
+#endif
+void main() {
+  vec3 n = uHasNormal == 1 ? vNormal : cross(dFdx(vViewPos), dFdy(vViewPos));
+  float len = length(n);
+  vec3 toEye = normalize(-vViewPos);
+  float lambert = len > 0.0 ? abs(dot(n / len, toEye)) : 1.0;
+  vec3 c = vColor * (0.25 + 0.75 * lambert);
+#ifdef PASS_COLOR
+  oColor = vec4(c, 1.0);
+  oDepth = -vViewPos.z;
+#endif
+#ifdef PASS_DEPTH
+  oDepth = -vViewPos.z;
+#endif
+#ifdef PASS_ACCUM
+  oAccum = vec4(c, 1.0);
+#endif
+}
+`;

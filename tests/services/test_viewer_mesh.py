@@ -1,0 +1,371 @@
+"""Web viewer mesh layer (services/viewer/src/gltf.ts, mesh.ts): binary glTF meshes drawn with the
+points in a real headless Chromium (Playwright, Debian's chromium, WebGL2 on SwiftShader).
+
+The scene: a scan from the origin of a grey ball (radius 0.97 R) before a blue-grey back wall,
+tiled with ``shared.render.octree.build_tiles``; the mesh is an icosphere of radius R around the
+ball, coloured by a red-to-green gradient along x (written with trimesh). What each pixel should
+show is ray-cast in the test from the camera the page was given (position, look-at point, field
+of view): the sphere's silhouette and, inside it, the gradient's value at the surface hit.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import trimesh
+from fastapi import FastAPI, Header, HTTPException
+from fastapi.responses import FileResponse
+from fastapi.staticfiles import StaticFiles
+from fastapi.testclient import TestClient
+
+from services.viewer import routes
+from shared.formats.ply import write_ply
+from tests.support.viewer_browser import Page, Server, built_viewer, chromium, rays_through_pixels
+
+pytestmark = pytest.mark.xdist_group("viewer")
+
+API_KEY = "mesh-key-41d2"
+SIZE = (640, 480)
+CENTRE = np.array([0.0, 0.0, 700.0])
+RADIUS = 150.0
+#: The grey ball of points lies just inside the mesh: where the mesh is drawn it hides them.
+BALL = 0.97 * RADIUS
+WALL_Z = 1000.0
+EYE = np.zeros(3)
+FOV = 40.0
+#: The mesh's colour at x: red (1 - t) and green t with t = (x - cx + R) / 2R, a little blue.
+BLUE = 30
+
+
+# --------------------------------------------------------------------------- scene
+
+
+def scan_ball_and_wall(path: Path, width: int = 240, height: int = 180, focal: float = 200.0) -> int:
+    """A scan from the origin (x right, y down, z forward) of the grey ball before the wall."""
+    u, v = np.meshgrid(np.arange(width) + 0.5 - width / 2, np.arange(height) + 0.5 - height / 2)
+    rays = np.stack([u / focal, v / focal, np.ones_like(u)], axis=-1).reshape(-1, 3)
+    rays /= np.linalg.norm(rays, axis=1, keepdims=True)
+    t = WALL_Z / rays[:, 2]
+    colour = np.tile(np.array([[70, 90, 160]], np.uint8), (len(rays), 1))
+    normal = np.tile(np.array([[0, 0, -1]], np.float32), (len(rays), 1))
+    hit = sphere_hit(rays, np.zeros(3), BALL)
+    ball = np.isfinite(hit)
+    t[ball] = hit[ball]
+    colour[ball] = (150, 150, 150)
+    xyz = rays * t[:, None]
+    normal[ball] = (xyz[ball] - CENTRE) / BALL
+    write_ply(path, xyz.astype(np.float32), colour, normal, (xyz[:, 2] / focal).astype(np.float32))
+    return len(xyz)
+
+
+def sphere_hit(rays: np.ndarray, eye: np.ndarray, radius: float) -> np.ndarray:
+    """Distance along each unit ray from ``eye`` to the sphere about CENTRE (inf on a miss)."""
+    oc = CENTRE - eye
+    b = rays @ oc
+    disc = b * b - (oc @ oc - radius * radius)
+    return np.where(disc > 0, b - np.sqrt(np.maximum(disc, 0)), np.inf)
+
+
+def gradient(x: np.ndarray) -> np.ndarray:
+    return np.clip((x - CENTRE[0] + RADIUS) / (2 * RADIUS), 0, 1)
+
+
+def write_sphere_glb(path: Path, subdivisions: int, *, node_transform: bool = False, normals: bool = True) -> int:
+    """A coloured icosphere of radius RADIUS about CENTRE as .glb; returns its triangle count.
+
+    With ``node_transform`` the vertices are about the origin and the glTF node carries the
+    translation (the viewer must apply node transforms)."""
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=RADIUS)
+    t = gradient(sphere.vertices[:, 0] + CENTRE[0])
+    rgba = np.stack([255 * (1 - t), 255 * t, np.full_like(t, BLUE), np.full_like(t, 255)], axis=1)
+    sphere.visual.vertex_colors = np.round(rgba).astype(np.uint8)
+    scene = trimesh.Scene()
+    if node_transform:
+        scene.add_geometry(sphere, transform=trimesh.transformations.translation_matrix(CENTRE))
+    else:
+        sphere.apply_translation(CENTRE)
+        scene.add_geometry(sphere)
+    path.write_bytes(trimesh.exchange.gltf.export_glb(scene, include_normals=normals))
+    return len(sphere.faces)
+
+
+# --------------------------------------------------------------------------- pixel classes
+
+
+def mesh_like(img: np.ndarray) -> np.ndarray:
+    """Pixels of the mesh's red-green gradient (little blue), whatever their shading."""
+    r, g, b = (img[..., i].astype(int) for i in range(3))
+    return np.maximum(r, g) > 2 * b + 20
+
+
+def grey_points(img: np.ndarray) -> np.ndarray:
+    r, g, b = (img[..., i].astype(int) for i in range(3))
+    return (np.abs(r - g) < 25) & (np.abs(g - b) < 25) & (r > 50)
+
+
+def wall(img: np.ndarray) -> np.ndarray:
+    r, b = img[..., 0].astype(int), img[..., 2].astype(int)
+    return (b > r + 40) & (b > 100)
+
+
+def regions(eye: np.ndarray, target: np.ndarray, fov: float) -> dict[str, np.ndarray]:
+    """Ray-cast masks: inside the mesh's silhouette (2 px margin), well outside it, inside the
+    ball of points, and the gradient value t expected at each pixel's surface hit."""
+    rays = rays_through_pixels(eye, target, fov, SIZE).reshape(-1, 3)
+    hit = sphere_hit(rays, eye, RADIUS)
+    disc = np.isfinite(hit).reshape(SIZE[1], SIZE[0]).astype(np.uint8)
+    ball = np.isfinite(sphere_hit(rays, eye, BALL)).reshape(SIZE[1], SIZE[0]).astype(np.uint8)
+    x = (eye + rays * np.where(np.isfinite(hit), hit, 0)[:, None])[:, 0]
+    return {
+        "inside": cv2.erode(disc, np.ones((5, 5), np.uint8)).astype(bool),
+        "outside": ~cv2.dilate(disc, np.ones((9, 9), np.uint8)).astype(bool),
+        "ball": cv2.erode(ball, np.ones((9, 9), np.uint8)).astype(bool),
+        "t": gradient(x).reshape(SIZE[1], SIZE[0]),
+    }
+
+
+# --------------------------------------------------------------------------- server
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path | int]:
+    """Tiles of the scan, meshes (three levels of detail, a node-transformed one) and bad GLBs."""
+    from shared.render.octree import build_tiles
+
+    root = tmp_path_factory.mktemp("viewer-mesh")
+    scan_ball_and_wall(root / "scan.ply")
+    build_tiles(root / "scan.ply", root / "job" / "tiles", workers=1, max_leaf=4000)
+    out: dict[str, Path | int] = {"root": root}
+    # Levels of a job: the finest needs 32-bit indices (more than 65,535 vertices).
+    for name, subdivisions in (("mesh.glb", 7), ("mesh_lod1.glb", 5), ("mesh_lod2.glb", 3)):
+        out[name] = write_sphere_glb(root / "job" / name, subdivisions)
+    out["node"] = write_sphere_glb(root / "node.glb", 5, node_transform=True, normals=False)
+    (root / "garbage.glb").write_bytes(b"this is not a mesh at all" * 10)
+    good = (root / "job" / "mesh_lod1.glb").read_bytes()
+    (root / "truncated.glb").write_bytes(good[: len(good) // 2])
+    return out
+
+
+def make_app(root: Path, log: list[str]) -> FastAPI:
+    """The viewer routes, a job-service-like artifact list and files behind a Bearer key, static files."""
+    app = FastAPI()
+    app.include_router(routes.create_router())
+    job_dir = root / "job"
+
+    def check(authorization: str | None) -> None:
+        if authorization != f"Bearer {API_KEY}":
+            raise HTTPException(401, "missing or wrong API key")
+
+    @app.get("/v1/jobs/{job}/artifacts")
+    def list_artifacts(job: str, authorization: str | None = Header(None)) -> dict:
+        check(authorization)
+        arts = [{"name": f"tiles/{p.name}", "stage": "tiles", "size": p.stat().st_size} for p in (job_dir / "tiles").iterdir()]
+        arts += [{"name": p.name, "stage": "mesh", "size": p.stat().st_size} for p in sorted(job_dir.glob("*.glb"))]
+        arts += [{"name": "merged.ply", "stage": "fuse", "size": 1}]
+        return {"job": job, "artifacts": arts}
+
+    @app.get("/v1/jobs/{job}/artifacts/{name:path}")
+    def artifact(job: str, name: str, authorization: str | None = Header(None)) -> FileResponse:
+        check(authorization)
+        log.append(name)
+        path = (job_dir / name).resolve()
+        if not path.is_relative_to(job_dir) or not path.is_file():
+            raise HTTPException(404, f"{name} not found")
+        return FileResponse(path)
+
+    app.mount("/static", StaticFiles(directory=root), name="static")
+    return app
+
+
+@pytest.fixture(scope="module")
+def served(scene: dict) -> Iterator[tuple[Server, list[str]]]:
+    built_viewer()
+    log: list[str] = []
+    with Server(make_app(scene["root"], log)) as server:
+        yield server, log
+
+
+@pytest.fixture(scope="module")
+def browser() -> Iterator[object]:
+    with chromium() as b:
+        yield b
+
+
+def view_url(server: Server, **extra: str) -> str:
+    query = {"tiles": "/static/job/tiles/", "ui": "1", "edl": "0", "grazing": "0", "fov": str(FOV),
+             "pos": ",".join(map(str, EYE)), "look": ",".join(map(str, CENTRE)), **extra}  # fmt: skip
+    return f"{server.url}/viewer/?" + "&".join(f"{k}={v}" for k, v in query.items())
+
+
+def state_drawn(page: Page) -> str | None:
+    return page.page.evaluate("() => window.graylight.state().mesh.drawn")
+
+
+def save(img: np.ndarray, path: Path) -> None:
+    cv2.imwrite(str(path), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+
+
+# --------------------------------------------------------------------------- tests
+
+
+def test_job_page_config_names_the_artifact_list() -> None:
+    app = FastAPI()
+    app.include_router(routes.create_router(artifacts_url_template="/api/jobs/{job}/files"))
+    page = TestClient(app).get("/viewer/job-7")
+    assert page.status_code == 200 and '"artifacts": "/api/jobs/job-7/files"' in page.text
+
+
+@pytest.mark.slow
+def test_mesh_toggle_draws_the_coloured_mesh_over_the_points(served, browser, scene, tmp_path: Path) -> None:
+    server, _ = served
+    page = Page(browser, view_url(server, mesh="/static/node.glb"), size=SIZE)
+    try:
+        state = page.wait_idle()
+        assert state["error"] is None and state["notice"] is None, state
+        assert page.page.locator("#mesh-controls").is_visible()
+        # Nothing is fetched until the mesh is shown.
+        assert state["mesh"]["levels"][0]["state"] == "unloaded"
+        m = regions(EYE, CENTRE, FOV)
+        assert m["inside"].sum() > 40_000 and m["outside"].sum() > 100_000
+        off = page.capture()
+        save(off, tmp_path / "mesh_off.png")
+
+        page.page.locator("#mesh").check()
+        state = page.wait_idle()
+        assert state["mesh"]["drawn"] == "node.glb" and state["mesh"]["drawnTriangles"] == scene["node"]
+        assert state["drawnPoints"] == 0  # the mesh alone by default
+        on = page.capture()
+        save(on, tmp_path / "mesh_on.png")
+        print(f"\nscreenshots: {tmp_path / 'mesh_off.png'} {tmp_path / 'mesh_on.png'}")
+
+        # Toggle on: the mesh's colours fill its ray-cast silhouette and nothing outside it.
+        inside, outside = m["inside"], m["outside"]
+        assert mesh_like(on)[inside].mean() > 0.99, mesh_like(on)[inside].mean()
+        assert mesh_like(on)[outside].mean() < 0.002 and not wall(on)[outside].any()  # points hidden
+        # ... in the gradient the vertex colours carry: green share g / (r + g) against the t
+        # ray-cast at each pixel's surface point (Lambert shading scales r and g alike).
+        rg = on[..., :2].astype(float)
+        share = rg[..., 1] / np.maximum(rg.sum(axis=2), 1)
+        err = np.abs(share - m["t"])[inside]
+        print(f"gradient: median |error| {np.median(err):.4f}, 99th percentile {np.percentile(err, 99):.4f}")
+        assert np.median(err) < 0.02 and np.percentile(err, 99) < 0.08
+        # Headlight Lambert: brightest where the surface faces the eye, darker at the rim.
+        brightness = rg.sum(axis=2)
+        centre_px = np.array(SIZE[::-1]) // 2
+        yy, xx = np.mgrid[: SIZE[1], : SIZE[0]]
+        rim = inside & ~cv2.erode(inside.astype(np.uint8), np.ones((25, 25), np.uint8)).astype(bool)
+        core = inside & (np.hypot(yy - centre_px[0], xx - centre_px[1]) < 30)
+        assert brightness[core].mean() > 1.5 * brightness[rim].mean()
+
+        # Toggle off: the same region shows the grey points again, the wall around them.
+        assert mesh_like(off)[inside].mean() < 0.01
+        assert grey_points(off)[m["ball"]].mean() > 0.95 and wall(off)[outside].mean() > 0.95
+
+        # Points with the mesh: depth-tested together, the mesh hides the ball inside it and the
+        # wall shows around it.
+        page.page.locator("#mesh-points").check()
+        state = page.wait_idle()
+        both = page.capture()
+        save(both, tmp_path / "mesh_and_points.png")
+        assert state["drawnPoints"] > 0
+        assert mesh_like(both)[inside].mean() > 0.99 and wall(both)[outside].mean() > 0.95
+
+        # High-quality blending and eye-dome lighting keep the mesh in place.
+        page.set(hq=True, edl=True)
+        hq = page.capture()
+        assert mesh_like(hq)[inside].mean() > 0.97 and wall(hq)[outside].mean() > 0.9
+
+        page.page.locator("#mesh").uncheck()
+        state = page.wait_idle()
+        assert state["mesh"]["shown"] is False and mesh_like(page.capture())[inside].mean() < 0.01
+        assert page.errors == [], page.errors
+    finally:
+        page.close()
+
+
+@pytest.mark.slow
+def test_job_page_lists_levels_loads_coarsest_first_and_picks_by_screen_size(served, browser, scene, tmp_path) -> None:
+    server, log = served
+    url = f"{server.url}/viewer/job?edl=0&grazing=0&fov={FOV}&pos=0,0,0&look={','.join(map(str, CENTRE))}#key={API_KEY}"
+    page = Page(browser, url, size=SIZE)
+    try:
+        state = page.wait_idle()
+        assert state["error"] is None and state["notice"] is None, state
+        levels = state["mesh"]["levels"]
+        assert [lv["name"] for lv in levels] == ["mesh.glb", "mesh_lod1.glb", "mesh_lod2.glb"]
+        triangles = [scene[lv["name"]] for lv in levels]
+
+        def expected(eye: np.ndarray) -> str:
+            # The layer's rule: the finest level with at most one triangle per pixel of the
+            # bounding sphere's projected disc (the icosphere's box sphere is sqrt(3) R).
+            focal = SIZE[1] / 2 / np.tan(np.radians(FOV) / 2)
+            r = np.sqrt(3) * RADIUS
+            d = np.linalg.norm(CENTRE - eye)
+            pixels = np.pi * (focal * r / np.sqrt(d * d - r * r)) ** 2
+            return next((lv["name"] for lv, n in zip(levels, triangles, strict=True) if n <= pixels), levels[-1]["name"])
+
+        log.clear()
+        page.page.locator("#mesh").check()
+        page.wait_idle()
+        fetched = [n for n in log if n.endswith(".glb")]
+        assert fetched[0] == "mesh_lod2.glb", fetched  # the coarsest first, to show something at once
+        assert state_drawn(page) == expected(EYE) and fetched == ["mesh_lod2.glb", expected(EYE)]
+
+        drawn = {}
+        for distance in (420.0, 700.0, 4000.0, 30000.0):
+            eye = CENTRE - [0, 0, distance]
+            state = page.look_at(eye, CENTRE)
+            drawn[distance] = state["mesh"]["drawn"]
+            assert drawn[distance] == expected(eye), (distance, state["mesh"])
+            assert state["mesh"]["drawnTriangles"] == scene[drawn[distance]]
+            img = page.capture()
+            if distance == 420.0:
+                save(img, tmp_path / "finest.png")
+                m = regions(eye, CENTRE, FOV)
+                assert mesh_like(img)[m["inside"]].mean() > 0.99
+        print(f"\nlevel drawn by camera distance (mm): {drawn}; files fetched: {log}")
+        # Coarser levels stay loaded: zooming out fetched nothing again.
+        assert sorted(log) == ["mesh.glb", "mesh_lod1.glb", "mesh_lod2.glb"], log
+        assert len(set(drawn.values())) == 3  # every level was used
+        assert drawn[420.0] == "mesh.glb"  # 327,680 triangles, 32-bit indices, one buffer
+
+        # The download link carries the key (a blob of the fetched file) and saves mesh.glb.
+        link = page.page.locator("#mesh-download")
+        assert "mesh.glb" in link.inner_text()
+        with page.page.expect_download() as info:
+            link.click()
+        download = info.value
+        assert download.suggested_filename == "mesh.glb"
+        assert Path(download.path()).read_bytes() == (scene["root"] / "job" / "mesh.glb").read_bytes()
+        assert page.errors == [], page.errors
+    finally:
+        page.close()
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize(("name", "reason"), [("garbage.glb", "not a binary glTF file"), ("truncated.glb", "truncated"),
+                                              ("missing.glb", "HTTP 404")])  # fmt: skip
+def test_bad_glb_shows_a_one_line_message_and_the_points_stay(served, browser, name: str, reason: str) -> None:
+    server, _ = served
+    page = Page(browser, view_url(server, mesh=f"/static/{name}", showmesh="1"), size=SIZE)
+    try:
+        state = page.wait_idle()
+        assert state["error"] is None, state["error"]
+        notice = page.page.locator("#notice")
+        assert notice.is_visible()
+        text = notice.inner_text()
+        assert name in text and reason in text and "\n" not in text, text
+        assert state["mesh"]["levels"][0]["state"] == "failed" and state["mesh"]["drawn"] is None
+        img = page.capture()
+        m = regions(EYE, CENTRE, FOV)
+        assert state["drawnPoints"] == state["totalPoints"]
+        assert grey_points(img)[m["ball"]].mean() > 0.95 and wall(img)[m["outside"]].mean() > 0.95
+        # The browser itself logs the 404 response; nothing else may go wrong.
+        errors = [e for e in page.errors if not (name == "missing.glb" and "404 (Not Found)" in e)]
+        assert errors == [], page.errors
+    finally:
+        page.close()
