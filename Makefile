@@ -17,8 +17,8 @@ setup: $(STAMP) $(KERNELS)
 
 # numba's cache (__pycache__ beside each module, or NUMBA_CACHE_DIR) filled for every kernel
 # signature the pipeline uses, so that no first run compiles; redone when a source changes.
-$(KERNELS): $(STAMP) $(shell find shared -name '*.py' 2>/dev/null)
-	$(BIN)/python -m shared.warmup
+$(KERNELS): $(STAMP) $(shell find shared workers -name "*.py" 2>/dev/null)
+	$(BIN)/python -m workers.warmup
 	@touch $(KERNELS)
 
 $(STAMP): pyproject.toml Makefile $(wildcard services/viewer/package-lock.json)

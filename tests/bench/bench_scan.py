@@ -16,7 +16,7 @@ at 3 MP and 15 MP, and the first run of the CLI stages against their second (the
    Targets: 3 MP <= 2 s, 15 MP <= 5 s, peak < 3 GB. The captures are rendered once by the
    virtual rig and kept in the temporary folder for later runs.
 4. ``scan``, ``tiles`` and ``preview`` of the 2048x1536 capture on an empty numba cache (a fresh
-   ``NUMBA_CACHE_DIR``: compiles), and on one that ``python -m shared.warmup`` filled (what
+   ``NUMBA_CACHE_DIR``: compiles), and on one that ``python -m workers.warmup`` filled (what
    ``make setup`` does), first and second run. Target: first run after set-up <= 1.3x the second.
 """
 
@@ -171,7 +171,7 @@ def bench_scan_sizes() -> None:
 def bench_first_run() -> None:
     """The compile tax: ``scan``, ``tiles`` and ``preview`` of a 2048x1536 capture, each run
     twice on an empty numba cache (a fresh ``NUMBA_CACHE_DIR``: the first run compiles), then
-    on a cache filled by ``python -m shared.warmup`` alone (what ``make setup`` runs) first
+    on a cache filled by ``python -m workers.warmup`` alone (what ``make setup`` runs) first
     and second time. Target: the first run after set-up within 1.3x of the second."""
     capture = _capture((2048, 1536))
     work = Path(tempfile.mkdtemp(prefix="graylight-bench-first-"))
@@ -186,14 +186,14 @@ def bench_first_run() -> None:
             env = {**os.environ, "NUMBA_CACHE_DIR": str(work / f"numba-{cache}")}
             if cache == "setup":
                 t0 = time.perf_counter()
-                subprocess.run([sys.executable, "-m", "shared.warmup"], env=env, check=True, cwd=REPO,
+                subprocess.run([sys.executable, "-m", "workers.warmup"], env=env, check=True, cwd=REPO,
                                stdout=subprocess.DEVNULL)  # fmt: skip
                 times["warm-up"] = {"first": time.perf_counter() - t0}
             for run in ("first", "second"):
                 for name, args in steps:
                     times.setdefault(f"{name} {label}", {})[run] = _cli(args, env)[0]
         print("first run against second run (wall s), 2048x1536 capture, a fresh NUMBA_CACHE_DIR each:")
-        print(f"  python -m shared.warmup (make setup) on an empty cache: {times['warm-up']['first']:.1f} s")
+        print(f"  python -m workers.warmup (make setup) on an empty cache: {times['warm-up']['first']:.1f} s")
         for name, _ in steps:
             a, b = times[f"{name} no warm-up"], times[f"{name} after warm-up"]
             print(f"  {name:8s} empty cache: first {a['first']:6.2f} s  second {a['second']:6.2f} s  | "

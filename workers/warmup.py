@@ -7,7 +7,7 @@ compiling. :func:`warm` runs the real stage functions on tiny inputs — a small
 capture of each image kind (8-bit grey, 16-bit colour, without inverses, without rows), its
 scan, the one-pass and the streaming decoder, tiles of clouds with and without attributes,
 preview frames with and without eye-dome lighting — so that every signature those stages
-use is compiled once, at ``make setup`` (``python -m shared.warmup``) or while a Docker
+use is compiled once, at ``make setup`` (``python -m workers.warmup``) or while a Docker
 image is built. A kernel's signature depends only on argument types (dtype, dimensions,
 layout, tuple length), never on image or cloud sizes, which is why tiny inputs suffice.
 
@@ -15,8 +15,8 @@ layout, tuple length), never on image or cloud sizes, which is why tiny inputs s
 anything: a job-service worker calls it when its process starts, so that no job pays for
 loading machine code (a cache miss there is logged, not compiled, to keep start-up short).
 
-This module sits beside the science packages (it imports scan, render and sim; none of
-them imports it).
+It lives in ``workers/`` because it sits above every science package (it runs scan, render,
+sim, merge and compress) and the worker app calls it; nothing in ``shared/`` imports it.
 """
 
 from __future__ import annotations
@@ -239,8 +239,8 @@ def warm(domains: Sequence[str] = DOMAINS, work: Path | None = None) -> dict[str
 
 
 def main(argv: list[str] | None = None) -> int:
-    """``python -m shared.warmup``: compile every kernel into numba's cache and say so."""
-    parser = argparse.ArgumentParser(prog="python -m shared.warmup", description=__doc__.splitlines()[0])
+    """``python -m workers.warmup``: compile every kernel into numba's cache and say so."""
+    parser = argparse.ArgumentParser(prog="python -m workers.warmup", description=__doc__.splitlines()[0])
     parser.parse_args(argv)
     t0 = time.perf_counter()
     seconds = warm()

@@ -1,5 +1,5 @@
 """A set-up tree has its numba kernels compiled: the stages load every kernel from numba's
-cache and compile none on first use (``make setup`` runs ``python -m shared.warmup``).
+cache and compile none on first use (``make setup`` runs ``python -m workers.warmup``).
 
 Both checks read numba's own records, not the clock: the cache index of every kernel, and
 each dispatcher's cache hits and misses (a miss is a compilation) after a fresh process has
@@ -16,7 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from shared.warmup import cached_signatures, kernel_dispatchers
+from workers.warmup import cached_signatures, kernel_dispatchers
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -27,7 +27,7 @@ from shared.render.options import PreviewOptions
 from shared.render.stages import preview_stage, tiles_stage
 from shared.scan.pipeline import scan
 from shared.sim.simulate import ImagingParams, simulate_named
-from shared.warmup import kernel_dispatchers
+from workers.warmup import kernel_dispatchers
 
 work = Path(sys.argv[1])
 kinds = [("plane", (120, 90), (300, 200), {}), ("corner", (100, 80), (128, 100), {"bits": 16, "colour": True}),
