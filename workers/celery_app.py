@@ -22,9 +22,9 @@ from shared.service.config import Settings, get_settings
 from shared.service.jobs import all_stage_specs
 from shared.service.jobstore import dispose_engines
 from shared.service.queue import RECONCILE_TASK, RERENDER_TASK, celery_config, task_name
-from workers.warmup import load_kernels_in_background
 from workers.reconciler import enqueue_preview_rerender, reconcile_once
 from workers.runner import TRANSIENT, run_stage
+from workers.warmup import load_kernels_in_background
 
 log = logging.getLogger(__name__)
 

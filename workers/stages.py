@@ -98,7 +98,9 @@ def run_tiles_plan(ctx: StageContext) -> dict[str, Any]:
     from shared.render.octree import plan_tiles
 
     options = tiles_options(ctx.params.get("tiles"))
-    plan = plan_tiles(ctx.inputs["triangulate"] / "cloud.ply", ctx.out_dir, **options)
+    # A scan's cloud, or a multi-view job's merged cloud.
+    cloud = ctx.inputs["triangulate"] / "cloud.ply" if "triangulate" in ctx.inputs else ctx.inputs["mv_merge"] / "merged.ply"
+    plan = plan_tiles(cloud, ctx.out_dir, **options)
     return {"fanout": len(plan.chunks), "points": plan.points}
 
 
@@ -169,6 +171,55 @@ def run_compress(ctx: StageContext) -> dict[str, Any]:
     return _jsonable(summary)
 
 
+def run_mv_plan(ctx: StageContext) -> dict[str, Any]:
+    """Validate a scan set (every view readable, sizes and rigs consistent); fan out one task per view."""
+    from shared.formats.scanset import load_scanset
+
+    assert ctx.capture_dir is not None
+    ss = load_scanset(ctx.capture_dir)
+    shutil.copyfile(ss.path, ctx.out_dir / "scanset.json")
+    return {"fanout": len(ss.views), "views": [{"name": v.name, "kind": v.kind} for v in ss.views]}
+
+
+def run_mv_view(ctx: StageContext) -> dict[str, Any]:
+    """One view of a scan set: ingest, decode and triangulate a captured view (``decoded.npz``,
+    ``cloud.ply``, ``range.npz``); a cloud view is only checked (the merge reads it from the set)."""
+    from shared.formats.scanset import load_scanset
+    from shared.merge.views import load_view
+    from shared.scan.pipeline import decode_stage, ingest_stage, triangulate_stage
+
+    assert ctx.capture_dir is not None and ctx.index is not None
+    spec = load_scanset(ctx.capture_dir).views[ctx.index]
+    if spec.kind == "cloud":
+        return {"view": spec.name, "kind": "cloud", "points": len(load_view(spec))}
+    try:
+        capture = ingest_stage(spec.path, spec.rig)
+        if capture.rig is None:
+            raise InputError(spec.path / "capture.json", "no rig")
+        decode_stage(spec.path, ctx.out_dir, progress=lambda f: ctx.progress(0.8 * f))
+        part = triangulate_stage(ctx.out_dir / "decoded.npz", capture.rig, ctx.out_dir)
+    except InputError as exc:
+        raise InputError(spec.where, str(exc)) from None
+    return _jsonable({"view": spec.name, "kind": "capture", "points": part["points"]})
+
+
+def run_mv_merge(ctx: StageContext) -> dict[str, Any]:
+    """Register, fuse and mesh the views (:func:`shared.merge.pipeline.merge_views`)."""
+    from shared.formats.scanset import load_scanset
+    from shared.merge.pipeline import merge_views
+    from shared.merge.views import load_view, view_from_scan_outputs
+
+    assert ctx.capture_dir is not None
+    ss = load_scanset(ctx.capture_dir)
+    views = [view_from_scan_outputs(v, ctx.inputs[f"mv_view#{i}"]) if v.kind == "capture" else load_view(v)
+             for i, v in enumerate(ss.views)]
+    report = merge_views(views, ss, ctx.out_dir, drop_unregistered=bool(ctx.params.get("drop_unregistered", False)),
+                         progress=ctx.progress)
+    return _jsonable({"views": report["views"], "registered_views": report["registered_views"],
+                      "dropped_views": report["dropped_views"], "points": report["points"]["merged"],
+                      "faces": report["mesh"]["faces"], "loop_closure": report["registration"]["loop_closure"]})
+
+
 def run_calibrate(ctx: StageContext) -> dict[str, Any]:
     from shared.calib.session import calibrate_session
 
@@ -203,4 +254,7 @@ STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
     "compress": run_compress,
     "calibrate": run_calibrate,
     "probe": run_probe,
+    "mv_plan": run_mv_plan,
+    "mv_view": run_mv_view,
+    "mv_merge": run_mv_merge,
 }
