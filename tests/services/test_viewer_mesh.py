@@ -10,7 +10,9 @@ of view): the sphere's silhouette and, inside it, the gradient's value at the su
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+import json
+import struct
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import cv2
@@ -72,6 +74,45 @@ def sphere_hit(rays: np.ndarray, eye: np.ndarray, radius: float) -> np.ndarray:
 
 def gradient(x: np.ndarray) -> np.ndarray:
     return np.clip((x - CENTRE[0] + RADIUS) / (2 * RADIUS), 0, 1)
+
+
+def rewrite_glb(data: bytes, edit: Callable[[dict, bytearray], None]) -> bytes:
+    """A GLB with its JSON and BIN chunks changed by ``edit`` (lengths and padding redone)."""
+    json_len = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20 : 20 + json_len])
+    bin_at = 20 + json_len
+    bin_len = struct.unpack_from("<I", data, bin_at)[0]
+    binary = bytearray(data[bin_at + 8 : bin_at + 8 + bin_len])
+    edit(doc, binary)
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    binary += b"\0" * (-len(binary) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + struct.pack("<II", len(binary), 0x004E4942) + bytes(binary)
+    return struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body
+
+
+def _index_past_vertices(doc: dict, binary: bytearray) -> None:
+    prim = doc["meshes"][0]["primitives"][0]
+    acc = doc["accessors"][prim["indices"]]
+    view = doc["bufferViews"][acc["bufferView"]]
+    at = view.get("byteOffset", 0) + acc.get("byteOffset", 0)
+    vertices = doc["accessors"][prim["attributes"]["POSITION"]]["count"]
+    width = {5121: "B", 5123: "H", 5125: "I"}[acc["componentType"]]
+    struct.pack_into("<" + width, binary, at, vertices + 5)
+
+
+def _draco(doc: dict, binary: bytearray) -> None:
+    doc["extensionsRequired"] = doc["extensionsUsed"] = ["KHR_draco_mesh_compression"]
+
+
+def _external(doc: dict, binary: bytearray) -> None:
+    doc["buffers"][0]["uri"] = "mesh.bin"
+
+
+def _no_triangles(doc: dict, binary: bytearray) -> None:
+    for mesh in doc["meshes"]:
+        for prim in mesh["primitives"]:
+            prim["mode"] = 1  # lines
 
 
 def write_sphere_glb(path: Path, subdivisions: int, *, node_transform: bool = False, normals: bool = True) -> int:
@@ -147,6 +188,10 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path | int]:
     (root / "garbage.glb").write_bytes(b"this is not a mesh at all" * 10)
     good = (root / "job" / "mesh_lod1.glb").read_bytes()
     (root / "truncated.glb").write_bytes(good[: len(good) // 2])
+    for name, edit in (("index.glb", _index_past_vertices), ("draco.glb", _draco), ("external.glb", _external),
+                       ("lines.glb", _no_triangles)):  # fmt: skip
+        (root / name).write_bytes(rewrite_glb(good, edit))
+    (root / "same.glb").write_bytes(rewrite_glb(good, lambda doc, binary: None))
     return out
 
 
@@ -210,6 +255,19 @@ def save(img: np.ndarray, path: Path) -> None:
 
 
 # --------------------------------------------------------------------------- tests
+
+
+@pytest.mark.slow
+def test_rewritten_glb_without_changes_still_draws(served, browser, scene) -> None:
+    """The bad-GLB cases are edits of a good file: the same rewrite with no edit must draw."""
+    server, _ = served
+    page = Page(browser, view_url(server, mesh="/static/same.glb", showmesh="1"), size=SIZE)
+    try:
+        state = page.wait_idle()
+        assert state["notice"] is None and state["mesh"]["drawnTriangles"] == scene["mesh_lod1.glb"]
+        assert mesh_like(page.capture())[regions(EYE, CENTRE, FOV)["inside"]].mean() > 0.99
+    finally:
+        page.close()
 
 
 def test_job_page_config_names_the_artifact_list() -> None:
@@ -347,8 +405,11 @@ def test_job_page_lists_levels_loads_coarsest_first_and_picks_by_screen_size(ser
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize(("name", "reason"), [("garbage.glb", "not a binary glTF file"), ("truncated.glb", "truncated"),
-                                              ("missing.glb", "HTTP 404")])  # fmt: skip
+@pytest.mark.parametrize(("name", "reason"), [
+    ("garbage.glb", "not a binary glTF file"), ("truncated.glb", "truncated"), ("missing.glb", "HTTP 404"),
+    ("index.glb", "index"), ("draco.glb", "KHR_draco_mesh_compression"), ("external.glb", "external buffers"),
+    ("lines.glb", "no triangles"),
+])  # fmt: skip
 def test_bad_glb_shows_a_one_line_message_and_the_points_stay(served, browser, name: str, reason: str) -> None:
     server, _ = served
     page = Page(browser, view_url(server, mesh=f"/static/{name}", showmesh="1"), size=SIZE)
@@ -367,5 +428,46 @@ def test_bad_glb_shows_a_one_line_message_and_the_points_stay(served, browser, n
         # The browser itself logs the 404 response; nothing else may go wrong.
         errors = [e for e in page.errors if not (name == "missing.glb" and "404 (Not Found)" in e)]
         assert errors == [], page.errors
+    finally:
+        page.close()
+
+
+@pytest.mark.slow
+def test_two_million_triangles_upload_in_one_buffer_with_32_bit_indices(served, browser, scene) -> None:
+    """A 1001 x 1001 vertex height field (2,000,000 triangles, 1,002,001 vertices: 32-bit indices)
+    at z = 700 mm: one vertex and one index buffer, drawn where its ray-cast footprint lies."""
+    server, _ = served
+    n, half, z0 = 1001, 150.0, 700.0
+    u, v = np.meshgrid(np.linspace(-half, half, n), np.linspace(-half, half, n))
+    z = z0 + 2.0 * np.sin(u / 9.0) * np.cos(v / 11.0)  # a ripple, so the shading varies
+    verts = np.stack([u.ravel(), v.ravel(), z.ravel()], axis=1)
+    i = np.arange(n * n).reshape(n, n)
+    a, b, c, d = (q.ravel() for q in (i[:-1, :-1], i[:-1, 1:], i[1:, :-1], i[1:, 1:]))
+    faces = np.concatenate([np.stack([a, b, c], axis=1), np.stack([b, d, c], axis=1)])
+    t = (verts[:, 0] + half) / (2 * half)
+    rgba = np.stack([255 * (1 - t), 255 * t, np.full_like(t, BLUE), np.full_like(t, 255)], axis=1)
+    big = trimesh.Trimesh(verts, faces, vertex_colors=np.round(rgba).astype(np.uint8), process=False)
+    (scene["root"] / "big.glb").write_bytes(big.export(file_type="glb"))
+
+    page = Page(browser, view_url(server, mesh="/static/big.glb"), size=SIZE)
+    try:
+        page.wait_idle()
+        state = page.set(mesh=True)
+        assert state["notice"] is None and state["error"] is None, state
+        mesh = state["mesh"]
+        assert mesh["drawnTriangles"] == len(faces) == 2_000_000
+        assert mesh["drawnBuffers"] == 2 and mesh["drawnIndexBits"] == [32]
+        img = page.capture()
+        rays = rays_through_pixels(EYE, CENTRE, FOV, SIZE)
+        hit = EYE + rays * ((z0 - EYE[2]) / rays[..., 2])[..., None]
+        footprint = ((np.abs(hit[..., 0]) < half) & (np.abs(hit[..., 1]) < half)).astype(np.uint8)
+        inside = cv2.erode(footprint, np.ones((9, 9), np.uint8)).astype(bool)
+        outside = ~cv2.dilate(footprint, np.ones((9, 9), np.uint8)).astype(bool)
+        assert mesh_like(img)[inside].mean() > 0.99 and mesh_like(img)[outside].mean() < 0.002
+        rg = img[..., :2].astype(float)
+        share = rg[..., 1] / np.maximum(rg.sum(axis=2), 1)
+        expected = np.clip((hit[..., 0] + half) / (2 * half), 0, 1)
+        assert np.median(np.abs(share - expected)[inside]) < 0.02
+        assert page.errors == [], page.errors
     finally:
         page.close()

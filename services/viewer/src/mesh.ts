@@ -22,6 +22,8 @@ import type { GpuMesh, Renderer } from "./renderer";
  */
 export const TRIANGLES_PER_PIXEL = 1;
 
+const INDEX_BITS: Record<number, number> = { 5121: 8, 5123: 16, 5125: 32 };
+
 export type LevelState = "unloaded" | "loading" | "loaded" | "failed";
 
 export interface MeshLevel {
@@ -163,10 +165,14 @@ export class MeshLayer {
   }
 
   state(): Record<string, unknown> {
+    const gpu = this.drawn?.gpu ?? null;
     return {
       levels: this.levels.map((l) => ({ name: l.name, url: l.url, state: l.state, triangles: l.triangles, bytes: l.bytes, error: l.error })),
       drawn: this.drawn?.name ?? null,
       drawnTriangles: this.drawn?.triangles ?? 0,
+      // GL buffers of the drawn level (one vertex, one index) and the index widths it draws with.
+      drawnBuffers: gpu ? 1 + (gpu.indexBuffer ? 1 : 0) : 0,
+      drawnIndexBits: gpu ? [...new Set(gpu.draws.map((d) => INDEX_BITS[d.draw.indexType ?? 0] ?? 0))] : [],
       wanted: this.wanted?.name ?? null,
       loading: this.loading,
       min: this.min,
