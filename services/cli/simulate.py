@@ -2,7 +2,9 @@
 
 ``graylight simulate --scene bunny --out DIR [--size 2048x1536] [--projector 1024x768] [--seed N]
 [--colour] [--bits 16] [--no-rows] [--no-inverses] [--force]`` writes a ``graycode-v1`` capture folder with
-``rig.json`` and ``truth.npz`` (see :mod:`shared.sim.simulate`).
+``rig.json`` and ``truth.npz`` (see :mod:`shared.sim.simulate`). With ``--views N [--turntable | --orbit]``
+it writes a ``graylight-scanset-v1`` scan set of N captures with every view's true pose
+(:mod:`shared.sim.scanset`).
 """
 
 from __future__ import annotations

@@ -35,7 +35,9 @@ class MeshParams:
     """max_depth : deepest Poisson octree level. samples_per_cell : sample sizes per finest octree
     cell (sets the depth). samples_per_node, point_weight : screened Poisson's own parameters.
     trim_factor : a vertex farther than this many local sample sizes from every sample is trimmed.
-    lods : face-count fractions of the level-of-detail meshes. threads : Poisson's OpenMP threads
+    lods : face-count fractions of the level-of-detail meshes. max_points : a larger cloud is thinned on
+    a grid to about this many points before the reconstruction (Poisson's time grows with them; the
+    octree depth, not the input count, sets the detail). threads : Poisson's OpenMP threads
     (measured here: 2 threads on a busy 2-core machine took 10x longer than 1, spinning)."""
 
     max_depth: int = 9
@@ -45,6 +47,7 @@ class MeshParams:
     trim_factor: float = 3.0
     lods: tuple[float, ...] = (1 / 4, 1 / 16, 1 / 64)
     threads: int = 1
+    max_points: int = 400_000
 
 
 @dataclass
@@ -67,6 +70,28 @@ def _compact(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> Co
     return ColouredMesh(vertices=vertices[used], faces=remap[faces].astype(np.int64), colours=colours[used])
 
 
+def _thin(xyz: np.ndarray, normals: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
+    """Grid means of about ``target`` points (renormalised mean normals)."""
+    extent = np.ptp(xyz, axis=0)
+    step = float(np.sqrt(np.prod(np.sort(extent)[1:]) * 2.0 / target))  # a closed surface: ~2 box faces
+    for _ in range(4):
+        keys = np.floor((xyz - xyz.min(axis=0)) / step).astype(np.int64)
+        dims = keys.max(axis=0) + 1
+        flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
+        uniq, inv = np.unique(flat, return_inverse=True)
+        if len(uniq) <= 1.3 * target:
+            break
+        step *= float(np.sqrt(len(uniq) / target))
+    inv = inv.ravel()
+    n = len(uniq)
+    counts = np.bincount(inv, minlength=n).astype(np.float64)
+    out = np.stack([np.bincount(inv, weights=xyz[:, a], minlength=n) / counts for a in range(3)], axis=1)
+    nrm = np.stack([np.bincount(inv, weights=normals[:, a], minlength=n) for a in range(3)], axis=1)
+    length = np.linalg.norm(nrm, axis=1)
+    ok = length > 1e-9
+    return out[ok], nrm[ok] / length[ok, None]
+
+
 def reconstruct_mesh(xyz: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size: np.ndarray,
                      params: MeshParams | None = None) -> tuple[ColouredMesh, dict]:
     """Screened Poisson surface of oriented points, trimmed by density.
@@ -83,8 +108,11 @@ def reconstruct_mesh(xyz: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size
     extent = float(np.max(np.ptp(xyz, axis=0)))
     step = params.samples_per_cell * float(np.median(size))
     depth = int(np.clip(np.ceil(np.log2(max(extent * 1.1 / max(step, 1e-9), 2.0))), 5, params.max_depth))
+    pxyz, pnrm = xyz, np.asarray(normals, np.float64)
+    if len(xyz) > params.max_points:
+        pxyz, pnrm = _thin(xyz, pnrm, params.max_points)
     ms = pymeshlab.MeshSet()
-    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=xyz, v_normals_matrix=np.asarray(normals, np.float64)))
+    ms.add_mesh(pymeshlab.Mesh(vertex_matrix=pxyz, v_normals_matrix=pnrm))
     ms.generate_surface_reconstruction_screened_poisson(depth=depth, samplespernode=params.samples_per_node,
                                                         pointweight=params.point_weight, preclean=False,
                                                         threads=params.threads)
@@ -99,7 +127,7 @@ def reconstruct_mesh(xyz: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size
     if len(faces) == 0:
         raise InputError("merged cloud", "the Poisson surface has no face near the samples")
     mesh = _compact(verts, faces, np.asarray(rgb, np.uint8)[nearest])
-    stats = {"depth": depth, "faces_poisson": int(n_raw), "faces": mesh.n_faces, "vertices": int(len(mesh.vertices))}
+    stats = {"depth": depth, "poisson_points": int(len(pxyz)), "faces_poisson": int(n_raw), "faces": mesh.n_faces, "vertices": int(len(mesh.vertices))}
     log.info("Poisson depth %d: %d faces, %d after trimming", depth, n_raw, mesh.n_faces)
     return mesh, stats
 

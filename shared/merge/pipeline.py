@@ -67,11 +67,13 @@ def merge_views(
     meshing: MeshParams | None = None,
     progress: Callable[[float], None] | None = None,
     timings: dict[str, float] | None = None,
+    registered: Registration | None = None,
 ) -> dict[str, Any]:
     """Register, fuse and mesh loaded views (mm, own frames) and write every output of the merge.
 
     The stage after the per-view scans: the job service calls it with views rebuilt from the
-    per-view stage outputs, :func:`merge_scanset` with views it decoded itself.
+    per-view stage outputs, :func:`merge_scanset` with views it decoded itself. ``registered``
+    skips the registration with one already made of these views (cropped to the scan set's roi).
     """
     report_progress = progress or (lambda f: None)
     seconds = dict(timings or {})
@@ -79,7 +81,7 @@ def merge_views(
     names = [v.name for v in scanset.views]
     t0 = time.perf_counter()
     cropped = [crop_to_roi(v, scanset.roi) for v in views]
-    reg = register_views(cropped, hints=hints_mm(scanset), turntable_deg=scanset.turntable_deg, params=registration,
+    reg = registered or register_views(cropped, hints=hints_mm(scanset), turntable_deg=scanset.turntable_deg, params=registration,
                          drop_unregistered=drop_unregistered, names=names,
                          progress=lambda f: report_progress(0.55 * f))
     t_reg = time.perf_counter()

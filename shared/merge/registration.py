@@ -399,6 +399,8 @@ class _Features:
 
         self.o3d = o3d
         o3d.utility.random.seed(seed)
+        # Its RANSAC warns when a mutual filter leaves few matches; the fit check below decides.
+        o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
         self.voxel = coarse_voxel
         self.clouds = []
         self.features = []
