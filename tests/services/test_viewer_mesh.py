@@ -84,10 +84,15 @@ def rewrite_glb(data: bytes, edit: Callable[[dict, bytearray], None]) -> bytes:
     bin_len = struct.unpack_from("<I", data, bin_at)[0]
     binary = bytearray(data[bin_at + 8 : bin_at + 8 + bin_len])
     edit(doc, binary)
+    return pack_glb(doc, bytes(binary))
+
+
+def pack_glb(doc: dict, binary: bytes) -> bytes:
+    """A GLB of a glTF document and its BIN chunk (both padded to 4 bytes)."""
     text = json.dumps(doc).encode()
     text += b" " * (-len(text) % 4)
     binary += b"\0" * (-len(binary) % 4)
-    body = struct.pack("<II", len(text), 0x4E4F534A) + text + struct.pack("<II", len(binary), 0x004E4942) + bytes(binary)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + struct.pack("<II", len(binary), 0x004E4942) + binary
     return struct.pack("<III", 0x46546C67, 2, 12 + len(body)) + body
 
 
@@ -131,6 +136,39 @@ def write_sphere_glb(path: Path, subdivisions: int, *, node_transform: bool = Fa
         sphere.apply_translation(CENTRE)
         scene.add_geometry(sphere)
     path.write_bytes(trimesh.exchange.gltf.export_glb(scene, include_normals=normals))
+    return len(sphere.faces)
+
+
+def write_interleaved_glb(path: Path, subdivisions: int = 4) -> int:
+    """The gradient icosphere as another writer might lay it out: POSITION and FLOAT COLOR_0
+    (VEC3) interleaved in one strided buffer view, UNSIGNED_SHORT indices, and a node that
+    rotates by 90 degrees about z (so the gradient runs along world y) and moves it to CENTRE."""
+    sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=RADIUS)
+    assert len(sphere.vertices) < 65536
+    t = gradient(sphere.vertices[:, 0] + CENTRE[0])
+    colour = np.stack([1 - t, t, np.full_like(t, BLUE / 255)], axis=1)
+    interleaved = np.hstack([sphere.vertices, colour]).astype("<f4").tobytes()
+    indices = sphere.faces.astype("<u2").tobytes()
+    indices += b"\0" * (-len(indices) % 4)
+    lo, hi = sphere.vertices.min(axis=0).tolist(), sphere.vertices.max(axis=0).tolist()
+    n = len(sphere.vertices)
+    doc = {
+        "asset": {"version": "2.0", "generator": "graylight test"},
+        "buffers": [{"byteLength": len(indices) + len(interleaved)}],
+        "bufferViews": [{"buffer": 0, "byteOffset": 0, "byteLength": len(indices), "target": 34963},
+                        {"buffer": 0, "byteOffset": len(indices), "byteLength": len(interleaved), "byteStride": 24,
+                         "target": 34962}],
+        "accessors": [{"bufferView": 0, "componentType": 5123, "count": sphere.faces.size, "type": "SCALAR"},
+                      {"bufferView": 1, "byteOffset": 0, "componentType": 5126, "count": n, "type": "VEC3",
+                       "min": lo, "max": hi},
+                      {"bufferView": 1, "byteOffset": 12, "componentType": 5126, "count": n, "type": "VEC3"}],
+        "meshes": [{"primitives": [{"attributes": {"POSITION": 1, "COLOR_0": 2}, "indices": 0}]}],
+        "nodes": [{"children": [1], "translation": CENTRE.tolist()},
+                  {"mesh": 0, "rotation": [0.0, 0.0, float(np.sin(np.pi / 4)), float(np.cos(np.pi / 4))]}],
+        "scenes": [{"nodes": [0]}],
+        "scene": 0,
+    }  # fmt: skip
+    path.write_bytes(pack_glb(doc, indices + interleaved))
     return len(sphere.faces)
 
 
@@ -185,6 +223,7 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path | int]:
     for name, subdivisions in (("mesh.glb", 7), ("mesh_lod1.glb", 5), ("mesh_lod2.glb", 3)):
         out[name] = write_sphere_glb(root / "job" / name, subdivisions)
     out["node"] = write_sphere_glb(root / "node.glb", 5, node_transform=True, normals=False)
+    out["interleaved"] = write_interleaved_glb(root / "interleaved.glb")
     (root / "garbage.glb").write_bytes(b"this is not a mesh at all" * 10)
     good = (root / "job" / "mesh_lod1.glb").read_bytes()
     (root / "truncated.glb").write_bytes(good[: len(good) // 2])
@@ -266,6 +305,31 @@ def test_rewritten_glb_without_changes_still_draws(served, browser, scene) -> No
         state = page.wait_idle()
         assert state["notice"] is None and state["mesh"]["drawnTriangles"] == scene["mesh_lod1.glb"]
         assert mesh_like(page.capture())[regions(EYE, CENTRE, FOV)["inside"]].mean() > 0.99
+    finally:
+        page.close()
+
+
+@pytest.mark.slow
+def test_interleaved_float_colours_short_indices_and_a_rotated_node(served, browser, scene) -> None:
+    server, _ = served
+    page = Page(browser, view_url(server, mesh="/static/interleaved.glb", showmesh="1"), size=SIZE)
+    try:
+        state = page.wait_idle()
+        assert state["notice"] is None and state["mesh"]["drawnTriangles"] == scene["interleaved"], state["mesh"]
+        assert state["mesh"]["drawnIndexBits"] == [16]
+        img = page.capture()
+        m = regions(EYE, CENTRE, FOV)
+        assert mesh_like(img)[m["inside"]].mean() > 0.99 and mesh_like(img)[m["outside"]].mean() < 0.002
+        # The node turned local +x onto world +y: the gradient's t follows world y (image rows).
+        rays = rays_through_pixels(EYE, CENTRE, FOV, SIZE).reshape(-1, 3)
+        hit = sphere_hit(rays, EYE, RADIUS)
+        y = (EYE + rays * np.where(np.isfinite(hit), hit, 0)[:, None])[:, 1].reshape(SIZE[1], SIZE[0])
+        expected = np.clip((y - CENTRE[1] + RADIUS) / (2 * RADIUS), 0, 1)
+        rg = img[..., :2].astype(float)
+        share = rg[..., 1] / np.maximum(rg.sum(axis=2), 1)
+        err = np.abs(share - expected)[m["inside"]]
+        assert np.median(err) < 0.02 and np.percentile(err, 99) < 0.08, (np.median(err), np.percentile(err, 99))
+        assert page.errors == [], page.errors
     finally:
         page.close()
 
