@@ -404,6 +404,14 @@ def test_mesh_toggle_draws_the_coloured_mesh_over_the_points(served, browser, sc
         page.page.locator("#mesh").uncheck()
         state = page.wait_idle()
         assert state["mesh"]["shown"] is False and mesh_like(page.capture())[inside].mean() < 0.01
+        # The M key toggles it too, and the panel's box follows (as it follows graylight.set).
+        page.page.locator("#view").focus()
+        page.page.keyboard.press("m")
+        state = page.wait_idle()
+        assert state["mesh"]["shown"] is True and page.page.locator("#mesh").is_checked()
+        assert mesh_like(page.capture())[inside].mean() > 0.99
+        page.set(mesh=False)
+        assert not page.page.locator("#mesh").is_checked()
         assert page.errors == [], page.errors
     finally:
         page.close()

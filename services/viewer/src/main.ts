@@ -632,15 +632,31 @@ function bindMeshUi(viewer: Viewer, downloadUrl: string, headers: Record<string,
   if (!section) return;
   section.hidden = false;
   const s = viewer.settings;
-  for (const [id, key] of [["mesh", "mesh"], ["mesh-points", "meshPoints"]] as const) {
+  const boxes = [["mesh", "mesh"], ["mesh-points", "meshPoints"]] as const;
+  const sync = () => {
+    for (const [id, key] of boxes) {
+      const el = document.getElementById(id) as HTMLInputElement | null;
+      if (el) el.checked = s[key];
+    }
+  };
+  for (const [id, key] of boxes) {
     const el = document.getElementById(id) as HTMLInputElement | null;
     if (!el) continue;
-    el.checked = s[key];
     el.addEventListener("change", () => {
       s[key] = el.checked;
       viewer.invalidate();
     });
   }
+  sync();
+  // Settings changed elsewhere (window.graylight.set, the M key) show in the boxes.
+  window.addEventListener("graylight-settings", sync);
+  window.addEventListener("keydown", (e) => {
+    const t = e.target as HTMLElement | null;
+    if (e.code !== "KeyM" || (t && (t.tagName === "INPUT" || t.tagName === "SELECT"))) return;
+    s.mesh = !s.mesh;
+    sync();
+    viewer.invalidate();
+  });
   const link = document.getElementById("mesh-download") as HTMLAnchorElement | null;
   if (!link) return;
   const layer = viewer.mesh!;
@@ -695,6 +711,7 @@ function start(): void {
     /** Apply settings (same names as the Settings record) and redraw. */
     set: (changes: Partial<Settings>) => {
       Object.assign(viewer.settings, changes);
+      window.dispatchEvent(new Event("graylight-settings"));
       viewer.invalidate();
     },
     /** Place the camera (world coordinates) and redraw. */
