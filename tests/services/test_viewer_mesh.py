@@ -26,6 +26,7 @@ from fastapi.testclient import TestClient
 
 from services.viewer import routes
 from shared.formats.ply import write_ply
+from shared.merge.meshing import ColouredMesh, write_mesh
 from tests.support.viewer_browser import Page, Server, built_viewer, chromium, rays_through_pixels
 
 pytestmark = pytest.mark.xdist_group("viewer")
@@ -212,16 +213,23 @@ def regions(eye: np.ndarray, target: np.ndarray, fov: float) -> dict[str, np.nda
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path | int]:
-    """Tiles of the scan, meshes (three levels of detail, a node-transformed one) and bad GLBs."""
+    """Tiles of the scan, meshes (a job's three levels of detail as the mesh stage writes them,
+    others laid out differently) and bad GLBs."""
     from shared.render.octree import build_tiles
 
     root = tmp_path_factory.mktemp("viewer-mesh")
     scan_ball_and_wall(root / "scan.ply")
     build_tiles(root / "scan.ply", root / "job" / "tiles", workers=1, max_leaf=4000)
     out: dict[str, Path | int] = {"root": root}
-    # Levels of a job: the finest needs 32-bit indices (more than 65,535 vertices).
+    # Levels of a job, written by the mesh stage's own writer; the finest needs 32-bit indices
+    # (more than 65,535 vertices).
     for name, subdivisions in (("mesh.glb", 7), ("mesh_lod1.glb", 5), ("mesh_lod2.glb", 3)):
-        out[name] = write_sphere_glb(root / "job" / name, subdivisions)
+        sphere = trimesh.creation.icosphere(subdivisions=subdivisions, radius=RADIUS)
+        vertices = sphere.vertices + CENTRE
+        t = gradient(vertices[:, 0])
+        colours = np.round(np.stack([255 * (1 - t), 255 * t, np.full_like(t, BLUE)], axis=1)).astype(np.uint8)
+        write_mesh(root / "job" / name, ColouredMesh(vertices, np.asarray(sphere.faces, np.int64), colours))
+        out[name] = len(sphere.faces)
     out["node"] = write_sphere_glb(root / "node.glb", 5, node_transform=True, normals=False)
     out["interleaved"] = write_interleaved_glb(root / "interleaved.glb")
     (root / "garbage.glb").write_bytes(b"this is not a mesh at all" * 10)
