@@ -171,6 +171,21 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     "calibrate": (
         StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json")),
     ),
+    # A multi-view scan set (graylight-scanset-v1): a plan that validates it and fans out one task
+    # per view (ingest, decode and triangulate of that view), the merge (register, fuse, mesh),
+    # then tiles and preview of the merged cloud like a scan's.
+    "multiview": (
+        StageSpec("mv_plan", "cpu", (CAPTURE,), 600, publish=("scanset.json",)),
+        StageSpec("mv_view", "cpu", (CAPTURE, "mv_plan"), 3600, fanout_from="mv_plan"),
+        StageSpec("mv_merge", "cpu", (CAPTURE, "mv_plan", "mv_view"), 7200,
+                  publish=("merged.ply", "registration.json", "mesh.glb", "mesh.ply", "report.json"),
+                  params=("drop_unregistered",)),
+        StageSpec("tiles_plan", "render", ("mv_merge",), 7200, switch="render", params=("tiles",)),
+        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan"),
+        StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
+        StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
+                  params=("preview", "preview_epoch"), switch="render"),
+    ),
     # A service self-test: one trivial stage that sleeps params["seconds"] (at most 60) and
     # writes probe.json. It measures queue overhead and proves the workers are alive.
     "probe": (StageSpec("probe", "cpu", (CAPTURE,), 120, publish=("probe.json",), params=("seconds",)),),
@@ -178,7 +193,7 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
 
 
 #: The file that marks the root folder of a job kind's submitted archive.
-ROOT_FILES: dict[str, str] = {"scan": "capture.json", "calibrate": "board.json"}
+ROOT_FILES: dict[str, str] = {"scan": "capture.json", "calibrate": "board.json", "multiview": "scanset.json"}
 
 
 def root_file(kind: str) -> str | None:
