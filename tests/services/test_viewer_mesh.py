@@ -254,15 +254,22 @@ def make_app(root: Path, log: list[str]) -> FastAPI:
 
     @app.get("/v1/jobs/{job}/artifacts")
     def list_artifacts(job: str, authorization: str | None = Header(None)) -> dict:
+        # Like the API's list: every file as STAGE/PATH, and the stage's published names
+        # (the multiview graph publishes mesh.glb, not the levels of detail) also short.
         check(authorization)
         arts = [{"name": f"tiles/{p.name}", "stage": "tiles", "size": p.stat().st_size} for p in (job_dir / "tiles").iterdir()]
-        arts += [{"name": p.name, "stage": "mesh", "size": p.stat().st_size} for p in sorted(job_dir.glob("*.glb"))]
-        arts += [{"name": "merged.ply", "stage": "fuse", "size": 1}]
+        for p in sorted(job_dir.glob("*.glb")):
+            arts.append({"name": f"mv_merge/{p.name}", "stage": "mv_merge", "size": p.stat().st_size})
+            if p.name == "mesh.glb":
+                arts.append({"name": p.name, "stage": "mv_merge", "size": p.stat().st_size})
+        arts += [{"name": "preview/mesh_lod1.glb", "stage": "preview", "size": 1}]  # another stage's file
         return {"job": job, "artifacts": arts}
 
     @app.get("/v1/jobs/{job}/artifacts/{name:path}")
     def artifact(job: str, name: str, authorization: str | None = Header(None)) -> FileResponse:
         check(authorization)
+        if name.startswith(("mv_merge/", "tiles/")) and name.endswith(".glb"):
+            name = name.split("/", 1)[1]
         log.append(name)
         path = (job_dir / name).resolve()
         if not path.is_relative_to(job_dir) or not path.is_file():
@@ -435,6 +442,9 @@ def test_job_page_lists_levels_loads_coarsest_first_and_picks_by_screen_size(ser
         assert state["error"] is None and state["notice"] is None, state
         levels = state["mesh"]["levels"]
         assert [lv["name"] for lv in levels] == ["mesh.glb", "mesh_lod1.glb", "mesh_lod2.glb"]
+        # The published short name where there is one, else the mesh stage's own path.
+        paths = [lv["url"].split("/artifacts/", 1)[1] for lv in levels]
+        assert paths == ["mesh.glb", "mv_merge/mesh_lod1.glb", "mv_merge/mesh_lod2.glb"], paths
         triangles = [scene[lv["name"]] for lv in levels]
 
         def expected(eye: np.ndarray) -> str:

@@ -612,11 +612,24 @@ async function attachMesh(viewer: Viewer, p: URLSearchParams, config: PageConfig
     const listUrl = new URL(config.artifacts ?? new URL("..", tilesUrl).toString().replace(/\/$/, ""), document.baseURI);
     const response = await fetch(listUrl, { headers: headersFor(listUrl.toString()) });
     if (!response.ok) throw new Error(`listing the job's artifacts: HTTP ${response.status} from ${listUrl.pathname}`);
-    const list = (await response.json()) as { artifacts?: { name: string; size?: number }[] };
-    const found = (list.artifacts ?? []).filter((a) => MESH_ARTIFACT.test(a.name));
-    // Short names only: a file under the artifacts URL, like the tiles folder.
-    levels = orderLevels(found).map((a) => ({
-      url: `${listUrl.toString().replace(/\/$/, "")}/${encodeURIComponent(a.name)}`,
+    const list = (await response.json()) as { artifacts?: { name: string; stage?: string; size?: number }[] };
+    const arts = list.artifacts ?? [];
+    // mesh.glb by its short (published) name, else as STAGE/mesh.glb; the levels of detail from
+    // the same stage, by short name if published, else STAGE/mesh_lodN.glb.
+    const file = (name: string) => name.slice(name.lastIndexOf("/") + 1);
+    const isLevel = (name: string) => MESH_ARTIFACT.test(file(name)) && name.split("/").length <= 2;
+    const main = arts.find((a) => a.name === "mesh.glb") ?? arts.find((a) => isLevel(a.name) && file(a.name) === "mesh.glb");
+    const stage = main?.stage ?? (main && main.name.includes("/") ? main.name.split("/")[0] : undefined);
+    const chosen = new Map<string, { name: string; size?: number }>();
+    for (const a of arts) {
+      if (!isLevel(a.name)) continue;
+      const inStage = a.name.includes("/") ? a.name.split("/")[0] === stage : a.stage === undefined || a.stage === stage;
+      if (main && !inStage) continue;
+      if (!a.name.includes("/") || !chosen.has(file(a.name))) chosen.set(file(a.name), a);
+    }
+    const base = listUrl.toString().replace(/\/$/, "");
+    levels = orderLevels([...chosen.entries()].map(([f, a]) => ({ name: f, path: a.name, size: a.size }))).map((a) => ({
+      url: `${base}/${a.path.split("/").map(encodeURIComponent).join("/")}`,
       name: a.name,
       bytes: a.size ?? null,
     }));
