@@ -320,7 +320,6 @@ class Viewer {
   /** Attach a mesh (levels finest first); `headersFor` gives each URL's request headers. */
   setMesh(levels: { url: string; name?: string; bytes?: number | null }[], headersFor: (url: string) => Record<string, string>): MeshLayer {
     this.mesh = new MeshLayer(levels, headersFor, this.renderer, () => this.invalidate(), (m) => this.warn(m));
-    window.dispatchEvent(new Event("graylight-mesh"));
     this.invalidate();
     return this.mesh;
   }
@@ -396,8 +395,10 @@ class Viewer {
       const eyeLocal: [number, number, number] = [0, 1, 2].map((i) => cam.position[i] - origin[i]) as [number, number, number];
       const sel = selectNodes(src.root, { viewProj, eye: eyeLocal, focalPx }, this.settings.budget, MIN_NODE_PX);
       this.lastSelection = sel;
-      for (const node of drawPoints ? sel.visible : []) {
+      for (const node of sel.visible) {
+        // Marked in use even under the mesh, so the cache keeps them rather than evicting and reloading.
         node.lastVisibleFrame = this.frame;
+        if (!drawPoints) continue;
         // Coarse nodes stand in for finer ones not drawn: size their splats from the node spacing.
         const fill = sel.coarse.has(node) || !src.hasSize ? node.spacing : 0;
         items.push({ gpu: node.gpu as GpuNode, fill });
