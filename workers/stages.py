@@ -220,6 +220,32 @@ def run_mv_merge(ctx: StageContext) -> dict[str, Any]:
                       "faces": report["mesh"]["faces"], "loop_closure": report["registration"]["loop_closure"]})
 
 
+def run_mv_compress(ctx: StageContext) -> dict[str, Any]:
+    """The merged object compressed at ``params.compress`` (default lossless at 0.02 mm): the
+    merged cloud as ``merged.glo`` and each view's range image as ``ranges/<view>.glr``; only the
+    smaller of the two is kept (the views' when they are smaller, else the cloud)."""
+    from shared.compress.files import compress_file
+
+    options = compress_options(ctx.params.get("compress"))
+    mode = {k: options[k] for k in ("quantum", "max_error") if k in options}
+    merged = ctx.inputs["mv_merge"]
+    cloud = compress_file(merged / "merged.ply", ctx.out_dir / "merged.glo", **mode)
+    views = []
+    for raw in sorted((merged / "ranges").glob("*.npz")) if (merged / "ranges").is_dir() else []:
+        views.append(compress_file(raw, ctx.out_dir / "ranges" / f"{raw.stem}.glr", **mode))
+    views_bytes = sum(v["bytes"] for v in views)
+    kept = "views" if views and views_bytes < cloud["bytes"] else "merged"
+    if kept == "views":
+        (ctx.out_dir / "merged.glo").unlink()
+    elif views:
+        shutil.rmtree(ctx.out_dir / "ranges")
+    summary = {"kept": kept, "merged_bytes": cloud["bytes"], "merged_points": cloud["count"],
+               "views_bytes": views_bytes, "views": len(views), "mode": cloud["mode"],
+               "quantum": cloud["quantum"], "max_error": cloud["max_error"]}
+    write_json_atomic(ctx.out_dir / "compress.json", summary)
+    return _jsonable(summary)
+
+
 def run_calibrate(ctx: StageContext) -> dict[str, Any]:
     from shared.calib.session import calibrate_session
 
@@ -252,6 +278,7 @@ STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
     "preview": run_preview,
     "export": run_export,
     "compress": run_compress,
+    "mv_compress": run_mv_compress,
     "calibrate": run_calibrate,
     "probe": run_probe,
     "mv_plan": run_mv_plan,

@@ -180,6 +180,9 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("mv_merge", "cpu", (CAPTURE, "mv_plan", "mv_view"), 7200,
                   publish=("merged.ply", "registration.json", "mesh.glb", "mesh.ply", "report.json"),
                   params=("drop_unregistered",)),
+        # The object compressed: the merged cloud (merged.glo) or the views' range images
+        # (ranges/*.glr), whichever is smaller.
+        StageSpec("mv_compress", "cpu", ("mv_merge",), 3600, publish=("merged.glo", "compress.json"), params=("compress",)),
         StageSpec("tiles_plan", "render", ("mv_merge",), 7200, switch="render", params=("tiles",)),
         StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan"),
         StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),

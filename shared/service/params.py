@@ -165,6 +165,7 @@ PARAMS: dict[str, dict[str, Param]] = {
         "drop_unregistered": _bool("true leaves out, with a warning, views that register to nothing"),
         "tiles": Param(lambda v, f: tiles_options(v, f), _TILES_SCHEMA),
         "preview": Param(_preview, _PREVIEW_SCHEMA),
+        "compress": Param(lambda v, f: compress_options(v, f), _COMPRESS_SCHEMA),
     },
     "probe": {"seconds": Param(_seconds, {"type": "number", "minimum": 0, "maximum": MAX_PROBE_SECONDS})},
 }

@@ -87,3 +87,54 @@ def test_compress_stage_bounded_drops_the_raw_range(tmp_path: Path, small_captur
 def test_bad_compress_params_are_refused_at_the_edge(value: dict, field: str) -> None:
     with pytest.raises(InputError, match=rf"^{field}: "):
         check_job_params("scan", {"compress": value})
+
+
+def _merge_output(folder: Path, points: int, views: int) -> Path:
+    """A stand-in for the mv_merge stage's output: merged.ply (the fused dtype) and ranges/*.npz."""
+    from shared.compress.range import RangeImage, save_range_npz
+    from shared.formats.ply import write_ply_records
+    from shared.merge.fusion import FUSED_DTYPE
+
+    rng = np.random.default_rng(4)
+    rec = np.zeros(points, FUSED_DTYPE)
+    rec["x"], rec["y"] = rng.uniform(-50, 50, points), rng.uniform(-50, 50, points)
+    rec["z"] = 600 + 0.1 * rec["x"] + rng.normal(0, 0.2, points)
+    rec["red"] = rng.integers(0, 256, points)
+    rec["nz"] = -1.0
+    rec["size"] = 0.2
+    rec["view"] = rng.integers(0, max(views, 1), points)
+    rec["confidence"] = rng.random(points)
+    folder.mkdir(parents=True)
+    write_ply_records(folder / "merged.ply", iter([rec]), points, FUSED_DTYPE, ("units mm",))
+    if views:
+        (folder / "ranges").mkdir()
+        yy, xx = np.mgrid[0:96, 0:128]
+        for v in range(views):
+            z = (700 + 0.3 * xx + 0.1 * yy + rng.normal(0, 0.2, xx.shape)).astype(np.float32)
+            save_range_npz(folder / "ranges" / f"view_{v:02d}.npz", RangeImage(z, np.eye(3), np.zeros(5), "mm"))
+    return folder
+
+
+@pytest.mark.parametrize("points, views, kept", [(200_000, 2, "views"), (500, 3, "merged"), (5_000, 0, "merged")])
+def test_multiview_compress_keeps_the_smaller(tmp_path: Path, points: int, views: int, kept: str) -> None:
+    from shared.compress.cloud import decode_cloud
+    from workers.stages import STAGE_FUNCS, StageContext
+
+    assert [s.name for s in graph_for("multiview")].index("mv_compress") > [s.name for s in graph_for("multiview")].index("mv_merge")
+    merged = _merge_output(tmp_path / "merge", points, views)
+    out = tmp_path / "out"
+    out.mkdir()
+    ctx = StageContext(job_id="j", kind="multiview", stage="mv_compress", params={"compress": {"max_error": 0.1}},
+                       capture_dir=None, inputs={"mv_merge": merged}, out_dir=out)
+    summary = STAGE_FUNCS["mv_compress"](ctx)
+    assert summary["kept"] == kept
+    if views:
+        assert (summary["views_bytes"] < summary["merged_bytes"]) == (kept == "views")
+    if kept == "views":
+        assert _files(out) == ["compress.json", "ranges"] and len(list((out / "ranges").glob("*.glr"))) == views
+        back = read_range(out / "ranges" / "view_00.glr").z
+        with np.load(merged / "ranges" / "view_00.npz") as d:
+            assert np.abs(back.astype(np.float64) - d["z"]).max() <= 0.1
+    else:
+        assert _files(out) == ["compress.json", "merged.glo"]
+        assert len(decode_cloud(out / "merged.glo")) == points
