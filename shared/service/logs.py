@@ -54,12 +54,14 @@ class JsonFormatter(logging.Formatter):
     """One JSON object a line: time (UTC, ISO 8601, ms), level, logger, message, the context ids."""
 
     def format(self, record: logging.LogRecord) -> str:
+        # As logging.Formatter.format does: handlers and tests read record.message afterwards.
+        record.message = record.getMessage()
         t = time.gmtime(record.created)
         doc: dict[str, Any] = {
             "time": time.strftime("%Y-%m-%dT%H:%M:%S", t) + f".{int(record.msecs):03d}Z",
             "level": record.levelname,
             "logger": record.name,
-            "message": record.getMessage(),
+            "message": record.message,
         }
         context = _CONTEXT.get() or {}
         for k in CONTEXT_FIELDS:

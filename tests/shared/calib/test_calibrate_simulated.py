@@ -38,15 +38,16 @@ from shared.sim.simulate import ImagingParams, compute_truth, simulate_capture
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("calibrate_simulated")]
 
 
+# The modules whose code decides a simulated session's images (the cache key).
 _SIMULATOR_SOURCES = (
-    "simulate.py",
-    "scenes.py",
-    "raycast.py",
-    "graycode.py",
-    "capture.py",
-    "board.py",
-    "simulate_calibration.py",
-    "rig.py",
+    "sim/simulate.py",
+    "sim/scenes.py",
+    "sim/raycast.py",
+    "sim/calibration.py",
+    "scan/graycode.py",
+    "formats/capture.py",
+    "formats/rig.py",
+    "calib/board.py",
 )
 
 
