@@ -12,14 +12,6 @@ sizing against static 1-px splats.
 
 from __future__ import annotations
 
-import base64
-import fcntl
-import shutil
-import socket
-import subprocess
-import tempfile
-import threading
-import time
 from collections.abc import Callable, Iterator
 from pathlib import Path
 
@@ -33,21 +25,11 @@ from fastapi.testclient import TestClient
 
 from services.viewer import routes
 from shared.formats.ply import write_ply
+from tests.support.viewer_browser import Page as BrowserPage
+from tests.support.viewer_browser import Server, built_viewer, chromium
 
 pytestmark = pytest.mark.xdist_group("viewer")
 
-VIEWER_DIR = Path(routes.__file__).resolve().parent
-CHROMIUM = Path("/usr/bin/chromium")
-CHROMIUM_ARGS = [
-    "--no-sandbox",
-    "--use-gl=angle",
-    "--use-angle=swiftshader",
-    "--enable-unsafe-swiftshader",
-    "--disable-background-networking",
-    "--disable-component-update",
-    "--disable-sync",
-    "--no-first-run",
-]
 API_KEY = "test-key-6f1c"
 VIEW_W, VIEW_H = 640, 480
 
@@ -140,59 +122,9 @@ def project(points: np.ndarray, eye: np.ndarray, target: np.ndarray, fov_deg: fl
 # --------------------------------------------------------------------------- server and browser
 
 
-def _sources_newer_than_build() -> bool:
-    built = VIEWER_DIR / "dist" / "assets" / "viewer.js"
-    if not built.is_file() or not (VIEWER_DIR / "dist" / "index.html").is_file():
-        return True
-    stamp = built.stat().st_mtime
-    sources = [*VIEWER_DIR.glob("src/*"), VIEWER_DIR / "build.mjs", VIEWER_DIR / "package-lock.json"]
-    return any(p.stat().st_mtime > stamp for p in sources)
-
-
 @pytest.fixture(scope="module")
 def viewer_dist() -> Path:
-    """The built viewer; rebuilt with npm when the sources changed since the last build."""
-    # Test processes may run this at once: one builds while the others wait on the lock.
-    with open(Path(tempfile.gettempdir()) / "graylight-viewer-build.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        if _sources_newer_than_build():
-            npm = shutil.which("npm")
-            if npm is None or not (VIEWER_DIR / "node_modules").is_dir():
-                pytest.fail("viewer assets missing or stale and npm/node_modules unavailable: run `make viewer`")
-            subprocess.run([npm, "run", "--silent", "build"], cwd=VIEWER_DIR, check=True, timeout=120)
-    return VIEWER_DIR / "dist"
-
-
-class Server:
-    """uvicorn on 127.0.0.1 (a free port) in a thread; records the tiles requests it serves."""
-
-    def __init__(self, app: FastAPI) -> None:
-        import uvicorn
-
-        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        self.sock.bind(("127.0.0.1", 0))
-        self.port = self.sock.getsockname()[1]
-        self.server = uvicorn.Server(uvicorn.Config(app, log_level="warning", lifespan="off"))
-        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [self.sock]}, daemon=True)
-
-    @property
-    def url(self) -> str:
-        return f"http://127.0.0.1:{self.port}"
-
-    def __enter__(self) -> Server:
-        self.thread.start()
-        deadline = time.monotonic() + 10
-        while not self.server.started:
-            if time.monotonic() > deadline:
-                raise RuntimeError("uvicorn did not start")
-            time.sleep(0.02)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        self.server.should_exit = True
-        self.thread.join(timeout=5)
-        self.sock.close()
+    return built_viewer()
 
 
 def make_app(tiles_root: Path, requests_log: list[tuple[str, str | None, str | None]]) -> FastAPI:
@@ -278,43 +210,15 @@ def served(tiles_root: Path, viewer_dist: Path) -> Iterator[tuple[Server, list]]
 
 @pytest.fixture(scope="module")
 def browser() -> Iterator[object]:
-    from playwright.sync_api import sync_playwright
-
-    if not CHROMIUM.exists():
-        pytest.fail(f"{CHROMIUM} is missing: `apt-get install chromium` (make setup installs it)")
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=str(CHROMIUM), args=CHROMIUM_ARGS)
+    with chromium() as b:
         yield b
-        b.close()
 
 
-class Page:
-    """A viewer page with console errors and page errors collected."""
+class Page(BrowserPage):
+    """A viewer page at this module's viewport size."""
 
     def __init__(self, browser, url: str, size: tuple[int, int] = (VIEW_W, VIEW_H)) -> None:
-        self.page = browser.new_page(viewport={"width": size[0], "height": size[1]}, device_scale_factor=1)
-        self.errors: list[str] = []
-        self.page.on("console", lambda m: self.errors.append(m.text) if m.type == "error" else None)
-        self.page.on("pageerror", lambda e: self.errors.append(str(e)))
-        self.page.goto(url)
-
-    def wait_idle(self, timeout_s: float = 60.0) -> dict:
-        self.page.wait_for_function("() => window.graylight && window.graylight.idle()", timeout=timeout_s * 1000, polling=100)
-        return self.page.evaluate("() => window.graylight.state()")
-
-    def capture(self) -> np.ndarray:
-        """The frame as RGB uint8 (H, W, 3), read back from the WebGL canvas."""
-        data_url = self.page.evaluate("() => window.graylight.capture()")
-        png = base64.b64decode(data_url.split(",", 1)[1])
-        bgr = cv2.imdecode(np.frombuffer(png, np.uint8), cv2.IMREAD_COLOR)
-        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
-
-    def set(self, **settings: object) -> dict:
-        self.page.evaluate("(s) => window.graylight.set(s)", settings)
-        return self.wait_idle()
-
-    def close(self) -> None:
-        self.page.close()
+        super().__init__(browser, url, size)
 
 
 # --------------------------------------------------------------------------- tests
