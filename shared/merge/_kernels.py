@@ -52,14 +52,19 @@ def grid_reduce(order, starts, xyz, normals, rgb, conf, view, out_xyz, out_n, ou
     point and ``out_count`` the number of distinct views in the cell.
     """
     C = starts.shape[0] - 1
+    # Scratch allocated once: an allocation per cell costs more than the cell's arithmetic.
+    sx = np.zeros(3)
+    sn = np.zeros(3)
+    sc = np.zeros(3)
+    seen = np.zeros(64, np.bool_)
     for c in range(C):
         sw = 0.0
-        sx = np.zeros(3)
-        sn = np.zeros(3)
-        sc = np.zeros(3)
+        for a in range(3):
+            sx[a] = 0.0
+            sn[a] = 0.0
+            sc[a] = 0.0
         best = -1.0
         bv = -1
-        seen = np.zeros(64, np.bool_)
         nviews = 0
         for t in range(starts[c], starts[c + 1]):
             k = order[t]
@@ -84,6 +89,8 @@ def grid_reduce(order, starts, xyz, normals, rgb, conf, view, out_xyz, out_n, ou
         out_conf[c] = sw
         out_view[c] = bv
         out_count[c] = nviews
+        for t in range(starts[c], starts[c + 1]):
+            seen[view[order[t]] % 64] = False
 
 
 @numba.njit(cache=True, nogil=True)

@@ -173,12 +173,12 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
     axis = np.argmax(np.abs(normals), axis=1)
     side = axis * 2 + (normals[np.arange(len(normals)), axis] > 0)
     key = (((level * dims[0] + ijk[:, 0]) * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]) * 6 + side
-    _, first, inv = np.unique(key, return_index=True, return_inverse=True)
-    inv = inv.ravel()
-    order = np.argsort(inv, kind="stable")
-    counts = np.bincount(inv, minlength=len(first))
-    starts = np.zeros(len(first) + 1, np.int64)
-    np.cumsum(counts, out=starts[1:])
+    # One sort gives the cells: runs of equal keys.
+    order = np.argsort(key, kind="stable")
+    sk = key[order]
+    bounds = np.flatnonzero(sk[1:] != sk[:-1]) + 1
+    starts = np.concatenate([[0], bounds, [len(sk)]]).astype(np.int64)
+    first = order[starts[:-1]]
     C = len(first)
     out_xyz = np.empty((C, 3))
     out_n = np.empty((C, 3))
