@@ -4,8 +4,14 @@ own database and artifact store, until nothing is queued."""
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
+from shared.service.artifacts import ArtifactStore, sha256_file
 from shared.service.config import Settings
-from shared.service.jobstore import JobStore
+from shared.service.jobs import graph_for
+from shared.service.jobstore import Job, JobStore, NewJob
+from tests.support.jobsvc import capture_zip
 from workers.runner import run_stage
 
 
@@ -21,3 +27,20 @@ def drive(settings: Settings, job_id: str, stop_after: str | None = None, rounds
             run_stage(st.id, settings, publish=False)
             if st.name == stop_after:
                 return
+
+
+def run_scan_job(settings: Settings, capture: Path, tmp: Path, params: dict[str, Any]) -> tuple[ArtifactStore, Job]:
+    """Store ``capture`` as an archive, make a scan job of it with ``params`` and run it to its
+    end in-process; returns the artifact store and the finished job (asserted succeeded)."""
+    store = JobStore(settings.database_url)
+    owner, _ = store.create_key("t")
+    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
+    archive = capture_zip(capture, tmp / "c.zip")
+    key = sha256_file(archive)
+    arts.put_files(key, {"capture.zip": archive})
+    job, _ = store.create_job(owner.id, NewJob(kind="scan", capture_ref=f"object:{key}", capture_key=key,
+                                               graph=graph_for("scan", params), name="c.zip", params=params))  # fmt: skip
+    drive(settings, job.id)
+    job = store.get_job(job.id)
+    assert job.state == "succeeded", job
+    return arts, job

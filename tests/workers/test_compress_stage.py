@@ -11,34 +11,16 @@ import pytest
 
 from shared.compress.range import expected_lossless, read_range
 from shared.core.errors import InputError
-from shared.service.artifacts import ArtifactStore, sha256_file
+from shared.service.artifacts import ArtifactStore
 from shared.service.jobs import graph_for, stage_spec
-from shared.service.jobstore import JobStore, NewJob
 from shared.service.params import check_job_params
-from tests.support.jobsvc import capture_zip, make_env
-from workers.runner import run_stage
+from tests.support.inprocess import run_scan_job
+from tests.support.jobsvc import make_env
 
 
 def _run_job(tmp_path: Path, small_capture: Path, params: dict) -> tuple[ArtifactStore, object]:
-    settings = make_env(tmp_path / "svc").settings
-    store = JobStore(settings.database_url)
-    owner, _ = store.create_key("t")
-    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
-    archive = capture_zip(small_capture, tmp_path / "c.zip")
-    key = sha256_file(archive)
-    arts.put_files(key, {"capture.zip": archive})
-    params = {"render": False, **params}  # tiles and preview left out: compression needs only the range image
-    job, _ = store.create_job(owner.id, NewJob(kind="scan", capture_ref=f"object:{key}", capture_key=key,
-                                               graph=graph_for("scan", params), name="c.zip", params=params))  # fmt: skip
-    for _ in range(10):
-        job = store.get_job(job.id)
-        if job.state in ("succeeded", "failed", "cancelled"):
-            break
-        for st in job.stages:
-            if st.state == "queued":
-                run_stage(st.id, settings, publish=False)
-    assert job.state == "succeeded", job
-    return arts, job
+    # Tiles and preview left out: compression needs only the range image.
+    return run_scan_job(make_env(tmp_path / "svc").settings, small_capture, tmp_path, {"render": False, **params})
 
 
 def _files(folder: Path) -> list[str]:
