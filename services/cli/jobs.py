@@ -193,7 +193,8 @@ class Client:
         self.http = http or httpx.Client(base_url=self.url, timeout=timeout)
         self.http.headers["Authorization"] = f"Bearer {key}"
 
-    def request(self, method: str, path: str, **kw: Any) -> Any:
+    def _send(self, method: str, path: str, **kw: Any) -> Any:
+        """The ``httpx`` response of a request; :class:`ServiceError` when it fails or answers >= 400."""
         import httpx
 
         try:
@@ -206,6 +207,10 @@ class Client:
             except ValueError:
                 detail = r.text[:300]
             raise ServiceError(f"{method} {path}: HTTP {r.status_code}: {detail}")
+        return r
+
+    def request(self, method: str, path: str, **kw: Any) -> Any:
+        r = self._send(method, path, **kw)
         return r.json() if r.content else None
 
     def submit_archive(self, archive: Path, label: str, kind: str = "scan", batch: str | None = None,
@@ -265,19 +270,7 @@ class Client:
 
     def text(self, path: str) -> str:
         """The body of ``GET path`` as text (a CSV report); :class:`ServiceError` on an error."""
-        import httpx
-
-        try:
-            r = self.http.request("GET", path)
-        except httpx.HTTPError as exc:
-            raise ServiceError(f"{self.url}{path}: {exc}") from None
-        if r.status_code >= 400:
-            try:
-                detail = error_text(r.json().get("detail"))
-            except ValueError:
-                detail = r.text[:300]
-            raise ServiceError(f"GET {path}: HTTP {r.status_code}: {detail}")
-        return r.text
+        return self._send("GET", path).text
 
 
 def error_text(detail: Any) -> str:
