@@ -35,7 +35,16 @@ from shared.service.archive import ArchiveLimits, extract_archive
 from shared.service.artifacts import ArtifactError, ArtifactStore
 from shared.service.config import Settings
 from shared.service.faults import storage_fault
-from shared.service.jobs import CAPTURE, GRAPHS, base_name, fanout_index, root_file, row_key, stage_spec
+from shared.service.jobs import (
+    CAPTURE,
+    GRAPHS,
+    base_name,
+    fan_out,
+    fanout_index,
+    root_file,
+    row_key,
+    stage_spec,
+)
 from shared.service.jobstore import Job, JobStore, Stage
 from shared.service.logs import reset_log_context, set_log_context
 from shared.service.queue import publish_stages
@@ -216,7 +225,7 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
             summary = _execute(job, stage, spec.inputs, upstream, arts, settings, beat, key)
             if summary is None:
                 return Outcome("lost", stage_id)
-        expand = [(m.name, m.queue, int(summary.get("fanout", 0))) for m in GRAPHS[job.kind] if m.fanout_from == spec.name]
+        expand = fan_out(GRAPHS[job.kind], spec.name, int(summary.get("fanout", 0)))
         ok, newly = store.complete_stage(stage_id, token, key, summary, reused=reused, expand=expand)
         if not ok:
             return Outcome("lost", stage_id)

@@ -181,26 +181,64 @@ def run_mv_plan(ctx: StageContext) -> dict[str, Any]:
     return {"fanout": len(ss.views), "views": [{"name": v.name, "kind": v.kind} for v in ss.views]}
 
 
-def run_mv_view(ctx: StageContext) -> dict[str, Any]:
-    """One view of a scan set: ingest, decode and triangulate a captured view (``decoded.npz``,
-    ``cloud.ply``, ``range.npz``); a cloud view is only checked (the merge reads it from the set)."""
+def _view_spec(ctx: StageContext) -> Any:
+    """The scan set's view that this instance of a per-view stage works on."""
     from shared.formats.scanset import load_scanset
-    from shared.merge.views import load_view
-    from shared.scan.pipeline import decode_stage, ingest_stage, triangulate_stage
 
     assert ctx.capture_dir is not None and ctx.index is not None
-    spec = load_scanset(ctx.capture_dir).views[ctx.index]
+    return load_scanset(ctx.capture_dir).views[ctx.index]
+
+
+def _in_view(spec: Any, step: Callable[[], dict[str, Any]]) -> dict[str, Any]:
+    """Run ``step``; an input error names the view (``views[2] (view_02): ...``)."""
+    try:
+        return step()
+    except InputError as exc:
+        raise InputError(spec.where, str(exc)) from None
+
+
+def run_mv_ingest(ctx: StageContext) -> dict[str, Any]:
+    """Check one view of a scan set completely without decoding: a capture's images and rig (as
+    the scan's ingest does), or a cloud view's PLY (the merge reads it from the set)."""
+    from shared.merge.views import load_view
+    from shared.scan.pipeline import ingest_stage
+
+    spec = _view_spec(ctx)
     if spec.kind == "cloud":
         return {"view": spec.name, "kind": "cloud", "points": len(load_view(spec))}
-    try:
+
+    def ingest() -> dict[str, Any]:
         capture = ingest_stage(spec.path, spec.rig)
         if capture.rig is None:
             raise InputError(spec.path / "capture.json", "no rig")
-        decode_stage(spec.path, ctx.out_dir, progress=lambda f: ctx.progress(0.8 * f))
-        part = triangulate_stage(ctx.out_dir / "decoded.npz", capture.rig, ctx.out_dir)
-    except InputError as exc:
-        raise InputError(spec.where, str(exc)) from None
-    return _jsonable({"view": spec.name, "kind": "capture", "points": part["points"]})
+        return {"view": spec.name, "kind": "capture", "images": len(capture.image_paths()),
+                "projector": [capture.projector_width, capture.projector_height]}
+
+    return _in_view(spec, ingest)
+
+
+def run_mv_decode(ctx: StageContext) -> dict[str, Any]:
+    """Decode one captured view (``decoded.npz``); nothing to do for a cloud view."""
+    from shared.scan.pipeline import decode_stage
+
+    spec = _view_spec(ctx)
+    if spec.kind == "cloud":
+        return {"view": spec.name, "kind": "cloud"}
+    summary = _in_view(spec, lambda: decode_stage(spec.path, ctx.out_dir, progress=ctx.progress))
+    return _jsonable({**summary, "view": spec.name, "kind": "capture"})
+
+
+def run_mv_triangulate(ctx: StageContext) -> dict[str, Any]:
+    """Triangulate one decoded view with its rig (``cloud.ply``, ``range.npz``: the raw range
+    image the merge keeps); nothing to do for a cloud view."""
+    from shared.scan.pipeline import triangulate_stage
+
+    spec = _view_spec(ctx)
+    if spec.kind == "cloud":
+        return {"view": spec.name, "kind": "cloud"}
+    decoded = ctx.inputs[f"mv_decode#{ctx.index}"] / "decoded.npz"
+    summary = _in_view(spec, lambda: triangulate_stage(decoded, spec.rig, ctx.out_dir))
+    return _jsonable({**summary, "view": spec.name, "kind": "capture"})
 
 
 def run_mv_merge(ctx: StageContext) -> dict[str, Any]:
@@ -211,8 +249,8 @@ def run_mv_merge(ctx: StageContext) -> dict[str, Any]:
 
     assert ctx.capture_dir is not None
     ss = load_scanset(ctx.capture_dir)
-    views = [view_from_scan_outputs(v, ctx.inputs[f"mv_view#{i}"]) if v.kind == "capture" else load_view(v)
-             for i, v in enumerate(ss.views)]
+    views = [view_from_scan_outputs(v, ctx.inputs[f"mv_triangulate#{i}"], ctx.inputs[f"mv_decode#{i}"])
+             if v.kind == "capture" else load_view(v) for i, v in enumerate(ss.views)]  # fmt: skip
     report = merge_views(views, ss, ctx.out_dir, drop_unregistered=bool(ctx.params.get("drop_unregistered", False)),
                          progress=ctx.progress)
     return _jsonable({"views": report["views"], "registered_views": report["registered_views"],
@@ -282,6 +320,8 @@ STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
     "calibrate": run_calibrate,
     "probe": run_probe,
     "mv_plan": run_mv_plan,
-    "mv_view": run_mv_view,
+    "mv_ingest": run_mv_ingest,
+    "mv_decode": run_mv_decode,
+    "mv_triangulate": run_mv_triangulate,
     "mv_merge": run_mv_merge,
 }

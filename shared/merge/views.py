@@ -168,11 +168,12 @@ def _capture_view(spec: ViewSpec, progress: Callable[[float], None] | None) -> V
                         decoded.confidence, rig.camera.K, rig.camera.dist, spec.scale_mm)
 
 
-def view_from_scan_outputs(spec: ViewSpec, scan_dir: Path) -> ViewCloud:
+def view_from_scan_outputs(spec: ViewSpec, scan_dir: Path, decoded_dir: Path | None = None) -> ViewCloud:
     """A captured view rebuilt from the per-view stage outputs in ``scan_dir``.
 
     ``cloud.ply`` and ``range.npz`` come from :func:`shared.scan.pipeline.triangulate_stage`,
-    ``decoded.npz`` from :func:`shared.scan.pipeline.decode_stage`. The points of ``cloud.ply`` are
+    ``decoded.npz`` from :func:`shared.scan.pipeline.decode_stage` (in ``decoded_dir`` when the
+    decode is a stage of its own, else in ``scan_dir`` too). The points of ``cloud.ply`` are
     the range image's finite pixels in row-major order (the triangulator writes them so).
     """
     scan_dir = Path(scan_dir)
@@ -183,7 +184,7 @@ def view_from_scan_outputs(spec: ViewSpec, scan_dir: Path) -> ViewCloud:
             raise InputError(rng_path, "range image not found")
         with np.load(rng_path) as z:
             range_image, K, dist = z["z"], z["K"], z["dist"]
-        decoded = load_decoded(scan_dir / "decoded.npz")
+        decoded = load_decoded(Path(decoded_dir or scan_dir) / "decoded.npz")
     except InputError as exc:
         raise InputError(spec.where, str(exc)) from None
     flat = np.flatnonzero(np.isfinite(range_image))

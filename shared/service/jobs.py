@@ -147,6 +147,10 @@ class StageSpec:
         return tuple(i for i in self.inputs if i != CAPTURE)
 
 
+#: The level-of-detail meshes a merge writes (shared.merge.pipeline: ``mesh_lod{k}.glb`` for the
+#: default ``MeshParams.lods``, 1/4, 1/16 and 1/64 of the faces), published by their names.
+MESH_LOD_FILES: tuple[str, ...] = ("mesh_lod1.glb", "mesh_lod2.glb", "mesh_lod3.glb")
+
 GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     "scan": (
         StageSpec("ingest", "cpu", (CAPTURE,), 600, publish=("capture.json",), params=("rig",)),
@@ -171,14 +175,18 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     "calibrate": (
         StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json")),
     ),
-    # A multi-view scan set (graylight-scanset-v1): a plan that validates it and fans out one task
-    # per view (ingest, decode and triangulate of that view), the merge (register, fuse, mesh),
-    # then tiles and preview of the merged cloud like a scan's.
+    # A multi-view scan set (graylight-scanset-v1): a plan that validates it and fans out three
+    # tasks per view, each its own task so that workers on several machines share one object:
+    # ingest, decode, triangulate (instance i of each reads instance i of the one before), then
+    # the merge (register, fuse, mesh) of all views, then tiles and preview of the merged cloud.
     "multiview": (
         StageSpec("mv_plan", "cpu", (CAPTURE,), 600, publish=("scanset.json",)),
-        StageSpec("mv_view", "cpu", (CAPTURE, "mv_plan"), 3600, fanout_from="mv_plan"),
-        StageSpec("mv_merge", "cpu", (CAPTURE, "mv_plan", "mv_view"), 7200,
-                  publish=("merged.ply", "registration.json", "mesh.glb", "mesh.ply", "report.json"),
+        StageSpec("mv_ingest", "cpu", (CAPTURE, "mv_plan"), 600, fanout_from="mv_plan"),
+        StageSpec("mv_decode", "cpu", (CAPTURE, "mv_ingest"), 3600, fanout_from="mv_plan"),
+        StageSpec("mv_triangulate", "cpu", (CAPTURE, "mv_ingest", "mv_decode"), 3600, fanout_from="mv_plan"),
+        StageSpec("mv_merge", "cpu", (CAPTURE, "mv_plan", "mv_decode", "mv_triangulate"), 7200,
+                  publish=("merged.ply", "registration.json", "mesh.glb", "mesh.ply", "report.json",
+                           *MESH_LOD_FILES),
                   params=("drop_unregistered",)),
         # The object compressed: the merged cloud (merged.glo) or the views' range images
         # (ranges/*.glr), whichever is smaller.
@@ -257,6 +265,36 @@ def fanout_index(stage: str) -> int | None:
     """The instance index of a map stage's row (``tiles_chunk#3`` -> 3), None for other stages."""
     _, sep, idx = stage.partition(FANOUT_SEP)
     return int(idx) if sep else None
+
+
+@dataclass(frozen=True)
+class InstanceRow:
+    """One row a finished stage fans out into: instance ``name`` (``mv_decode#2``) of a map
+    stage, on ``queue``, waiting for the rows ``depends_on``."""
+
+    name: str
+    queue: str
+    depends_on: tuple[str, ...]
+
+
+def fan_out(graph: Iterable[StageSpec], parent: str, count: int) -> list[InstanceRow]:
+    """The rows of every map stage of ``graph`` that fans out from stage ``parent``, ``count``
+    instances each, in graph order (all instances of one map stage, then the next).
+
+    Instance ``i`` of a map stage reads instance ``i`` of a sibling map stage it names as an
+    input (one that fans out from the same parent): a chain of per-item stages, such as a
+    view's ingest, decode and triangulate, runs item by item, each step its own task. Any other
+    upstream stage it names is read whole.
+    """
+    graph = tuple(graph)
+    maps = [m for m in graph if m.fanout_from == parent]
+    siblings = {m.name for m in maps}
+    rows: list[InstanceRow] = []
+    for m in maps:
+        for i in range(count):
+            deps = tuple(f"{d}{FANOUT_SEP}{i}" if d in siblings else d for d in m.depends_on)
+            rows.append(InstanceRow(f"{m.name}{FANOUT_SEP}{i}", m.queue, deps))
+    return rows
 
 
 def stage_key(

@@ -48,10 +48,12 @@ from shared.service.jobs import (
     FANOUT_SEP,
     JOB_ACTIVE,
     STAGE_WAITING,
+    InstanceRow,
     JobState,
     StageSpec,
     StageState,
     StageView,
+    base_name,
     can_move_job,
     can_move_stage,
     check_transition,
@@ -618,27 +620,33 @@ class JobStore:
             )
             return res.rowcount > 0
 
-    def _expand(self, s: Session, parent: StageRow, name: str, queue: str, count: int) -> None:
-        """Give map stage ``name`` one row per item (``name#0`` ...), each reading ``parent``,
-        and make the stages that read ``name`` read all of them (the fan-in). A re-run of the
-        parent replaces earlier instances."""
-        if count >= FANOUT_SLOTS - 1:
-            raise ValueError(f"stage {parent.name} fans out into {count} pieces, more than {FANOUT_SLOTS - 2}")
-        prefix = f"{name}{FANOUT_SEP}"
-        old = s.scalars(select(StageRow).where(StageRow.job_id == parent.job_id, StageRow.name.like(f"{prefix}%"))).all()
-        for r in old:
-            s.delete(r)
+    def _expand(self, s: Session, parent: StageRow, rows: Sequence[InstanceRow]) -> None:
+        """Add the map-stage instances ``rows`` (:func:`shared.service.jobs.fan_out` of ``parent``)
+        and make every other stage that reads one of those map stages read all its instances
+        (the fan-in). A re-run of the parent replaces earlier instances."""
+        if len(rows) >= FANOUT_SLOTS - 1:
+            raise ValueError(f"stage {parent.name} fans out into {len(rows)} pieces, more than {FANOUT_SLOTS - 2}")
+        maps = {base_name(r.name) for r in rows}
+        prefixes = tuple(f"{m}{FANOUT_SEP}" for m in maps)
+        existing = s.scalars(select(StageRow).where(StageRow.job_id == parent.job_id)).all()
+        for r in existing:
+            if r.name.startswith(prefixes):
+                s.delete(r)
         s.flush()
-        names = [f"{prefix}{i}" for i in range(count)]
-        for i, n in enumerate(names):
-            s.add(StageRow(job_id=parent.job_id, name=n, position=parent.position + 1 + i, queue=queue,
-                           depends_on=[parent.name], state=StageState.PENDING))  # fmt: skip
+        for k, r in enumerate(rows):
+            s.add(StageRow(job_id=parent.job_id, name=r.name, position=parent.position + 1 + k, queue=r.queue,
+                           depends_on=list(r.depends_on), state=StageState.PENDING))  # fmt: skip
+        instances: dict[str, list[str]] = {m: [r.name for r in rows if base_name(r.name) == m] for m in maps}
         for r in s.scalars(select(StageRow).where(StageRow.job_id == parent.job_id)).all():
+            if base_name(r.name) in maps:
+                continue  # an instance reads its own item of a sibling map stage (fan_out said which)
             deps = list(r.depends_on or ())
-            if name in deps or any(d.startswith(prefix) for d in deps):
-                kept = [d for d in deps if d != name and not d.startswith(prefix)]
-                r.depends_on = kept + names  # a new list, so the JSON column is written
-        self._event(s, parent.job_id, name, None, StageState.PENDING, f"{count} pieces")
+            if any(base_name(d) in maps for d in deps):
+                kept = [d for d in deps if base_name(d) not in maps]
+                read = [n for m in sorted(maps) if any(base_name(d) == m for d in deps) for n in instances[m]]
+                r.depends_on = kept + read  # a new list, so the JSON column is written
+        for m in sorted(maps):
+            self._event(s, parent.job_id, m, None, StageState.PENDING, f"{len(instances[m])} pieces")
         s.flush()
 
     def complete_stage(
@@ -648,11 +656,11 @@ class JobStore:
         output_key: str,
         summary: dict[str, Any] | None = None,
         reused: bool = False,
-        expand: Sequence[tuple[str, str, int]] = (),
+        expand: Sequence[InstanceRow] = (),
     ) -> tuple[bool, list[Stage]]:
-        """Mark a held stage succeeded, queue what it unblocks. ``expand`` lists map stages
-        that fan out from this one as (name, queue, count). Returns (whether the lease was
-        still ours, stages to publish)."""
+        """Mark a held stage succeeded, queue what it unblocks. ``expand`` lists the map-stage
+        instances this stage fans out into (:func:`shared.service.jobs.fan_out`). Returns
+        (whether the lease was still ours, stages to publish)."""
         now = time.time()
         with self.session() as s, s.begin():
             res = s.execute(
@@ -668,8 +676,8 @@ class JobStore:
             row = s.get(StageRow, stage_id)
             assert row is not None
             self._event(s, row.job_id, row.name, StageState.RUNNING, StageState.SUCCEEDED, "reused" if reused else None)
-            for name, queue, count in expand:
-                self._expand(s, row, name, queue, count)
+            if expand:
+                self._expand(s, row, expand)
             newly = self._refresh_job_state(s, row.job_id)
             return True, self._stages_by_id(s, newly)
 

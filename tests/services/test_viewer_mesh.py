@@ -255,7 +255,7 @@ def make_app(root: Path, log: list[str]) -> FastAPI:
     @app.get("/v1/jobs/{job}/artifacts")
     def list_artifacts(job: str, authorization: str | None = Header(None)) -> dict:
         # Like the API's list: every file as STAGE/PATH, and the stage's published names
-        # (the multiview graph publishes mesh.glb, not the levels of detail) also short.
+        # also short: here only mesh.glb, so the levels are found by the stage's own paths too.
         check(authorization)
         arts = [{"name": f"tiles/{p.name}", "stage": "tiles", "size": p.stat().st_size} for p in (job_dir / "tiles").iterdir()]
         for p in sorted(job_dir.glob("*.glb")):

@@ -16,6 +16,7 @@ from fastapi.testclient import TestClient
 from services.api.app import create_app
 from shared.merge.fusion import read_fused
 from shared.service.artifacts import ArtifactStore
+from shared.service.jobs import MESH_LOD_FILES
 from shared.service.jobstore import JobStore
 from tests.support.jobsvc import ServiceEnv, capture_zip, start_beat, start_worker, wait_for
 from tests.support.scansets import cached_scanset
@@ -66,9 +67,15 @@ def test_multiview_job_over_two_workers(pg_env: ServiceEnv, scanset: Path, tmp_p
     job = _final(client, auth, jid, 600, w1)
     assert job["state"] == "succeeded", job
     names = [s["name"] for s in job["stages"]]
-    assert names[:1] == ["mv_plan"] and {f"mv_view#{i}" for i in range(4)} <= set(names) and "mv_merge" in names
+    per_view = {f"{m}#{i}" for m in ("mv_ingest", "mv_decode", "mv_triangulate") for i in range(4)}
+    assert names[:1] == ["mv_plan"] and per_view <= set(names) and "mv_merge" in names
     store = JobStore(pg_env.settings.database_url)
-    runners = _runners(store, jid, "mv_view#")
+    # Each view's decode waits for that view's ingest only, its triangulation for its decode.
+    events = [(e[0], e[2]) for e in store.events(jid)]
+    for i in range(4):
+        assert events.index((f"mv_ingest#{i}", "succeeded")) < events.index((f"mv_decode#{i}", "running"))
+        assert events.index((f"mv_decode#{i}", "succeeded")) < events.index((f"mv_triangulate#{i}", "running"))
+    runners = _runners(store, jid, "mv_decode#") | _runners(store, jid, "mv_triangulate#")
     print("per-view stages ran on", runners)
     assert len(runners) == 2
     r = client.get(f"/v1/jobs/{jid}/artifacts/registration.json", headers=auth)
@@ -77,8 +84,9 @@ def test_multiview_job_over_two_workers(pg_env: ServiceEnv, scanset: Path, tmp_p
     (tmp_path / "merged.ply").write_bytes(client.get(f"/v1/jobs/{jid}/artifacts/merged.ply", headers=auth).content)
     rec = read_fused(tmp_path / "merged.ply")
     assert len(rec) > 10000 and set(np.unique(rec["view"])) == {0, 1, 2, 3}
-    glb = client.get(f"/v1/jobs/{jid}/artifacts/mesh.glb", headers=auth).content
-    assert glb[:4] == b"glTF"
+    for name in ("mesh.glb", *MESH_LOD_FILES):  # the mesh and its levels of detail, by their short names
+        glb = client.get(f"/v1/jobs/{jid}/artifacts/{name}", headers=auth).content
+        assert glb[:4] == b"glTF", name
 
 
 def test_broken_view_fails_the_job_naming_it(svc_env: ServiceEnv, scanset: Path, tmp_path: Path) -> None:

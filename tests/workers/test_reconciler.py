@@ -9,7 +9,7 @@ from pathlib import Path
 
 import redis
 
-from shared.service.jobs import StageSpec, fanout_index, graph_for, stage_key, stage_spec
+from shared.service.jobs import StageSpec, fan_out, fanout_index, graph_for, stage_key, stage_spec
 from shared.service.jobstore import JobStore, NewJob
 from tests.support.jobsvc import ServiceEnv
 from workers.reconciler import enqueue_preview_rerender, reconcile_once
@@ -78,7 +78,7 @@ def test_nightly_rerender_resets_only_previews(svc_env: ServiceEnv, tmp_path: Pa
         for st in queued:
             spec = stage_spec("scan", st.name)
             keys[st.name] = stage_key(spec, "c" * 64, {}, {d: keys[d] for d in st.depends_on}, fanout_index(st.name))
-            expand = [(m.name, m.queue, 2) for m in graph if m.fanout_from == spec.name]
+            expand = fan_out(graph, spec.name, 2)
             c = store.claim_stage(st.id, "w")
             assert store.complete_stage(st.id, c.token, keys[st.name], expand=expand)[0]
     done = store.get_job(job.id)

@@ -10,7 +10,15 @@ from pathlib import Path
 
 import pytest
 
-from shared.service.jobs import CAPTURE, JOB_TRANSITIONS, STAGE_TRANSITIONS, StageSpec, graph_for, stage_key
+from shared.service.jobs import (
+    CAPTURE,
+    JOB_TRANSITIONS,
+    STAGE_TRANSITIONS,
+    StageSpec,
+    fan_out,
+    graph_for,
+    stage_key,
+)
 from shared.service.jobstore import JobStore, NewJob
 from tests.support.jobsvc import pg_database
 
@@ -87,6 +95,49 @@ def test_fan_in_counted_in_database(store: JobStore) -> None:
     assert done.state == "succeeded" and done.finished_at is not None
     events = [e for e in store.events(job.id) if e[0] is None]
     assert [e[2] for e in events] == ["queued", "running", "succeeded"]
+
+
+#: A plan fanning out into a per-item chain (x, then y reading its own x) and a join of every y.
+CHAIN = (
+    StageSpec("plan", "cpu", (CAPTURE,), 10),
+    StageSpec("x", "cpu", (CAPTURE, "plan"), 10, fanout_from="plan"),
+    StageSpec("y", "cpu", ("x",), 10, fanout_from="plan"),
+    StageSpec("join", "cpu", ("plan", "y"), 10),
+)
+
+
+def _complete(store: JobStore, stage_id: int, expand: list | tuple = ()) -> list:
+    claim = store.claim_stage(stage_id, "test")
+    assert claim is not None
+    ok, newly = store.complete_stage(stage_id, claim.token, "k" * 64, expand=expand)
+    assert ok
+    return newly
+
+
+def test_chained_fan_out_runs_item_by_item(store: JobStore) -> None:
+    owner, _ = store.create_key("o")
+    job, ready = new_job(store, owner.id, graph=CHAIN)
+    assert [s.name for s in ready] == ["plan"]
+    newly = _complete(store, ready[0].id, fan_out(CHAIN, "plan", 3))
+    assert sorted(s.name for s in newly) == ["x#0", "x#1", "x#2"]  # y#i waits for its own x#i
+    j = store.get_job(job.id)
+    assert j.stage("y#1").depends_on == ("x#1",)
+    assert sorted(j.stage("join").depends_on) == ["plan", "y#0", "y#1", "y#2"]
+    assert [s.name for s in _complete(store, j.stage("x#1").id)] == ["y#1"]
+    assert _complete(store, j.stage("y#1").id) == []  # the join waits for every y
+    for i in (0, 2):
+        assert [s.name for s in _complete(store, j.stage(f"x#{i}").id)] == [f"y#{i}"]
+    assert _complete(store, j.stage("y#0").id) == []
+    assert [s.name for s in _complete(store, j.stage("y#2").id)] == ["join"]
+    # Rows sort in graph order: every x, then every y, then the join.
+    order = [s.name for s in sorted(store.get_job(job.id).stages, key=lambda s: s.position)]
+    assert order == ["plan", "x#0", "x#1", "x#2", "y#0", "y#1", "y#2", "join"]
+    # A re-run of the plan replaces the instances (two items now) and the join's fan-in with them.
+    store.reset_stages(job.id, [s.name for s in store.get_job(job.id).stages])
+    _complete(store, store.get_job(job.id).stage("plan").id, fan_out(CHAIN, "plan", 2))
+    j = store.get_job(job.id)
+    assert sorted(s.name for s in j.stages) == ["join", "plan", "x#0", "x#1", "y#0", "y#1"]
+    assert sorted(j.stage("join").depends_on) == ["plan", "y#0", "y#1"]
 
 
 def test_concurrent_completions_queue_join_once(store: JobStore) -> None:
