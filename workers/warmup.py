@@ -40,7 +40,7 @@ KERNEL_MODULES: dict[str, tuple[str, ...]] = {
     "sim": ("shared.sim.raycast",),
     "scan": ("shared.scan.decode", "shared.scan.triangulate"),
     "render": ("shared.render.octree", "shared.render.raster", "shared.render._shading", "shared.render._neighbours",
-               "shared.render._match"),
+               "shared.render._match", "shared.compress.tilenode"),  # tilenode: the tiles' octree-coded nodes
     "compress": ("shared.compress._rans", "shared.compress._quadtree", "shared.compress._octree"),
     "merge": ("shared.merge._kernels",),
 }
@@ -185,7 +185,7 @@ def _warm_scan(work: Path, captures: list[Path]) -> list[Path]:
 def _warm_render(work: Path, clouds: list[Path]) -> None:
     """Tiles of the scanned clouds (several chunks, deep nodes) and of an xyz-only cloud, in
     this process, with a forked pool and as the job service's per-chunk tasks; preview
-    frames of the tiles."""
+    frames of the tiles; octree-coded tiles of both kinds of cloud, read back."""
     import numpy as np
 
     from shared.formats.ply import read_ply, write_ply
@@ -218,6 +218,13 @@ def _warm_render(work: Path, clouds: list[Path]) -> None:
         cam = frame_camera(poses[0], scene, 64, 48)
         rz.render(cam, scene.xyz, scene.colour, scene.size, *frame_selection(scene, cam, 10_000))
         rz.render(cam, scene.xyz, scene.colour, scene.size, edl=1.0)
+    # Octree-coded nodes (tiles --node-codec octree): coded and decoded, with and without attributes.
+    from shared.compress import tilenode
+
+    for k, ply in enumerate([clouds[0], bare]):
+        tiles = work / f"tiles_octree_{k}"
+        build_tiles(ply, tiles, workers=1, max_chunk=500, max_leaf=100, node_codec="octree")
+        load_scene(open_tiles(tiles, decoders=tilenode.DECODERS))
 
 
 def _warm_compress(work: Path, clouds: list[Path]) -> None:

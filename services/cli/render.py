@@ -15,7 +15,8 @@ def _tiles(args: argparse.Namespace) -> int:
 
     if args.workers is not None and args.workers < 1:
         raise InputError("--workers", f"must be at least 1, got {args.workers}")
-    report = tiles_stage(Path(args.cloud), Path(args.out), workers=args.workers, estimate_normals=args.estimate_normals)
+    report = tiles_stage(Path(args.cloud), Path(args.out), workers=args.workers, estimate_normals=args.estimate_normals,
+                         node_codec=args.node_codec)  # fmt: skip
     print(
         f"{report['points']} points in {report['nodes']} nodes, {report['depth']} levels deep, "
         f"{report['bytes'] / 1e6:.1f} MB, in {report['seconds']:.1f} s ({report['points_per_second'] / 1e6:.2f} M points/s)"
@@ -47,6 +48,13 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         "--estimate-normals",
         action="store_true",
         help="give a cloud without normals unit normals from its neighbourhoods (facing the origin)",
+    )
+    p.add_argument(
+        "--node-codec",
+        choices=("plain", "octree"),
+        default="plain",
+        help="how octree.bin stores nodes: plain (Potree's DEFAULT, any Potree viewer opens it) or octree "
+        "(octree-coded, lossless, several times smaller; Graylight's viewer and preview read it)",
     )
     p.set_defaults(func=_tiles)
 

@@ -9,6 +9,7 @@ world coordinates (units of the source cloud) with colour, normal and world ``si
 from __future__ import annotations
 
 import json
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -69,6 +70,13 @@ class PotreeTiles:
     point_dtype: np.dtype
     offset: np.ndarray
     scale: np.ndarray
+    #: Decodes a node's bytes (bytes, record dtype, count, where) when the nodes are not
+    #: Potree's plain records (the encoding's decoder given to :func:`open_tiles`).
+    decoder: Callable[..., np.ndarray] | None = None
+
+    @property
+    def encoding(self) -> str:
+        return str(self.metadata.get("encoding", "DEFAULT"))
 
     @property
     def points(self) -> int:
@@ -90,6 +98,10 @@ class PotreeTiles:
         with open(self.root / "octree.bin", "rb") as f:
             f.seek(node.byte_offset)
             buf = f.read(node.byte_size)
+        if self.decoder is not None:
+            if len(buf) != node.byte_size:
+                raise InputError(self.root / "octree.bin", f"node {name} lies outside the file")
+            return self.decoder(buf, self.point_dtype, node.num_points, where=f"{self.root / 'octree.bin'} node {name}")
         if len(buf) != node.byte_size or node.byte_size != node.num_points * self.point_dtype.itemsize:
             raise InputError(self.root / "octree.bin", f"node {name} bytes do not match its record")
         return np.frombuffer(buf, self.point_dtype)
@@ -126,9 +138,15 @@ def _child_box(lo: np.ndarray, hi: np.ndarray, index: int) -> tuple[np.ndarray, 
     return lo, hi
 
 
-def open_tiles(root: Path) -> PotreeTiles:
-    """Open a Potree 2.0 folder; raises :class:`InputError` naming the file that is wrong."""
+def open_tiles(root: Path, decoders: Mapping[str, Callable[..., np.ndarray]] | None = None) -> PotreeTiles:
+    """Open a Potree 2.0 folder; raises :class:`InputError` naming the file that is wrong.
+
+    ``decoders`` maps other node encodings than "DEFAULT" to their decoders, called as
+    ``decoder(bytes, record dtype, count, where=...)`` -> records (Graylight's octree-coded nodes:
+    :data:`shared.compress.tilenode.DECODERS`); tiles in another encoding are refused.
+    """
     root = Path(root)
+    decoders = dict(decoders or {})
     meta_path = root / "metadata.json"
     if not meta_path.is_file():
         raise InputError(root, "not a tiles folder (no metadata.json)")
@@ -136,7 +154,7 @@ def open_tiles(root: Path) -> PotreeTiles:
         meta = json.loads(meta_path.read_text())
         if meta.get("version") != "2.0":
             raise InputError(meta_path, f"unsupported Potree version {meta.get('version')!r}")
-        if meta.get("encoding", "DEFAULT") != "DEFAULT":
+        if meta.get("encoding", "DEFAULT") != "DEFAULT" and meta.get("encoding") not in decoders:
             raise InputError(meta_path, f"unsupported encoding {meta.get('encoding')!r}")
         fields = []
         for a in meta["attributes"]:
@@ -189,7 +207,8 @@ def open_tiles(root: Path) -> PotreeTiles:
                         PotreeNode(cur.name + str(k), cur.level + 1, 0, 0, 0, 0, 0, lo, hi, cur.spacing / 2)
                     )
     ordered = dict(sorted(nodes.items(), key=lambda kv: (len(kv[0]), kv[0])))
-    return PotreeTiles(root=root, metadata=meta, nodes=ordered, point_dtype=dtype, offset=offset, scale=scale)
+    return PotreeTiles(root=root, metadata=meta, nodes=ordered, point_dtype=dtype, offset=offset, scale=scale,
+                       decoder=decoders.get(meta.get("encoding", "DEFAULT")))  # fmt: skip
 
 
 def tight_bounds(tiles: PotreeTiles) -> tuple[np.ndarray, np.ndarray]:

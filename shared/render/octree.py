@@ -53,7 +53,7 @@ import os
 import shutil
 import tempfile
 import time
-from concurrent.futures import Executor, ProcessPoolExecutor
+from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from multiprocessing import get_context
 from pathlib import Path
@@ -61,6 +61,7 @@ from pathlib import Path
 import numba
 import numpy as np
 
+from shared.compress import tilenode
 from shared.core.errors import InputError
 from shared.formats.ply import CLOUD_DTYPE, iter_ply_chunks, read_header
 from shared.formats.potree import HIERARCHY_DTYPE, HIERARCHY_STEP
@@ -80,6 +81,8 @@ READ_CHUNK = 1 << 20  # points a slice of the passes over the cloud
 MIN_PART_POINTS = 1 << 20  # smallest range of the cloud a pass hands to a worker process
 PLAN_FILE = "plan.json"
 MAX_OPEN_FILES = 256
+#: Node encodings of ``octree.bin``: option value -> metadata.json "encoding".
+NODE_CODECS = {"plain": "DEFAULT", "octree": "GRAYLIGHT_OCTREE"}
 
 
 @dataclass
@@ -103,6 +106,9 @@ class TilePlan:
     #: Attributes the cloud lacks that the chunks compute ("size" from the point spacing,
     #: "normal" when asked): see :mod:`shared.render._neighbours`.
     derived: dict[str, bool] = field(default_factory=dict)
+    #: How ``octree.bin`` stores a node: "plain" (Potree's DEFAULT records) or "octree"
+    #: (:mod:`shared.compress.tilenode`, metadata encoding "GRAYLIGHT_OCTREE").
+    node_codec: str = "plain"
 
     def point_dtype(self) -> np.dtype:
         """Records of ``octree.bin``: :data:`POINT_DTYPE` less what the cloud neither has
@@ -568,6 +574,7 @@ def plan_tiles(
     workers: int = 1,
     scale: float | None = None,
     estimate_normals: bool = False,
+    node_codec: str = "plain",
 ) -> TilePlan:
     """Pass 1: bounds, counts, chunk choice and distribution of points into chunk files.
 
@@ -580,8 +587,12 @@ def plan_tiles(
     A cloud without ``size`` gets one from its local point spacing, and with
     ``estimate_normals`` one without normals gets them from its neighbourhoods (both computed
     per chunk, :mod:`shared.render._neighbours`); missing colour stays missing.
+    ``node_codec`` (:data:`NODE_CODECS`) is how the merge stores the nodes: "plain" (Potree's
+    DEFAULT, the default) or "octree" (octree-coded, :mod:`shared.compress.tilenode`).
     Raises :class:`InputError` for an empty cloud or NaN / infinite coordinates.
     """
+    if node_codec not in NODE_CODECS:
+        raise InputError("node_codec", f"must be one of {', '.join(NODE_CODECS)}, got {node_codec!r}")
     cloud_ply = Path(cloud_ply)
     work_dir = Path(work_dir)
     work_dir.mkdir(parents=True, exist_ok=True)
@@ -667,6 +678,7 @@ def plan_tiles(
         derived={"size": not has["size"], "normal": bool(estimate_normals) and not has["normal"]},
         bounds_min=[float(v) for v in lo],
         bounds_max=[float(v) for v in hi],
+        node_codec=node_codec,
     )
     tmp = work_dir / f"{PLAN_FILE}.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(asdict(plan)))
@@ -1059,9 +1071,45 @@ def _layout(
     return nodes, copies, pos
 
 
-def _write_tiles(plan: TilePlan, nodes: dict[str, dict], nbytes: int, out_dir: Path, fill) -> dict:
+def _code_nodes(
+    octree_bin: Path, nodes: dict[str, dict], dtype: np.dtype, workers: int
+) -> tuple[dict[str, dict], int]:
+    """Replace the plain ``octree_bin`` by the octree-coded nodes (:mod:`shared.compress.tilenode`),
+    breadth first as before; returns the nodes with their new offsets and sizes, and the file
+    size. The plain file is read one node at a time; ``workers`` threads code nodes at once (the
+    kernels and zlib release the GIL)."""
+    coded = octree_bin.with_name(octree_bin.name + ".coded")
+    out: dict[str, dict] = {}
+    pos = 0
+    names = [nm for nm in nodes if nodes[nm]["points"]]
+    with open(coded, "wb") as f, ThreadPoolExecutor(max(1, workers)) as pool:
+        futures = {
+            nm: pool.submit(tilenode.encode_node, np.fromfile(octree_bin, dtype=dtype, count=nodes[nm]["points"],
+                                                              offset=nodes[nm]["offset"]))
+            for nm in names[: 2 * max(1, workers)]
+        }  # fmt: skip
+        ahead = len(futures)
+        for nm, info in nodes.items():
+            if not info["points"]:
+                out[nm] = {"points": 0, "offset": pos, "size": 0}
+                continue
+            data = futures.pop(nm).result()
+            if ahead < len(names):  # keep a few nodes in flight, not the whole file in memory
+                nxt = names[ahead]
+                rec = np.fromfile(octree_bin, dtype=dtype, count=nodes[nxt]["points"], offset=nodes[nxt]["offset"])
+                futures[nxt] = pool.submit(tilenode.encode_node, rec)
+                ahead += 1
+            f.write(data)
+            out[nm] = {"points": info["points"], "offset": pos, "size": len(data)}
+            pos += len(data)
+    os.replace(coded, octree_bin)
+    return out, pos
+
+
+def _write_tiles(plan: TilePlan, nodes: dict[str, dict], nbytes: int, out_dir: Path, fill, workers: int = 1) -> dict:
     """Write the tiles folder in a staging folder and rename it to ``out_dir`` (replacing an
-    older one); ``fill(octree_bin)`` writes the points into the pre-sized ``octree.bin``."""
+    older one); ``fill(octree_bin)`` writes the points into the pre-sized ``octree.bin``. With
+    the plan's octree node codec, the plain nodes are then coded (``workers`` threads)."""
     total = sum(info["points"] for info in nodes.values())
     if total != plan.points:
         raise RuntimeError(f"tiles hold {total} points, the cloud has {plan.points}")
@@ -1071,6 +1119,8 @@ def _write_tiles(plan: TilePlan, nodes: dict[str, dict], nbytes: int, out_dir: P
         with open(stage / "octree.bin", "wb") as f:
             f.truncate(nbytes)
         fill(stage / "octree.bin")
+        if plan.node_codec != "plain":
+            nodes, nbytes = _code_nodes(stage / "octree.bin", nodes, plan.point_dtype(), workers)
         hierarchy, first_chunk, depth = _hierarchy(nodes)
         (stage / "hierarchy.bin").write_bytes(hierarchy)
         lo = plan.offset
@@ -1085,7 +1135,7 @@ def _write_tiles(plan: TilePlan, nodes: dict[str, dict], nbytes: int, out_dir: P
             "scale": [plan.scale] * 3,
             "spacing": plan.cube_size / 128.0,
             "boundingBox": {"min": lo, "max": [v + plan.cube_size for v in lo]},
-            "encoding": "DEFAULT",
+            "encoding": NODE_CODECS[plan.node_codec],
             "attributes": _attributes(plan),
         }
         (stage / "metadata.json").write_text(json.dumps(metadata, indent=2) + "\n")
@@ -1125,7 +1175,7 @@ def merge_tiles(work_dir: Path, out_dir: Path) -> dict:
                     for src_off, dst_off, n in chunk_copies:
                         _copy_range(src, out, src_off, dst_off, n)
 
-    return _write_tiles(plan, nodes, nbytes, Path(out_dir), fill)
+    return _write_tiles(plan, nodes, nbytes, Path(out_dir), fill, workers=os.cpu_count() or 1)
 
 
 # --------------------------------------------------------------------------- in-process build
@@ -1191,12 +1241,13 @@ def build_tiles(
     max_leaf: int = 10_000,
     scale: float | None = None,
     estimate_normals: bool = False,
+    node_codec: str = "plain",
 ) -> dict:
     """Build Potree 2.0 tiles from ``cloud_ply`` into ``out_dir`` (all passes, in-process).
 
     ``workers`` processes run the passes over the cloud and build chunks in parallel (default:
     the CPU count; 1 runs in this process). Temporary chunk files live beside ``out_dir`` and
-    are removed. ``scale`` and ``estimate_normals`` as :func:`plan_tiles`. Returns a report
+    are removed. ``scale``, ``estimate_normals`` and ``node_codec`` as :func:`plan_tiles`. Returns a report
     with points, nodes, depth, bytes, chunks, seconds and points_per_second.
     """
     t0 = time.perf_counter()
@@ -1216,7 +1267,7 @@ def build_tiles(
             )
             plan = plan_tiles(
                 Path(cloud_ply), work, max_chunk=max_chunk, max_leaf=max_leaf, pool=pool, workers=workers,
-                scale=scale, estimate_normals=estimate_normals,
+                scale=scale, estimate_normals=estimate_normals, node_codec=node_codec,
             )
             nchunks = len(plan.chunks)
             # Largest chunks first keeps the pool busy to the end.
@@ -1233,7 +1284,7 @@ def build_tiles(
                 calls = [(str(work), i, str(octree_bin), copies[i]) for i in order]
                 _run_parts(chunk_pool, _chunk_write_job, calls)
 
-            report = _write_tiles(plan, nodes, nbytes, out_dir, fill)
+            report = _write_tiles(plan, nodes, nbytes, out_dir, fill, workers=workers)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     dt = time.perf_counter() - t0

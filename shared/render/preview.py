@@ -25,6 +25,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from shared.compress import tilenode
 from shared.core.errors import InputError
 from shared.formats.potree import PotreeTiles, open_tiles, tight_bounds
 from shared.render._shading import shade_kernel
@@ -130,9 +131,12 @@ def load_scene(tiles: PotreeTiles, max_points: int = MAX_LOADED, shade: bool = T
     pos = 0
     for j, node in enumerate(chosen):
         n = node.num_points
-        if node.byte_offset + n * item > mm.size or node.byte_size != n * item:
+        if tiles.decoder is not None:  # coded nodes (tiles opened with their decoder)
+            rec = tiles.records(node.name)
+        elif node.byte_offset + n * item > mm.size or node.byte_size != n * item:
             raise InputError(tiles.root / "octree.bin", f"node {node.name} lies outside the file")
-        rec = np.frombuffer(mm[node.byte_offset : node.byte_offset + n * item], tiles.point_dtype)
+        else:
+            rec = np.frombuffer(mm[node.byte_offset : node.byte_offset + n * item], tiles.point_dtype)
         xyz[pos : pos + n] = rec["position"] * tiles.scale + shift
         if "rgb" in names_in:
             c = rec["rgb"].astype(np.uint32)
@@ -271,7 +275,7 @@ def render_preview(
     if renderer not in ("auto", "cpu", "gl"):
         raise InputError("renderer", f"must be auto, cpu or gl, got {renderer!r}")
     out_path = Path(out_path)
-    tiles = open_tiles(Path(tiles_dir))
+    tiles = open_tiles(Path(tiles_dir), decoders=tilenode.DECODERS)  # plain or octree-coded nodes
     scene = load_scene(tiles)
     if edl is None:  # shading: the normals when the tiles have them, else eye-dome lighting
         edl = 0.0 if scene.lit else DEFAULT_EDL

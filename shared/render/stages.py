@@ -22,12 +22,14 @@ from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
 
 
 def tiles_stage(
-    cloud_ply: Path, out_dir: Path, *, workers: int | None = None, estimate_normals: bool = False
-) -> dict:
+    cloud_ply: Path, out_dir: Path, *, workers: int | None = None, estimate_normals: bool = False,
+    node_codec: str = "plain",
+) -> dict:  # fmt: skip
     """Build tiles of ``cloud_ply`` into ``out_dir`` (``estimate_normals`` for a cloud without
-    normals); returns points, nodes, depth, bytes, chunks, seconds, points_per_second and the
-    output folder."""
-    report = build_tiles(Path(cloud_ply), Path(out_dir), workers=workers, estimate_normals=estimate_normals)
+    normals; ``node_codec`` "plain" or "octree", see :func:`shared.render.octree.plan_tiles`);
+    returns points, nodes, depth, bytes, chunks, seconds, points_per_second and the output folder."""
+    report = build_tiles(Path(cloud_ply), Path(out_dir), workers=workers, estimate_normals=estimate_normals,
+                         node_codec=node_codec)  # fmt: skip
     report["tiles"] = str(out_dir)
     return report
 

@@ -10,7 +10,8 @@ key                       kinds      meaning
 ========================  =========  =============================================================
 ``render``                scan       ``false`` leaves out tiles and preview (and what follows them)
 ``export``                scan       ``false`` leaves out the LAZ / COPC export
-``tiles``                 scan       ``{"max_chunk": int >= 100, "max_leaf": int >= 100}``
+``tiles``                 scan       ``{"max_chunk": int >= 100, "max_leaf": int >= 100,
+                                     "node_codec": "plain" | "octree"}`` (octree-coded nodes: opt-in)
 ``preview``               scan       ``{"path", "size": [w, h], "seconds", "fps"}``
                                      (:class:`shared.render.options.PreviewOptions`)
 ``compress``              scan       ``{"quantum": q}`` or ``{"max_error": e}`` (rig units, > 0; default
@@ -45,15 +46,22 @@ MAX_PROBE_SECONDS = 60.0
 SERVICE_PARAMS = frozenset({"rig", "preview_epoch"})
 
 _TILE_OPTIONS = ("max_chunk", "max_leaf")
+#: ``params.tiles.node_codec``: how octree.bin stores nodes (shared.render.octree.NODE_CODECS).
+_NODE_CODECS = ("plain", "octree")
 
 
-def tiles_options(value: Any, field: str = "params.tiles") -> dict[str, int]:
-    """``params.tiles`` checked: an object with integer ``max_chunk`` and/or ``max_leaf`` >= 100."""
+def tiles_options(value: Any, field: str = "params.tiles") -> dict[str, Any]:
+    """``params.tiles`` checked: an object with integer ``max_chunk`` and/or ``max_leaf`` >= 100
+    and ``node_codec`` "plain" (the default) or "octree"."""
     if value is None:
         return {}
-    if not isinstance(value, Mapping) or set(value) - set(_TILE_OPTIONS):
-        raise InputError(field, f"must be an object with max_chunk and/or max_leaf, got {value!r}")
+    if not isinstance(value, Mapping) or set(value) - {*_TILE_OPTIONS, "node_codec"}:
+        raise InputError(field, f"must be an object with max_chunk, max_leaf and/or node_codec, got {value!r}")
     for k, v in value.items():
+        if k == "node_codec":
+            if v not in _NODE_CODECS:
+                raise InputError(f"{field}.{k}", f"must be one of {', '.join(_NODE_CODECS)}, got {v!r}")
+            continue
         if not isinstance(v, int) or isinstance(v, bool) or v < 100:
             raise InputError(f"{field}.{k}", f"must be an integer of at least 100, got {v!r}")
     return dict(value)
@@ -122,7 +130,8 @@ _PREVIEW_SCHEMA = {
 _TILES_SCHEMA = {
     "type": ["object", "null"],
     "description": "Potree tiling options (null: the defaults)",
-    "properties": {k: {"type": "integer", "minimum": 100} for k in _TILE_OPTIONS},
+    "properties": {**{k: {"type": "integer", "minimum": 100} for k in _TILE_OPTIONS},
+                   "node_codec": {"type": "string", "enum": list(_NODE_CODECS)}},
     "additionalProperties": False,
 }
 # Two shapes (quantum, or max_error), not a "not" clause: the bodies are multipart, and

@@ -1,5 +1,7 @@
 /**
  * Decoding of octree.bin node bytes into GPU-ready arrays, on the main thread or in a worker.
+ * Nodes come as Potree's plain records ("DEFAULT") or octree-coded ("GRAYLIGHT_OCTREE",
+ * tilenode.ts); both give the same arrays.
  *
  * In: a node's bytes (numPoints records of `layout.stride` bytes, little-endian), the metadata's
  * scale and the offset of the integer grid relative to the viewer's local frame. Out: float32
@@ -7,6 +9,8 @@
  */
 
 /** A node's points, decoded for the GPU. */
+import { decodeOctreeNode, OCTREE_ENCODING } from "./tilenode";
+
 export interface DecodedPoints {
   count: number;
   /** (count, 3) local-frame positions. */
@@ -34,6 +38,14 @@ export interface DecodeParams {
   scale: number[];
   /** Position of integer 0 in the local frame (metadata offset minus the local origin). */
   gridOffset: number[];
+  /** The metadata's node encoding: "DEFAULT" (absent: the same) or "GRAYLIGHT_OCTREE". */
+  encoding?: string;
+}
+
+/** Decode a node in either encoding (octree-coded nodes inflate asynchronously). */
+export function decodeNode(buffer: ArrayBuffer, count: number, params: DecodeParams): Promise<DecodedPoints> {
+  if (params.encoding === OCTREE_ENCODING) return decodeOctreeNode(buffer, count, params);
+  return Promise.resolve().then(() => decodePoints(buffer, count, params));
 }
 
 export function decodePoints(buffer: ArrayBuffer, count: number, params: DecodeParams): DecodedPoints {
@@ -151,7 +163,7 @@ export class DecoderPool {
   }
 
   decode(buffer: ArrayBuffer, count: number, params: DecodeParams): Promise<DecodedPoints> {
-    if (this.workers.length === 0) return Promise.resolve(decodePoints(buffer, count, params));
+    if (this.workers.length === 0) return decodeNode(buffer, count, params);
     const id = this.nextId++;
     const worker = this.workers[this.turn++ % this.workers.length];
     return new Promise<DecodedPoints>((resolve, reject) => {

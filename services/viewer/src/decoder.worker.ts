@@ -1,6 +1,9 @@
-/** Web worker: decodes octree.bin node bytes off the main thread (see decode.ts). */
+/**
+ * Web worker: decodes octree.bin node bytes off the main thread (see decode.ts), plain or
+ * octree-coded; the answer carries the decode time in the worker (ms) beside the points.
+ */
 
-import { type DecodeParams, decodePoints, transferables } from "./decode";
+import { type DecodeParams, decodeNode, transferables } from "./decode";
 
 interface Request {
   id: number;
@@ -14,11 +17,12 @@ const scope = self as unknown as {
   postMessage(message: unknown, transfer: Transferable[]): void;
 };
 
-scope.onmessage = (e: MessageEvent<Request>) => {
+scope.onmessage = async (e: MessageEvent<Request>) => {
   const { id, buffer, count, params } = e.data;
   try {
-    const points = decodePoints(buffer, count, params);
-    scope.postMessage({ id, points }, transferables(points));
+    const start = performance.now();
+    const points = await decodeNode(buffer, count, params);
+    scope.postMessage({ id, points, ms: performance.now() - start }, transferables(points));
   } catch (err) {
     scope.postMessage({ id, error: err instanceof Error ? err.message : String(err) }, []);
   }

@@ -1,5 +1,6 @@
 /**
- * Potree 2.0 tiles reader: metadata.json, hierarchy.bin, octree.bin (DEFAULT encoding).
+ * Potree 2.0 tiles reader: metadata.json, hierarchy.bin, octree.bin (DEFAULT encoding, or
+ * Graylight's octree-coded nodes, "GRAYLIGHT_OCTREE": see tilenode.ts).
  *
  * hierarchy.bin holds 22-byte records (type u8: 0 normal, 1 leaf, 2 proxy; childMask u8;
  * numPoints u32; byteOffset i64; byteSize i64), breadth first per chunk; a proxy's offset
@@ -12,6 +13,7 @@
  */
 
 import { DecoderPool, type DecodedPoints, type DecodeParams, type Layout } from "./decode";
+import { OCTREE_ATTRIBUTES, OCTREE_ENCODING } from "./tilenode";
 
 export type { DecodedPoints } from "./decode";
 
@@ -182,7 +184,16 @@ export class TileSource {
     };
     if (typeof md !== "object" || md === null) fail("not a JSON object");
     if (!String(md.version ?? "").startsWith("2.")) fail(`Potree version ${md.version} is not 2.x`);
-    if (md.encoding && md.encoding !== "DEFAULT") fail(`encoding ${md.encoding} is not supported (use DEFAULT)`);
+    if (md.encoding && md.encoding !== "DEFAULT" && md.encoding !== OCTREE_ENCODING) {
+      fail(`encoding ${md.encoding} is not supported (use DEFAULT or ${OCTREE_ENCODING})`);
+    }
+    if (md.encoding === OCTREE_ENCODING && Array.isArray(md.attributes)) {
+      for (const a of md.attributes) {
+        if (!OCTREE_ATTRIBUTES.includes(a.name) || (a.name === "rgb" && a.type !== "uint16")) {
+          fail(`attribute ${a.name} (${a.type}) cannot be octree-coded`);
+        }
+      }
+    }
     for (const key of ["scale", "offset"] as const) {
       if (!Array.isArray(md[key]) || md[key].length !== 3) fail(`"${key}" must be 3 numbers`);
     }
@@ -310,7 +321,8 @@ export class TileSource {
   async loadPoints(node: TileNode): Promise<DecodedPoints> {
     if (node.nodeType === 2) await this.loadHierarchy(node);
     const { stride } = this.layout;
-    if (node.byteSize !== node.numPoints * stride) {
+    const encoding = this.metadata.encoding ?? "DEFAULT";
+    if (encoding === "DEFAULT" && node.byteSize !== node.numPoints * stride) {
       throw new Error(`octree.bin: node ${node.name} has ${node.byteSize} bytes for ${node.numPoints} points of ${stride} bytes`);
     }
     const buffer = await this.fetchRange("octree.bin", node.byteOffset, node.byteSize);
@@ -320,6 +332,7 @@ export class TileSource {
       scale: md.scale,
       // Offsets of the integer grid relative to the local frame, in float64 before the float32 store.
       gridOffset: [0, 1, 2].map((k) => md.offset[k] - this.origin[k]),
+      encoding,
     };
     return this.decoder.decode(buffer, node.numPoints, params);
   }
