@@ -17,6 +17,12 @@ splats still close its surfaces. Out: a folder readable by Potree 2.x viewers
                     (world units; the scanner's Z / f_camera); a cloud lacking colour or
                     normals has records without those fields
 
+With ``node_codec="octree"`` (opt-in: ``graylight tiles --node-codec octree``, the tiles job's
+``params.tiles.node_codec``) every node of ``octree.bin`` is octree-coded instead
+(:mod:`shared.compress.tilenode`: the same records, lossless, about a quarter of the bytes) and
+metadata.json names the encoding "GRAYLIGHT_OCTREE"; the rest is the plain build's, and the
+plain build's bytes do not change.
+
 Level-of-detail scheme: positions are quantised, then Morton-coded at 21 bits an axis with
 Potree's child order (bit 2 = x, bit 1 = y, bit 0 = z). A node at level L has spacing
 ``cube / 128 / 2**L``; an inner node keeps the first not-yet-taken point (in Morton order)

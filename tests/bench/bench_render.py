@@ -137,6 +137,45 @@ def bench_tiles(work: Path) -> None:
     _tile_comparison(synthetic_scan(work / "tiles_cloud.ply", TILE_POINTS, seed=11), work)
 
 
+def bench_tile_nodes(work: Path) -> None:
+    """Octree-coded tile nodes (``tiles --node-codec octree``) against Potree's plain DEFAULT
+    nodes of the same tiles: bytes a point, the build's CPU with and without coding, and decode
+    speed in Python (the browser's is printed by tests/services/test_viewer_tilenode.py). On the
+    2 M-point synthetic scan (colour, normals, size) and on the real dragon's 15 registered views
+    (positions only; the tiles derive the size)."""
+    from shared.compress import tilenode
+    from shared.formats.ply import read_ply, write_ply
+    from tests.support.scansets import DRAGON, stanford_poses
+
+    clouds = {"synthetic scan (rgb, normal, size)": synthetic_scan(work / "nodes_scan.ply", TILE_POINTS, seed=11)}
+    if (DRAGON / "dragonStandRight.conf").is_file():
+        names = [ln.split()[1] for ln in (DRAGON / "dragonStandRight.conf").read_text().splitlines() if ln.startswith("bmesh")]
+        views = [read_ply(DRAGON / nm).xyz.astype(np.float64) * 1000.0 @ P[:3, :3].T + P[:3, 3]
+                 for nm, P in zip(names, stanford_poses(), strict=True)]  # fmt: skip
+        clouds["real dragon, 15 views merged (xyz)"] = write_ply(work / "nodes_dragon.ply", np.vstack(views).astype(np.float32))
+    build_tiles(synthetic_scan(work / "nodes_warm.ply", 20_000), work / "nodes_warm", node_codec="octree")  # kernels
+    print("tile nodes, octree-coded (lossless) vs Potree DEFAULT on the same tiles (CPU = user + system, all processes):")
+    for label, cloud in clouds.items():
+        n = read_header(cloud).count
+        cpu = {}
+        for codec in ("plain", "octree"):
+            _settle()
+            c0 = _cpu_seconds()
+            build_tiles(cloud, work / f"nodes_{codec}", node_codec=codec)
+            cpu[codec] = _cpu_seconds() - c0
+        plain_b, coded_b = ((work / f"nodes_{c}" / "octree.bin").stat().st_size for c in ("plain", "octree"))
+        tiles = open_tiles(work / "nodes_octree", decoders=tilenode.DECODERS)
+        c0 = _cpu_seconds()
+        for name in tiles.nodes:
+            tiles.records(name)
+        decode = _cpu_seconds() - c0
+        print(f"  {label}, {n / 1e6:.2f} M points: {plain_b / n:.2f} -> {coded_b / n:.2f} bytes a point "
+              f"({plain_b / coded_b:.2f}x smaller, {8 * coded_b / n:.1f} bits a point); build {cpu['plain']:.2f} -> "
+              f"{cpu['octree']:.2f} s CPU; Python decode {n / decode / 1e6:.1f} M points per CPU-s")  # fmt: skip
+        for codec in ("plain", "octree"):
+            shutil.rmtree(work / f"nodes_{codec}", ignore_errors=True)
+
+
 def _note_load() -> None:
     load = os.getloadavg()[0]
     if load > (os.cpu_count() or 1) * 0.75:
@@ -229,4 +268,5 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="graylight-bench-render-") as tmp:
         work = Path(tmp)
         bench_tiles(work)
+        bench_tile_nodes(work)
         bench_preview(work)
