@@ -59,7 +59,7 @@ _HEAD = struct.Struct("<4sIIII")
 _PAYLOAD_HEAD = struct.Struct("<3iBBBBIIII")
 #: A byte plane whose order-0 entropy is at least this (bits a byte) is stored raw, outside the
 #: zlib stream: deflate cannot shrink it, and the browser then inflates fewer bytes.
-RAW_ENTROPY = 7.5
+RAW_ENTROPY = 7.0
 _MAX_LEVELS = 21  # occupancy levels an uint64 Morton key holds (3 x 21 bits)
 _FLAG_RGB, _FLAG_RGB8, _FLAG_NORMAL, _FLAG_SIZE = 1, 2, 4, 8
 #: zlib level: 6 codes about as small as 9 here, twice as fast.

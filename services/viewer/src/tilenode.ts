@@ -27,6 +27,14 @@ const FLAG_SIZE = 8;
 
 const POPCOUNT = new Uint8Array(256);
 for (let b = 0; b < 256; b++) POPCOUNT[b] = (b & 1) + POPCOUNT[b >> 1];
+/** The occupied children of every occupancy byte, in order: CHILDREN[CHILD_START[b] ...]. */
+const CHILD_START = new Uint16Array(257);
+const CHILDREN = new Uint8Array(1024);
+for (let b = 0, w = 0; b < 256; b++) {
+  CHILD_START[b] = w;
+  for (let j = 0; j < 8; j++) if (b & (1 << j)) CHILDREN[w++] = j;
+  CHILD_START[b + 1] = w;
+}
 
 const CRC_TABLE = new Int32Array(256);
 for (let n = 0; n < 256; n++) {
@@ -154,13 +162,11 @@ export async function decodeOctreeNode(buffer: ArrayBuffer, count: number, param
       const x2 = 2 * cx[i];
       const y2 = 2 * cy[i];
       const z2 = 2 * cz[i];
-      for (let j = 0; j < 8; j++) {
-        if (b & (1 << j)) {
-          nx[w] = x2 + ((j >> 2) & 1);
-          ny[w] = y2 + ((j >> 1) & 1);
-          nz[w] = z2 + (j & 1);
-          w++;
-        }
+      for (let t = CHILD_START[b], end = CHILD_START[b + 1]; t < end; t++, w++) {
+        const j = CHILDREN[t];
+        nx[w] = x2 + ((j >> 2) & 1);
+        ny[w] = y2 + ((j >> 1) & 1);
+        nz[w] = z2 + (j & 1);
       }
     }
     at += m;
