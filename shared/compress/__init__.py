@@ -1,7 +1,8 @@
 """Range compression: a quadtree codec for range images and an octree codec for point clouds.
 
 Both write the Graylight container (:mod:`shared.formats.container`): ``.glr`` for range
-images (kind ``range``), ``.glo`` for clouds (kind ``cloud``). The numba kernels live in
+images (kind ``range``), ``.glo`` for clouds (kind ``cloud``); :mod:`~shared.compress.tilenode`
+codes the nodes of Potree tiles (their opt-in "GRAYLIGHT_OCTREE" encoding). The numba kernels live in
 private modules (``_rans``, ``_quadtree``, ``_octree``); importing this package is cheap,
 its names load on first use.
 """
@@ -26,10 +27,13 @@ __all__ = [
     "read_range",
     "save_range_npz",
     "write_range",
+    "decode_node",
+    "encode_node",
 ]
 
 _CLOUD = {"decode_cloud", "encode_cloud", "iter_cloud", "read_cloud_to_ply", "write_cloud"}
 _HOME = {name: "shared.compress.cloud" if name in _CLOUD else "shared.compress.range" for name in __all__}
+_HOME.update(decode_node="shared.compress.tilenode", encode_node="shared.compress.tilenode")
 _ALIASES = {"decode_range": "read_range"}
 
 
