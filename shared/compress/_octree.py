@@ -1,12 +1,25 @@
 """Octree point-cloud chunk codec kernels (private; the public API is :mod:`shared.compress.cloud`).
 
 Geometry: integer voxel coordinates (the cloud quantised to its precision grid, offset to
-the chunk's minimum) become Morton codes; the octree is coded breadth-first, one occupancy
-byte per occupied node, as in MPEG G-PCC. The byte's table (its context) is chosen by what
-the decoder already knows about the node's neighbourhood: how many of its parent's eight
-children are occupied, and how many of the node's three face neighbours inside the parent
-are (a flat surface occupies 4 of 8 children with 2 sibling neighbours each; a corner fewer).
-Points sharing a voxel are counted per voxel.
+the chunk's minimum) become Morton codes; the octree is coded breadth-first, as in MPEG
+G-PCC: every occupied node's eight child bits, one by one (bit ``b = x + 2 y + 4 z`` of the
+child's octant, the last bit implied when the seven before are empty), each a binary event
+of an adaptive model (:func:`shared.compress._rans.model_p`) chosen by what the decoder
+already knows around that child:
+
+- the child's three neighbours on the "past" side (-x, -y, -z, at the child's level): a
+  sibling already coded, or a child of the node's past neighbour, coded before it (Morton
+  order is monotonic along every axis);
+- the three cells two steps back along each axis (children of the past neighbours);
+- the three face neighbours on the "future" side, at the node's level (occupied or not: the
+  whole level is known before its children are coded), and on which side of the node the
+  child lies;
+- how many siblings are already occupied (0 to 3+), and the bit's position.
+
+Neighbours are looked up in a dense map of the nodes of a 64^3-node region (the nodes
+sharing an ancestor six levels up, consecutive in Morton order); a neighbour outside the
+region counts as empty, in encoder and decoder alike. Models restart at every level. Points
+sharing a voxel are counted per voxel (in a table chosen by the previous voxel's count).
 
 Attributes follow as integer channels in Morton order, each the difference from the previous
 point (neighbours in Morton order are near in space, so the differences are small), each
@@ -19,39 +32,57 @@ import numpy as np
 from numba import njit
 
 from shared.compress._rans import (
+    BIN,
+    MODEL_INIT,
     RANS_L,
     count_symbols,
     dec_init,
     decode_tables,
     encode_events,
+    get_bit,
     get_symbol,
     get_value,
+    model_p,
+    model_update,
     normalise,
     pack_tables,
     put,
     put_value,
+    state_next,
+    state_p,
     unpack_tables,
     unzigzag,
     zigzag,
 )
 
-T_OCC = 0  # 8 parent counts x 8 patterns of the three sibling face neighbours
-N_OCC = 64
-T_DUP = T_OCC + N_OCC
-T_ATTR = T_DUP + 1
+T_DUPF = 0  # any voxel holding more than one point?
+T_DUP = 1  # 4 tables: points per voxel - 1, by the previous voxel's count (1, 2, 3, 4+)
+T_ATTR = T_DUP + 4
 MAX_CHANNELS = 16
 NTABLES = T_ATTR + MAX_CHANNELS
-L_OCC = 8
 L_DUP = 2
 MAX_DEPTH = 21
+#: Neighbour regions: 2**REGION_LOG nodes a side, mapped with a one-cell empty border (no
+#: bounds checks): the map of (x, y, z) is at ((z + 1) * PAD + y + 1) * PAD + x + 1.
+REGION_LOG = 6
+REGION = 1 << REGION_LOG
+REGION_SHIFT = 3 * REGION_LOG
+PAD = REGION + 2
+#: Occupancy contexts: child bits of nodes with two children or more, bit (8) x occupied siblings
+#: (4) x past faces (8) x two back (8) x future faces (64); then the single-child flag (64) and
+#: the single child's x, y and z bits (128, 256, 512).
+C_BIT = 0
+C_SINGLE = C_BIT + 8 * 4 * 8 * 8 * 64
+C_X = C_SINGLE + 256
+C_Y = C_X + 512
+C_Z = C_Y + 1024
+N_OCC_CTX = C_Z + 8192
+_OCCUPIED = 256
+_CODED = 512
 
 POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.int64)
-#: REFLECT[i, byte]: the occupancy byte seen from octant i (child bit b moves to b ^ i). Coding
-#: every node's byte as if the node were child 0 of its parent makes the byte distributions of
-#: all eight positions one (a floor's pattern looks the same from every octant), so a context's
-#: table learns from eight times the nodes. Self-inverse.
-REFLECT = np.array([[sum(((byte >> b) & 1) << (b ^ i) for b in range(8)) for byte in range(256)] for i in range(8)],
-                   np.int64)
+#: LOWEST[byte]: the index of the lowest set bit (byte > 0).
+LOWEST = np.array([(i & -i).bit_length() - 1 for i in range(256)], np.int64)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -99,23 +130,119 @@ def unmorton(codes):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _context(pbyte, idx):
-    if pbyte == 0:
-        return 0
-    sib = ((pbyte >> (idx ^ 1)) & 1) | (((pbyte >> (idx ^ 2)) & 1) << 1) | (((pbyte >> (idx ^ 4)) & 1) << 2)
-    return (POPCOUNT[pbyte] - 1) * 8 + sib
+def _cell(key):
+    """Index of a node in its region's map."""
+    c = key & ((1 << REGION_SHIFT) - 1)
+    return ((_compact(c >> 2) + 1) * PAD + _compact(c >> 1) + 1) * PAD + _compact(c) + 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _child_cell(ci, b):
+    """Map index of child ``b`` of the node at map index ``ci`` (in the child level's region)."""
+    r = ci - (PAD * PAD + PAD + 1)
+    z = r // (PAD * PAD)
+    r -= z * (PAD * PAD)
+    y = r // PAD
+    x = r - y * PAD
+    x = ((x << 1) | (b & 1)) & (REGION - 1)
+    y = ((y << 1) | ((b >> 1) & 1)) & (REGION - 1)
+    z = ((z << 1) | (b >> 2)) & (REGION - 1)
+    return ((z + 1) * PAD + y + 1) * PAD + x + 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _neighbours(atlas, ci):
+    """The region map's values of the six face neighbours of the node at map index ``ci``
+    (0 outside the region): (-x, -y, -z, +x, +y, +z)."""
+    return (np.int64(atlas[ci - 1]), np.int64(atlas[ci - PAD]), np.int64(atlas[ci - PAD * PAD]),
+            np.int64(atlas[ci + 1]), np.int64(atlas[ci + PAD]), np.int64(atlas[ci + PAD * PAD]),
+            np.int64(atlas[ci - 2]), np.int64(atlas[ci - 2 * PAD]))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bit_context(b, cur, ncur, xm, ym, zm, xp, yp, zp):
+    """The context of child bit ``b`` of a node whose bits below ``b`` are ``cur`` (``ncur``
+    of them set), from its neighbours' map values (see the module docstring)."""
+    bx = b & 1
+    by = (b >> 1) & 1
+    bz = b >> 2
+    px = ((cur >> (b - 1)) & 1) if bx else ((xm >> (b | 1)) & 1)
+    py = ((cur >> (b - 2)) & 1) if by else ((ym >> (b | 2)) & 1)
+    pz = ((cur >> (b - 4)) & 1) if bz else ((zm >> (b | 4)) & 1)
+    back = ((xm >> b) & 1) | (((ym >> b) & 1) << 1) | (((zm >> b) & 1) << 2)
+    fx = ((xp >> 8) & 1) + 2 * (1 - bx)
+    fy = ((yp >> 8) & 1) + 2 * (1 - by)
+    fz = ((zp >> 8) & 1) + 2 * (1 - bz)
+    return ((((b * 4 + min(ncur, 3)) * 8 + (px | (py << 1) | (pz << 2))) * 8 + back) * 64
+            + fx * 16 + fy * 4 + fz)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _any(v, mask):
+    return np.int64((v & mask) != 0)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2):
+    """Context of "the node has exactly one child": occupied face neighbours (0-6) x the
+    children of the past neighbours (0-7+) x whether the nodes two back along x and y are occupied."""
+    occ = ((xm >> 8) & 1) + ((ym >> 8) & 1) + ((zm >> 8) & 1) + ((xp >> 8) & 1) + ((yp >> 8) & 1) + ((zp >> 8) & 1)
+    kids = min(POPCOUNT[xm & 255] + POPCOUNT[ym & 255] + POPCOUNT[zm & 255], 7)
+    return C_SINGLE + ((occ * 8 + kids) * 2 + ((xm2 >> 8) & 1)) * 2 + ((ym2 >> 8) & 1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _x_context(xm, ym, zm, xp, xm2):
+    """Context of a single child's x bit: where the past neighbours' children lie along x."""
+    return C_X + (_any(xm, 0xAA) | (_any(xm, 0x55) << 1) | (((xp >> 8) & 1) << 2) | (_any(ym, 0xAA) << 3)
+                  | (_any(ym, 0x55) << 4) | (_any(zm, 0xAA) << 5) | (_any(zm, 0x55) << 6)
+                  | (_any(xm2, 0xAA) << 7) | (_any(xm2, 0x55) << 8))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _y_context(bx, xm, ym, zm, yp, ym2):
+    """Context of a single child's y bit (its x bit ``bx`` known)."""
+    return C_Y + (_any(ym, 0x44 << bx) | (_any(ym, 0x11 << bx) << 1) | (((yp >> 8) & 1) << 2)
+                  | (_any(xm, 0x22) << 3) | (_any(xm, 0x88) << 4) | (((zm >> (4 | bx)) & 1) << 5)
+                  | (((zm >> (6 | bx)) & 1) << 6) | (bx << 7) | (_any(ym2, 0xCC) << 8) | (_any(ym2, 0x33) << 9))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _z_context(bx, by, xm, ym, zm, zp, xm2, ym2):
+    """Context of a single child's z bit (its x and y bits known)."""
+    col = bx | (by << 1)
+    return C_Z + (((zm >> (col | 4)) & 1) | (((zm >> col) & 1) << 1) | (((zp >> 8) & 1) << 2)
+                  | (((xm >> (1 | (by << 1))) & 1) << 3) | (((xm >> (5 | (by << 1))) & 1) << 4)
+                  | (((ym >> (bx | 2)) & 1) << 5) | (((ym >> (bx | 6)) & 1) << 6) | (col << 7)
+                  | (_any(xm2, 0xF0) << 9) | (_any(xm2, 0x0F) << 10) | (_any(ym2, 0xF0) << 11) | (_any(ym2, 0x0F) << 12))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _emit(tab, val, nb, n, models, ctx, bit, kind):
+    """Append a binary event of context ``ctx``'s model and adapt it; -1 when the buffers are full.
+    ``kind`` (kept in ``nb``, which binary events do not use) tells the bench's cost breakdown
+    what the bit was: 0 single-child flag, 1-3 its x, y, z bits, 4 a child bit."""
+    if n < 0 or n >= tab.shape[0]:
+        return -1
+    tab[n] = BIN
+    val[n] = (model_p(models, ctx) << 1) | bit
+    nb[n] = kind
+    model_update(models, ctx, bit)
+    return n + 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _take(xa, xb, pos, words, nw, models, ctx):
+    """Decode a binary event of context ``ctx``'s model and adapt it: (bit, xa, xb, pos)."""
+    bit, xa, xb, pos = get_bit(xa, xb, pos, words, nw, model_p(models, ctx))
+    model_update(models, ctx, bit)
+    return bit, xa, xb, pos
 
 
 @njit(cache=True, nogil=True)
-def _events(vox, counts, depth, chan, log2d, tab, val, nb):
-    """Every event of one chunk: occupancy bytes level by level, duplicate counts (when any
-    voxel holds more than one point), attribute channels. -1 when the buffers are too small."""
-    n = 0
-    nv = vox.shape[0]
-    # levels bottom-up: level d holds the distinct codes >> 3 (depth - d)
-    sizes = np.zeros(depth + 1, np.int64)
-    starts = np.zeros(depth + 2, np.int64)
-    total = 0
+def _levels(vox, depth):
+    """Every level of the octree of sorted distinct codes ``vox``, top-down in one array
+    (level d from ``starts[d]`` to ``starts[d + 1]``), and ``starts`` (depth + 2,)."""
     tmp = [vox.copy()]
     for _ in range(depth):
         prev = tmp[-1]
@@ -127,46 +254,84 @@ def _events(vox, counts, depth, chan, log2d, tab, val, nb):
                 nxt[m] = k
                 m += 1
         tmp.append(nxt[:m])
+    starts = np.zeros(depth + 2, np.int64)
     for d in range(depth + 1):
-        arr = tmp[depth - d]
-        sizes[d] = arr.shape[0]
-        total += arr.shape[0]
-    levels = np.empty(total, np.int64)  # every level, top-down
+        starts[d + 1] = starts[d] + tmp[depth - d].shape[0]
+    levels = np.empty(starts[depth + 1], np.int64)
     for d in range(depth + 1):
-        arr = tmp[depth - d]
-        starts[d + 1] = starts[d] + arr.shape[0]
-        levels[starts[d] : starts[d + 1]] = arr
-    # parent bytes of the nodes of the current level
-    pb = np.zeros(1, np.int64)
+        levels[starts[d] : starts[d + 1]] = tmp[depth - d]
+    return levels, starts
+
+
+@njit(cache=True, nogil=True)
+def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
+    """Every event of one chunk: child bits level by level, duplicate counts (when any voxel
+    holds more than one point), attribute channels. -1 when the buffers are too small."""
+    n = 0
+    cells = np.empty(counts.shape[0], np.int64)
+    models = np.empty(N_OCC_CTX, np.uint32)
+    atlas = np.zeros(PAD * PAD * PAD, np.int16)
     for d in range(depth):
+        models[:] = MODEL_INIT
         a0 = starts[d]
-        c0 = starts[d + 1]
+        a1 = starts[d + 1]
         c1 = starts[d + 2]
-        npb = np.empty(c1 - c0, np.int64)
-        j = c0
-        for i in range(sizes[d]):
-            key = levels[a0 + i]
-            byte = 0
-            j0 = j
-            while j < c1 and (levels[j] >> 3) == key:
-                byte |= 1 << (levels[j] & 7)
-                j += 1
-            for k in range(j0, j):
-                npb[k - c0] = byte
-            ctx = _context(pb[i], key & 7) if d > 0 else 0
-            n = put(tab, val, nb, n, T_OCC + ctx, REFLECT[key & 7, byte] - 1, 0)
-        pb = npb
-    if n < 0:
-        return -1
+        j = a1
+        r0 = a0
+        while r0 < a1:
+            reg = levels[r0] >> REGION_SHIFT
+            r1 = r0
+            while r1 < a1 and (levels[r1] >> REGION_SHIFT) == reg:
+                cells[r1 - a0] = _cell(levels[r1])
+                atlas[cells[r1 - a0]] = _OCCUPIED
+                r1 += 1
+            for i in range(r0, r1):
+                key = levels[i]
+                ci = cells[i - a0]
+                byte = 0
+                while j < c1 and (levels[j] >> 3) == key:
+                    byte |= 1 << (levels[j] & 7)
+                    j += 1
+                xm, ym, zm, xp, yp, zp, xm2, ym2 = _neighbours(atlas, ci)
+                single = POPCOUNT[byte] == 1
+                n = _emit(tab, val, nb, n, models, _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2), 1 if single else 0, 0)
+                if single:
+                    bx = 1 if byte & 0xAA else 0
+                    by = 1 if byte & 0xCC else 0
+                    bz = 1 if byte & 0xF0 else 0
+                    n = _emit(tab, val, nb, n, models, _x_context(xm, ym, zm, xp, xm2), bx, 1)
+                    n = _emit(tab, val, nb, n, models, _y_context(bx, xm, ym, zm, yp, ym2), by, 2)
+                    n = _emit(tab, val, nb, n, models, _z_context(bx, by, xm, ym, zm, zp, xm2, ym2), bz, 3)
+                else:
+                    cur = 0
+                    ncur = 0
+                    for b in range(7):
+                        if ncur == 0 and b == 6:
+                            break  # implied: bits 6 and 7 (two children at least)
+                        ctx = _bit_context(b, cur, ncur, xm, ym, zm, xp, yp, zp)
+                        bit = (byte >> b) & 1
+                        n = _emit(tab, val, nb, n, models, ctx, bit, 4)
+                        cur |= bit << b
+                        ncur += bit
+                    if ncur >= 2:  # else implied: bits 6 and 7, or bit 7 (two children at least)
+                        ctx = _bit_context(7, cur, ncur, xm, ym, zm, xp, yp, zp)
+                        n = _emit(tab, val, nb, n, models, ctx, (byte >> 7) & 1, 4)
+                atlas[ci] = _OCCUPIED | _CODED | byte
+            for i in range(r0, r1):
+                atlas[cells[i - a0]] = 0
+            r0 = r1
+    nv = counts.shape[0]
     dup = False
     for i in range(nv):
         if counts[i] > 1:
             dup = True
             break
-    n = put(tab, val, nb, n, T_DUP, 1 if dup else 0, 0)
+    n = put(tab, val, nb, n, T_DUPF, 1 if dup else 0, 0)
     if dup:
+        prev = 1
         for i in range(nv):
-            n = put_value(tab, val, nb, n, T_DUP, counts[i] - 1, L_DUP)
+            n = put_value(tab, val, nb, n, T_DUP + min(prev, 4) - 1, counts[i] - 1, L_DUP)
+            prev = counts[i]
     npts, nch = chan.shape
     for c in range(nch):
         for i in range(npts):
@@ -178,13 +343,14 @@ def _events(vox, counts, depth, chan, log2d, tab, val, nb):
 def encode_chunk(vox, counts, depth, chan, log2d):
     """Code one chunk: ``vox`` sorted distinct Morton codes, ``counts`` points per voxel,
     ``chan`` (N, C) int64 attribute differences in point order. Returns (tables, words)."""
+    levels, starts = _levels(vox, depth)
     npts = chan.shape[0]
-    cap = 2 * vox.shape[0] * 2 + npts * (chan.shape[1] + 1) + 4096
+    cap = 8 * starts[depth] + 2 * vox.shape[0] + 2 * npts * chan.shape[1] + 4096
     while True:
         tab = np.empty(cap, np.int8)
         val = np.empty(cap, np.int16)
         nb = np.empty(cap, np.int8)
-        n = _events(vox, counts, depth, chan, log2d, tab, val, nb)
+        n = _events(levels, starts, counts, depth, chan, log2d, tab, val, nb)
         if n >= 0:
             break
         cap *= 4
@@ -204,44 +370,122 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
     sym, fb = decode_tables(freq)
     xa, xb, pos = dec_init(words)
     cur = np.zeros(max(nvox, 1), np.int64)
-    cpb = np.zeros(max(nvox, 1), np.int64)
     nxt = np.empty(max(nvox, 1), np.int64)
-    npb = np.empty(max(nvox, 1), np.int64)
+    curc = np.full(max(nvox, 1), PAD * PAD + PAD + 1, np.int64)  # map indices of the nodes
+    nxtc = np.empty(max(nvox, 1), np.int64)
+    models = np.empty(N_OCC_CTX, np.uint32)
+    atlas = np.zeros(PAD * PAD * PAD, np.int16)
     ncur = 1
     for d in range(depth):
+        models[:] = MODEL_INIT
+        last = d == depth - 1  # the children are voxels: no map cells needed
         m = 0
-        for i in range(ncur):
-            key = cur[i]
-            ctx = _context(cpb[i], key & 7) if d > 0 else 0
-            s, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_OCC + ctx)
-            if s > 254:
-                return -1
-            byte = REFLECT[key & 7, s + 1]
-            if m + POPCOUNT[byte] > nvox:
-                return -1
-            for b in range(8):
-                if (byte >> b) & 1:
+        r0 = 0
+        while r0 < ncur:
+            reg = cur[r0] >> REGION_SHIFT
+            r1 = r0
+            while r1 < ncur and (cur[r1] >> REGION_SHIFT) == reg:
+                atlas[curc[r1]] = _OCCUPIED
+                r1 += 1
+            for i in range(r0, r1):
+                key = cur[i]
+                ci = curc[i]
+                xm, ym, zm, xp, yp, zp, xm2, ym2 = _neighbours(atlas, ci)
+                # Every model this node may use next is loaded before the bit that picks it
+                # is known: the loads leave the decoding's dependency chain.
+                cs = _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2)
+                cx = _x_context(xm, ym, zm, xp, xm2)
+                cy0 = _y_context(0, xm, ym, zm, yp, ym2)
+                cy1 = _y_context(1, xm, ym, zm, yp, ym2)
+                ss = models[cs]
+                sx = models[cx]
+                sy0 = models[cy0]
+                sy1 = models[cy1]
+                single, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(ss))
+                models[cs] = state_next(ss, single)
+                if single:
+                    czs = (_z_context(0, 0, xm, ym, zm, zp, xm2, ym2), _z_context(1, 0, xm, ym, zm, zp, xm2, ym2),
+                           _z_context(0, 1, xm, ym, zm, zp, xm2, ym2), _z_context(1, 1, xm, ym, zm, zp, xm2, ym2))
+                    sz = (models[czs[0]], models[czs[1]], models[czs[2]], models[czs[3]])
+                    bx, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(sx))
+                    models[cx] = state_next(sx, bx)
+                    cy = cy1 if bx else cy0
+                    sy = sy1 if bx else sy0
+                    by, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(sy))
+                    models[cy] = state_next(sy, by)
+                    col = bx | (by << 1)
+                    cz = czs[col]
+                    s_z = sz[col]
+                    bz, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(s_z))
+                    models[cz] = state_next(s_z, bz)
+                    byte = 1 << (col | (bz << 2))
+                    nset = 1
+                else:
+                    byte = 0
+                    nset = 0
+                    c_next = _bit_context(0, 0, 0, xm, ym, zm, xp, yp, zp)
+                    s_next = models[c_next]
+                    for b in range(7):
+                        if nset == 0 and b == 6:
+                            break
+                        ctx = c_next
+                        st = s_next
+                        # the next bit's two possible contexts (this bit 0 or 1), loaded now
+                        c0 = _bit_context(b + 1, byte, nset, xm, ym, zm, xp, yp, zp)
+                        c1 = _bit_context(b + 1, byte | (1 << b), nset + 1, xm, ym, zm, xp, yp, zp)
+                        s0 = models[c0]
+                        s1 = models[c1]
+                        bit, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(st))
+                        models[ctx] = state_next(st, bit)
+                        byte |= bit << b
+                        nset += bit
+                        c_next = c1 if bit else c0
+                        s_next = s1 if bit else s0
+                    if nset >= 2:
+                        bit, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(s_next))
+                        models[c_next] = state_next(s_next, bit)
+                        byte |= bit << 7
+                        nset += bit
+                    elif nset == 1:
+                        byte |= 0x80
+                        nset = 2
+                    else:
+                        byte |= 0xC0
+                        nset = 2
+                if m + nset > nvox:
+                    return -1
+                rest = byte
+                while rest:
+                    b = LOWEST[rest]
+                    rest &= rest - 1
                     nxt[m] = (key << 3) | b
-                    npb[m] = byte
+                    if not last:
+                        nxtc[m] = _child_cell(ci, b)
                     m += 1
+                atlas[ci] = _OCCUPIED | _CODED | byte
+            for i in range(r0, r1):
+                atlas[curc[i]] = 0
+            r0 = r1
         cur, nxt = nxt, cur
-        cpb, npb = npb, cpb
+        curc, nxtc = nxtc, curc
         ncur = m
         if pos > nw:
             return -1
     if ncur != nvox:
         return -1
-    dup, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_DUP)
+    dup, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_DUPF)
     k = 0
     if dup == 1:
+        prev = 1
         for i in range(nvox):
-            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_DUP, L_DUP)
+            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_DUP + min(prev, 4) - 1, L_DUP)
             c = np.int64(u) + 1
             if k + c > npts or c < 1:
                 return -1
             for _ in range(c):
                 codes_out[k] = cur[i]
                 k += 1
+            prev = c
     elif dup == 0:
         if nvox != npts:
             return -1

@@ -32,6 +32,10 @@ MAX_TABLES = 32
 NSYM = 256 + 64
 #: ``tab`` value of a raw-bits event.
 RAW = -1
+#: ``tab`` value of a binary event with its own probability: ``val = p << 1 | bit`` where
+#: ``p / PROB_SCALE`` (1 <= p < PROB_SCALE) is the probability of a one (an adaptive model's
+#: estimate, the same integers in encoder and decoder).
+BIN = -2
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -164,6 +168,14 @@ def encode_events(tab, val, nb, n, freq):
         if t >= 0:
             f = np.int64(freq[t, val[i]])
             c = cum[t, val[i]]
+        elif t == BIN:
+            p = np.int64(val[i]) >> 1
+            if val[i] & 1:
+                f = p
+                c = np.int64(0)
+            else:
+                f = PROB_SCALE - p
+                c = p
         else:
             sh = PROB_BITS - nb[i]
             f = np.int64(1) << sh
@@ -246,6 +258,59 @@ def get_raw(xa, xb, pos, words, nw, k):
     xa = (np.int64(1) << sh) * (xa >> PROB_BITS) + (slot & ((np.int64(1) << sh) - 1))
     xa, pos = _next(xa, pos, words, nw)
     return v, xb, xa, pos
+
+
+@njit(cache=True, nogil=True, inline="always")
+def get_bit(xa, xb, pos, words, nw, p):
+    """Decode a :data:`BIN` event of probability ``p / PROB_SCALE`` of a one: returns (bit, xa, xb, pos)."""
+    slot = xa & (PROB_SCALE - 1)
+    one = slot < p
+    f = p if one else PROB_SCALE - p
+    c = 0 if one else p
+    xa = f * (xa >> PROB_BITS) + slot - c
+    xa, pos = _next(xa, pos, words, nw)
+    return np.int64(one), xb, xa, pos
+
+
+#: Adaptive binary models, one uint32 per context: the probability of a one in the low 16 bits,
+#: how often the model was used (up to 15) above them; the update rate slows from 1/4 to 1/64
+#: as the count grows (fast learning, then precision).
+P_ONE = 1 << 16
+P_MIN = 32
+MODEL_INIT = P_ONE >> 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def state_p(s):
+    """The :data:`BIN` event probability (PROB_BITS) of a model's state ``s``."""
+    return np.int64(s & 0xFFFF) >> (16 - PROB_BITS)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def state_next(s, bit):
+    """A model's state ``s`` adapted to ``bit`` (integers only: encoder and decoder agree)."""
+    s = np.int64(s)
+    p = s & 0xFFFF
+    n = s >> 16
+    rate = 2 + min(n >> 1, 4)
+    if bit:
+        p += (P_ONE - p) >> rate
+    else:
+        p -= p >> rate
+    p = min(max(p, P_MIN), P_ONE - P_MIN)
+    return np.uint32(p | (min(n + 1, 15) << 16))
+
+
+@njit(cache=True, nogil=True, inline="always")
+def model_p(models, ctx):
+    """The :data:`BIN` event probability (PROB_BITS) of context ``ctx``'s model."""
+    return state_p(models[ctx])
+
+
+@njit(cache=True, nogil=True, inline="always")
+def model_update(models, ctx, bit):
+    """Adapt context ``ctx``'s model to ``bit``."""
+    models[ctx] = state_next(models[ctx], bit)
 
 
 @njit(cache=True, nogil=True)

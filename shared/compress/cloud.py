@@ -11,8 +11,8 @@ origin: every decoded coordinate is the centre of its input point's voxel, withi
 - any integer field (``view``...): exact; any other float field: exact (stored raw, zlib).
 
 Points come back in Morton order within each chunk (the order an octree yields), chunk after
-chunk in file order. The cloud is cut into chunks of :data:`CHUNK_POINTS` points in file
-order, each its own octree on the shared grid, coded on a thread pool (:mod:`shared.compress._octree`),
+chunk in file order. The cloud is cut into equal chunks of at most :data:`CHUNK_POINTS` points in file
+order (:func:`chunk_points`), each its own octree on the shared grid, coded on a thread pool (:mod:`shared.compress._octree`),
 so a 100 M-point cloud streams through bounded memory on both cores.
 """
 
@@ -38,10 +38,12 @@ from shared.formats.ply import iter_ply_records, read_header, write_ply_records
 
 log = logging.getLogger(__name__)
 
-CODEC = "octree-rans-1"
-#: Points per chunk: a few tens of MB of working memory per chunk in flight, and enough chunks
-#: in a scan-sized cloud (2-3 M points) for both cores to decode.
+CODEC = "octree-rans-2"
+#: Most points per chunk: a few tens of MB of working memory per chunk in flight. A cloud of
+#: more than :data:`SPLIT_POINTS` points is cut into an even number of equal chunks (both cores
+#: decode a scan-sized cloud of 2-3 M points together and finish together).
 CHUNK_POINTS = 1 << 20
+SPLIT_POINTS = 1 << 18
 #: Largest chunk a reader accepts (the writer's CHUNK_POINTS may change between versions).
 MAX_CHUNK_POINTS = 1 << 24
 NORMAL_BITS = 12
@@ -199,12 +201,22 @@ def _check_precision(precision: float) -> float:
     return p
 
 
+def chunk_points(count: int) -> int:
+    """Points per chunk for a cloud of ``count`` points: at most :data:`CHUNK_POINTS`, equal
+    chunks, an even number of them above :data:`SPLIT_POINTS` points."""
+    n = max(1, -(-count // CHUNK_POINTS))
+    if count > SPLIT_POINTS:
+        n += n % 2
+    return max(1, -(-count // n))
+
+
 def _meta(header_dtype: np.dtype, count: int, precision: float, units: str, comments: tuple[str, ...]) -> dict[str, Any]:
+    per = chunk_points(count)
     return {
         "codec": CODEC,
         "points": count,
-        "chunk_points": CHUNK_POINTS,
-        "chunks": -(-count // CHUNK_POINTS),
+        "chunk_points": per,
+        "chunks": -(-count // per),
         "precision": precision,
         "units": units,
         "fields": [[n, header_dtype[n].newbyteorder("<").str] for n in header_dtype.names or ()],
@@ -238,7 +250,8 @@ def write_cloud(path: str | os.PathLike[str], ply: str | os.PathLike[str], preci
     header = read_header(ply)
     plan = _plan_fields(header.dtype, str(ply))
     meta = _meta(header.dtype, header.count, precision, _units_of(header.comments), header.comments)
-    return write_container(path, "cloud", meta, _chunk_stream(iter_ply_records(ply, CHUNK_POINTS), plan, precision, str(ply)))
+    chunks = iter_ply_records(ply, meta["chunk_points"])
+    return write_container(path, "cloud", meta, _chunk_stream(chunks, plan, precision, str(ply)))
 
 
 def encode_cloud(rec: np.ndarray, precision: float, units: str = "mm", comments: tuple[str, ...] = ()) -> bytes:
@@ -246,7 +259,8 @@ def encode_cloud(rec: np.ndarray, precision: float, units: str = "mm", comments:
     precision = _check_precision(precision)
     plan = _plan_fields(rec.dtype, "cloud")
     meta = _meta(rec.dtype, len(rec), precision, units, comments)
-    parts = (rec[i : i + CHUNK_POINTS] for i in range(0, len(rec), CHUNK_POINTS))
+    per = meta["chunk_points"]
+    parts = (rec[i : i + per] for i in range(0, len(rec), per))
     buf = io.BytesIO()
     write_stream(buf, "cloud", meta, _chunk_stream(parts, plan, precision, "cloud"))
     return buf.getvalue()
@@ -320,6 +334,9 @@ def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Itera
     where = "<bytes>" if isinstance(source, bytes | bytearray | memoryview) else str(source)
     header, chunks = open_container(source, kind="cloud")
     meta = header.meta
+    codec = meta.get("codec")
+    if isinstance(codec, str) and codec != CODEC and codec.startswith("octree-"):
+        raise InputError(where, f"cloud codec {codec!r} is not supported (this build reads {CODEC!r}; re-encode the cloud)")
     try:
         dtype = np.dtype([(str(n), str(t)) for n, t in meta["fields"]])
         per = int(meta["chunk_points"])
