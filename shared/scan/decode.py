@@ -58,6 +58,7 @@ from shared.core.errors import InputError
 from shared.core.files import atomic_file
 from shared.formats.capture import Capture, CodeImage, code_bits
 from shared.formats.images import read_grey, read_grey_and_colour
+from shared.scan._bands import next_item
 
 log = logging.getLogger(__name__)
 
@@ -334,7 +335,7 @@ _BAND = 16
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, ratio, nbits, lowest, max_level,
-                 n_proj, want_q, subpixel, diff, lit, value, level, conf, counts):  # pragma: no cover
+                 n_proj, want_q, subpixel, diff, lit, value, level, conf, counts, n_threads):  # pragma: no cover
     """Decode one axis from all of its bit planes in one pass, a band of camera rows at a time.
 
     Per row: references (white/black contrast, integer weak bounds, q scales), every bit plane's
@@ -361,7 +362,9 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
     zero = np.uint16(0)
     nq = k if want_q else 1
     dmax = np.iinfo(diff.dtype).max
-    for band in numba.prange((H + _BAND - 1) // _BAND):
+    n_bands = (H + _BAND - 1) // _BAND
+    counter = np.zeros(1, np.int64)
+    for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
         sg = np.empty(W, np.uint16)
         wk = np.empty(W, np.uint16)
         ithr = np.empty(W, diff.dtype)
@@ -372,100 +375,110 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
         a1 = np.empty(W, diff.dtype)
         a2 = np.empty(W, diff.dtype)
         blk, sel, qa, qb, pos, val, jx, frac, hist = _row_scratch(W, q, max_level - lowest + 1)
-        for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
-            wr = white[y]
-            br = black[y]
-            lr = lit[y]
-            n_lit = 0
-            for x in range(W):
-                c = np.float32(wr[x]) - np.float32(br[x])
-                lr[x] = c > lit_thr
-                n_lit += c > lit_thr
-                # The swing of a bit's difference: the contrast against an inverse, half of it
-                # against the white/black midpoint (the stored difference is then doubled).
-                s = c if with_inverse else c * np.float32(0.5)
-                thr = max(noise, ratio * s)
-                # d is an integer: |d| < thr exactly when |d| < ceil(thr).
-                t = min(np.ceil(thr if with_inverse else thr * np.float32(2.0)), np.float32(dmax // 2))
-                ithr[x] = t
-                nthr[x] = -t
-                g = np.float32(127.0) / s if s > 0 else np.float32(0.0)
-                kq[x] = g if with_inverse else g * np.float32(0.5)
-                wb[x] = np.int32(wr[x]) + np.int32(br[x])
-                sg[x] = 0
-                wk[x] = 0
-                a1[x] = dmax
-                a2[x] = dmax
-            # Bit plane outer, pixel inner: these loops vectorise.
-            for j in range(k):
-                one = np.uint16(1) << bits[j]
-                p = pats[j][y]
-                dd = q[j] if want_q else q[0]
-                if with_inverse:
-                    r = refs[j][y]
-                    for x in range(W):
-                        dd[x] = np.int32(p[x]) - np.int32(r[x])
-                else:
-                    for x in range(W):
-                        dd[x] = 2 * np.int32(p[x]) - wb[x]
+        while True:
+            band = next_item(counter)
+            if band >= n_bands:
+                break
+            for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
+                wr = white[y]
+                br = black[y]
+                lr = lit[y]
+                n_lit = 0
                 for x in range(W):
-                    di = dd[x]
-                    sg[x] |= one if di > 0 else zero
-                    wk[x] |= one if (di < ithr[x]) & (di > nthr[x]) else zero
+                    c = np.float32(wr[x]) - np.float32(br[x])
+                    lr[x] = c > lit_thr
+                    n_lit += c > lit_thr
+                    # The swing of a bit's difference: the contrast against an inverse, half of it
+                    # against the white/black midpoint (the stored difference is then doubled).
+                    s = c if with_inverse else c * np.float32(0.5)
+                    thr = max(noise, ratio * s)
+                    # d is an integer: |d| < thr exactly when |d| < ceil(thr).
+                    t = min(np.ceil(thr if with_inverse else thr * np.float32(2.0)), np.float32(dmax // 2))
+                    ithr[x] = t
+                    nthr[x] = -t
+                    g = np.float32(127.0) / s if s > 0 else np.float32(0.0)
+                    kq[x] = g if with_inverse else g * np.float32(0.5)
+                    wb[x] = np.int32(wr[x]) + np.int32(br[x])
+                    sg[x] = 0
+                    wk[x] = 0
+                    a1[x] = dmax
+                    a2[x] = dmax
+                # Bit plane outer, pixel inner: these loops vectorise.
+                for j in range(k):
+                    one = np.uint16(1) << bits[j]
+                    p = pats[j][y]
+                    dd = q[j] if want_q else q[0]
+                    if with_inverse:
+                        r = refs[j][y]
+                        for x in range(W):
+                            dd[x] = np.int32(p[x]) - np.int32(r[x])
+                    else:
+                        for x in range(W):
+                            dd[x] = 2 * np.int32(p[x]) - wb[x]
+                    for x in range(W):
+                        di = dd[x]
+                        sg[x] |= one if di > 0 else zero
+                        wk[x] |= one if (di < ithr[x]) & (di > nthr[x]) else zero
+                    if want_q:
+                        for x in range(W):
+                            aq = abs(dd[x])
+                            b1 = a1[x]
+                            a2[x] = min(a2[x], max(b1, aq))
+                            a1[x] = min(b1, aq)
+                hist[:] = 0
+                lv = level[y]
+                _resolve_row(sg, wk, lr, full, lowest, max_level, n_proj, blk, lv, value[y], sel, hist)
+                n_sub = 0
                 if want_q:
+                    cr = conf[y]
                     for x in range(W):
-                        aq = abs(dd[x])
-                        b1 = a1[x]
-                        a2[x] = min(a2[x], max(b1, aq))
-                        a1[x] = min(b1, aq)
-            hist[:] = 0
-            lv = level[y]
-            _resolve_row(sg, wk, lr, full, lowest, max_level, n_proj, blk, lv, value[y], sel, hist)
-            n_sub = 0
-            if want_q:
-                cr = conf[y]
-                for x in range(W):
-                    m = a2[x]
-                    # A single plane has no second-smallest difference: full confidence.
-                    qm = np.int32(127) if m == dmax else _quantise(m, kq[x])
-                    cr[x] = min(np.float32(qm) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0 else np.float32(0.0)
-                if subpixel:
-                    _edge_differences(sg, q, nbits, qa, qb)
-                    n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, pos, val, jx, frac, value[y])
-            counts[y, 0] = n_lit
-            counts[y, 1] = n_sub
-            for L in range(hist.size):
-                counts[y, 2 + L] = hist[L]
+                        m = a2[x]
+                        # A single plane has no second-smallest difference: full confidence.
+                        qm = np.int32(127) if m == dmax else _quantise(m, kq[x])
+                        cr[x] = min(np.float32(qm) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0 else np.float32(0.0)
+                    if subpixel:
+                        _edge_differences(sg, q, nbits, qa, qb)
+                        n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, pos, val, jx, frac, value[y])
+                counts[y, 0] = n_lit
+                counts[y, 1] = n_sub
+                for L in range(hist.size):
+                    counts[y, 2 + L] = hist[L]
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_proj, subpixel, value, level, conf,
-                 counts):  # pragma: no cover
+                 counts, n_threads):  # pragma: no cover
     """Resolve codes classified batch by batch (:func:`_bit_planes`) and run the sub-pixel step,
     a band of camera rows at a time. signs, weak, lit, m2: (H, W); q: (planes, H, W) int8 when
     ``has_q``; outputs as in :func:`_decode_rows` (``counts[:, 0]`` is left alone)."""
     H, W = lit.shape
     full = (1 << nbits) - 1
     kq = np.zeros(W, np.float32)  # unread: q is already scaled
-    for band in numba.prange((H + _BAND - 1) // _BAND):
+    n_bands = (H + _BAND - 1) // _BAND
+    counter = np.zeros(1, np.int64)
+    for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
         blk, sel, qa, qb, pos, val, jx, frac, hist = _row_scratch(W, q, max_level - lowest + 1)
-        for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
-            hist[:] = 0
-            _resolve_row(signs[y], weak[y], lit[y], full, lowest, max_level, n_proj, blk, level[y], value[y], sel,
-                         hist)
-            n_sub = 0
-            if has_q:
-                cr = conf[y]
-                mr = m2[y]
-                for x in range(W):
-                    cr[x] = (min(np.float32(mr[x]) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0
-                             else np.float32(0.0))
-                if subpixel:
-                    _edge_differences(signs[y], q[:, y, :], nbits, qa, qb)
-                    n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, pos, val, jx, frac, value[y])
-            counts[y, 1] = n_sub
-            for L in range(hist.size):
-                counts[y, 2 + L] = hist[L]
+        while True:
+            band = next_item(counter)
+            if band >= n_bands:
+                break
+            for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
+                hist[:] = 0
+                _resolve_row(signs[y], weak[y], lit[y], full, lowest, max_level, n_proj, blk, level[y], value[y], sel,
+                             hist)
+                n_sub = 0
+                if has_q:
+                    cr = conf[y]
+                    mr = m2[y]
+                    for x in range(W):
+                        cr[x] = (min(np.float32(mr[x]) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0
+                                 else np.float32(0.0))
+                    if subpixel:
+                        _edge_differences(signs[y], q[:, y, :], nbits, qa, qb)
+                        n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, pos, val, jx, frac, value[y])
+                counts[y, 1] = n_sub
+                for L in range(hist.size):
+                    counts[y, 2 + L] = hist[L]
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
@@ -486,55 +499,17 @@ def _grey_rgb(grey, shift, out):  # pragma: no cover
 # --------------------------------------------------------------------------- threads
 
 
-def _own_running() -> int:
-    """Runnable threads of this process right now (the caller among them), from
-    /proc/self/task; 1 when unknown."""
-    n = 0
-    try:
-        tasks = list(Path("/proc/self/task").iterdir())
-    except OSError:
-        return 1
-    for task in tasks:
-        try:
-            stat = (task / "stat").read_text()
-        except OSError:
-            continue  # the thread has ended
-        # The state letter follows the command name, which may itself hold ") ".
-        n += stat[stat.rindex(")") + 2 : stat.rindex(")") + 3] == "R"
-    return max(n, 1)
-
-
-def _others_running() -> int:
-    """Runnable threads of other processes right now (from /proc/loadavg, less this
-    process's own: OpenMP's workers spin for a while after each parallel kernel and would
-    count as load); the core count when unknown, so that the load average alone decides."""
-    # Own threads first: one that stops spinning before loadavg is read then errs towards
-    # "not busy", which is what this count is for.
-    own = _own_running()
-    try:
-        running = int(Path("/proc/loadavg").read_text().split()[3].split("/")[0])
-    except (OSError, ValueError, IndexError):
-        return os.cpu_count() or 1
-    return max(running - own, 0)
-
-
 def kernel_threads() -> int:
-    """Threads for the numba kernels: all of numba's, unless the machine is already busy.
+    """Threads for the numba kernels: all of numba's, whatever the load.
 
-    A parallel kernel waits for its slowest worker; on an oversubscribed machine (1-minute load
-    average at or above the core count) a descheduled worker stalls every launch, and one
-    thread measured faster than two (here, for the 1.3 MP 42-frame decode of the bench beside
-    two busy loops on 2 cores: 68 ms against 74 ms). The load average lags by a minute, though:
-    when nothing else is runnable at this moment, the machine has come free and two threads
-    measured twice as fast (35 ms against 67 ms).
+    The kernels hand their bands of rows out dynamically (:mod:`shared.scan._bands`), so a
+    thread that another process has descheduled holds up at most the band it is on, and two
+    threads are not slower than one on a busy machine. (With numba's fixed split of a prange
+    they were: 47 ms against 33 ms for the bench's 1.3 MP decode beside other busy
+    processes; the 1-minute load average then chose one thread, which halved the speed on a
+    shared machine that had come free and lagged behind one that had not.)
     """
-    try:
-        busy = os.getloadavg()[0] >= (os.cpu_count() or 1)
-    except OSError:
-        busy = False
-    if busy and _others_running() < 1:
-        busy = False
-    return 1 if busy else numba.config.NUMBA_NUM_THREADS
+    return int(numba.config.NUMBA_NUM_THREADS)
 
 
 @contextmanager
@@ -757,7 +732,7 @@ def _decode_axis(
             white, black, np.float32(params.lit_threshold * scale), np.float32(params.noise * scale),
             np.float32(params.weak_ratio), int(nbits), int(lowest), int(max_level), int(n_proj), bool(store_q),
             bool(subpixel), np.zeros(0, np.int16 if itemsize == 1 else np.int32),
-            out.lit, out.value, out.level, out.conf, counts,
+            out.lit, out.value, out.level, out.conf, counts, numba.get_num_threads(),
         )
         if lit_known:
             counts[:, 0] = 0
@@ -811,7 +786,7 @@ def _decode_axis(
     _finish_rows(
         signs.reshape(h, w), weak.reshape(h, w), out.lit, m2.reshape(h, w) if store_q else np.zeros((1, w), np.uint8),
         bool(store_q), q3, int(nbits), int(lowest), int(max_level), int(n_proj), bool(subpixel), out.value,
-        out.level, out.conf, counts,
+        out.level, out.conf, counts, numba.get_num_threads(),
     )
     return counts
 

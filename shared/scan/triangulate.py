@@ -27,7 +27,7 @@ import os
 import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -37,6 +37,7 @@ import numpy as np
 
 from shared.core.files import atomic_file
 from shared.formats.rig import Device, Rig
+from shared.scan._bands import next_item
 from shared.scan.decode import Decoded, kernel_thread_scope
 
 log = logging.getLogger(__name__)
@@ -127,6 +128,16 @@ class RigTables:
     pta: np.ndarray
     ptb: np.ndarray
     p_org: float
+    #: The same values interleaved for the kernels, one cache line a lookup instead of one per
+    #: table: (gh, gw, 2) [cam_a, cam_b] and (gh, gw, 4) [pa, pb, pta, ptb], float64.
+    cam_ab: np.ndarray = field(repr=False, compare=False, default_factory=lambda: np.empty((0, 0, 2)))
+    p4: np.ndarray = field(repr=False, compare=False, default_factory=lambda: np.empty((0, 0, 4)))
+
+
+def _packed(t: RigTables) -> RigTables:
+    """``t`` with its interleaved copies (:attr:`RigTables.cam_ab`, :attr:`RigTables.p4`) filled."""
+    return replace(t, cam_ab=np.ascontiguousarray(np.stack([t.cam_a, t.cam_b], axis=-1)),
+                   p4=np.ascontiguousarray(np.stack([t.pa, t.pb, t.pta, t.ptb], axis=-1)))  # fmt: skip
 
 
 def _rig_key(rig: Rig) -> tuple:
@@ -207,6 +218,7 @@ def rig_tables(rig: Rig) -> RigTables:
         tables = RigTables(c(cam_a), c(cam_b), float(stride), cam_org, c(pa), c(pb), c(np.gradient(pa, axis=0)),
                            c(np.gradient(pb, axis=0)), p_org)  # fmt: skip
         _save_tables(path, tables)
+    tables = _packed(tables)
     with _TABLES_LOCK:
         while len(_TABLES) >= 4:
             _TABLES.pop(next(iter(_TABLES)))
@@ -215,8 +227,9 @@ def rig_tables(rig: Rig) -> RigTables:
 
 
 @numba.njit(inline="always")
-def _bilinear(tab, u, v):  # pragma: no cover
-    gh, gw = tab.shape
+def _cell(gh, gw, u, v):  # pragma: no cover
+    """Bilinear cell of table coordinates (u, v) on a (gh, gw) grid, clamped inside it: the
+    corner (i, j) and the fractions (fu, fv)."""
     if u < 0.0:
         u = 0.0
     if v < 0.0:
@@ -227,21 +240,40 @@ def _bilinear(tab, u, v):  # pragma: no cover
         v = gh - 1.001
     i = int(u)
     j = int(v)
-    fu = u - i
-    fv = v - j
-    return (tab[j, i] * (1 - fu) * (1 - fv) + tab[j, i + 1] * fu * (1 - fv)
-            + tab[j + 1, i] * (1 - fu) * fv + tab[j + 1, i + 1] * fu * fv)
+    return i, j, u - i, v - j
+
+
+@numba.njit(inline="always")
+def _lerp(tab, i, j, fu, fv, c):  # pragma: no cover
+    """Channel ``c`` of an interleaved (gh, gw, k) table at the cell of :func:`_cell`; the
+    products and sums in one fixed order (the same values whichever tables share the cell)."""
+    return (tab[j, i, c] * (1 - fu) * (1 - fv) + tab[j, i + 1, c] * fu * (1 - fv)
+            + tab[j + 1, i, c] * (1 - fu) * fv + tab[j + 1, i + 1, c] * fu * fv)
+
+
+#: Camera rows per parallel work item of the triangulation kernels.
+_TRI_BAND = 8
 
 
 @numba.njit(parallel=True, cache=True)
-def _intersect_grid(column, row, row_span, has_row, row_tol, cam_a, cam_b, cam_stride, cam_org,
-                    pa, pb, pta, ptb, p_org, R, T, Kp, distp, iters, P, valid, reasons):  # pragma: no cover
+def _intersect_grid(column, row, row_span, has_row, row_tol, cam_ab, cam_stride, cam_org,
+                    p4, p_org, R, T, Kp, distp, iters, P, valid, reasons, n_threads):  # pragma: no cover
     """Ray-plane intersection for every decoded pixel of the (H, W) image.
 
-    Writes P (H, W, 3) float32 points (NaN where none) and valid (H, W); counts rejections in
-    reasons (H, 2): [geometry, row mismatch] per image row.
+    cam_ab: (gh, gw, 2) camera table [a, b]; p4: (gh, gw, 4) projector table [a, b, ta, tb]
+    (:class:`RigTables`), float64. Writes P (H, W, 3) float32 points (NaN where none) and
+    valid (H, W); counts rejections in reasons (H, 2): [geometry, row mismatch] per image row.
+    ``n_threads``: numba's threads now (bands of rows are handed out dynamically, :mod:`._bands`).
+
+    One camera row at a time in passes over the row: the rays first, then each iteration of
+    the intersection for every pixel still going, then the checks. One pixel's iteration is a
+    long chain of dependent operations (table lookup, plane, division, projection); a pass
+    keeps many pixels' chains in flight at once, where a whole pixel at a time left the core
+    waiting on each chain. Every pixel gets the same operations in the same order as before.
     """
     H, W = column.shape
+    cgh, cgw = cam_ab.shape[0], cam_ab.shape[1]
+    pgh, pgw = p4.shape[0], p4.shape[1]
     fyp = Kp[1, 1]
     cyp = Kp[1, 2]
     k1 = distp[0]
@@ -249,171 +281,222 @@ def _intersect_grid(column, row, row_span, has_row, row_tol, cam_a, cam_b, cam_s
     p1 = distp[2]
     p2 = distp[3]
     k3 = distp[4]
-    for yu in numba.prange(H):
-        y = np.int64(yu)
-        n_geom = 0
-        n_row = 0
-        for x in range(W):
-            P[y, x, 0] = np.nan
-            P[y, x, 1] = np.nan
-            P[y, x, 2] = np.nan
-            valid[y, x] = False
-            pcol = column[y, x]
-            if not (pcol == pcol):
-                continue
-            r0 = row[y, x]
-            if has_row and not (r0 == r0):
-                continue
-            u = (x - cam_org) / cam_stride
-            v = (y - cam_org) / cam_stride
-            rx = _bilinear(cam_a, u, v)
-            ry = _bilinear(cam_b, u, v)
-            pc = pcol - p_org
-            q = r0 if has_row else cyp
-            X = np.nan
-            Y = np.nan
-            Z = np.nan
-            qp = np.nan
-            for _ in range(iters):
-                qc = q - p_org
-                a = _bilinear(pa, pc, qc)
-                b = _bilinear(pb, pc, qc)
-                ta = _bilinear(pta, pc, qc)
-                tb = _bilinear(ptb, pc, qc)
-                # Plane through the projector centre containing (a, b, 1) and the column tangent (ta, tb, 0).
-                n0 = -tb
-                n1 = ta
-                n2 = a * tb - b * ta
-                # In the camera frame: (R^T n) . X = -n . T
-                m0 = R[0, 0] * n0 + R[1, 0] * n1 + R[2, 0] * n2
-                m1 = R[0, 1] * n0 + R[1, 1] * n1 + R[2, 1] * n2
-                m2 = R[0, 2] * n0 + R[1, 2] * n1 + R[2, 2] * n2
-                den = m0 * rx + m1 * ry + m2
-                num = -(n0 * T[0] + n1 * T[1] + n2 * T[2])
-                if den == 0.0:
-                    X = np.nan
-                    break
-                lam = num / den
-                if lam <= 0.0:
-                    X = np.nan
-                    break
-                X = lam * rx
-                Y = lam * ry
-                Z = lam
-                xp = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + T[0]
-                yp = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * Z + T[1]
-                zp = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + T[2]
-                if zp <= 0.0:
-                    X = np.nan
-                    break
-                xn = xp / zp
-                yn = yp / zp
-                r2 = xn * xn + yn * yn
-                radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-                yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
-                qp = fyp * yd + cyp
-                q = qp
-            if not (X == X):
-                n_geom += 1
-                continue
-            if has_row and abs(qp - r0) > 0.5 * row_span[y, x] + row_tol:
-                n_row += 1
-                continue
-            P[y, x, 0] = X
-            P[y, x, 1] = Y
-            P[y, x, 2] = Z
-            valid[y, x] = True
-        reasons[y, 0] = n_geom
-        reasons[y, 1] = n_row
+    n_bands = (H + _TRI_BAND - 1) // _TRI_BAND
+    counter = np.zeros(1, np.int64)
+    for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
+        # Row buffers: ray (rx, ry), projector column and current row, the point, the state
+        # (0 not decoded, 1 going, 2 geometry failed) and the last projected row.
+        rxb = np.empty(W, np.float64)
+        ryb = np.empty(W, np.float64)
+        pcb = np.empty(W, np.float64)
+        qb = np.empty(W, np.float64)
+        Xb = np.empty(W, np.float64)
+        Yb = np.empty(W, np.float64)
+        Zb = np.empty(W, np.float64)
+        st = np.empty(W, np.uint8)
+        while True:
+            band = next_item(counter)
+            if band >= n_bands:
+                break
+            for yu in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
+                y = np.int64(yu)
+                v = (y - cam_org) / cam_stride
+                for x in range(W):
+                    P[y, x, 0] = np.nan
+                    P[y, x, 1] = np.nan
+                    P[y, x, 2] = np.nan
+                    valid[y, x] = False
+                    st[x] = 0
+                    pcol = column[y, x]
+                    if not (pcol == pcol):
+                        continue
+                    r0 = row[y, x]
+                    if has_row and not (r0 == r0):
+                        continue
+                    u = (x - cam_org) / cam_stride
+                    ci, cj, cfu, cfv = _cell(cgh, cgw, u, v)
+                    rxb[x] = _lerp(cam_ab, ci, cj, cfu, cfv, 0)
+                    ryb[x] = _lerp(cam_ab, ci, cj, cfu, cfv, 1)
+                    pcb[x] = pcol - p_org
+                    qb[x] = r0 if has_row else cyp
+                    Xb[x] = np.nan
+                    st[x] = 1
+                for _ in range(iters):
+                    for x in range(W):
+                        if st[x] != 1:
+                            continue
+                        rx = rxb[x]
+                        ry = ryb[x]
+                        qc = qb[x] - p_org
+                        pi, pj, pfu, pfv = _cell(pgh, pgw, pcb[x], qc)
+                        a = _lerp(p4, pi, pj, pfu, pfv, 0)
+                        b = _lerp(p4, pi, pj, pfu, pfv, 1)
+                        ta = _lerp(p4, pi, pj, pfu, pfv, 2)
+                        tb = _lerp(p4, pi, pj, pfu, pfv, 3)
+                        # Plane through the projector centre containing (a, b, 1) and the column tangent (ta, tb, 0).
+                        n0 = -tb
+                        n1 = ta
+                        n2 = a * tb - b * ta
+                        # In the camera frame: (R^T n) . X = -n . T
+                        m0 = R[0, 0] * n0 + R[1, 0] * n1 + R[2, 0] * n2
+                        m1 = R[0, 1] * n0 + R[1, 1] * n1 + R[2, 1] * n2
+                        m2 = R[0, 2] * n0 + R[1, 2] * n1 + R[2, 2] * n2
+                        den = m0 * rx + m1 * ry + m2
+                        num = -(n0 * T[0] + n1 * T[1] + n2 * T[2])
+                        if den == 0.0:
+                            st[x] = 2
+                            continue
+                        lam = num / den
+                        if lam <= 0.0:
+                            st[x] = 2
+                            continue
+                        X = lam * rx
+                        Y = lam * ry
+                        Z = lam
+                        xp = R[0, 0] * X + R[0, 1] * Y + R[0, 2] * Z + T[0]
+                        yp = R[1, 0] * X + R[1, 1] * Y + R[1, 2] * Z + T[1]
+                        zp = R[2, 0] * X + R[2, 1] * Y + R[2, 2] * Z + T[2]
+                        if zp <= 0.0:
+                            st[x] = 2
+                            continue
+                        xn = xp / zp
+                        yn = yp / zp
+                        r2 = xn * xn + yn * yn
+                        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+                        yd = yn * radial + p1 * (r2 + 2.0 * yn * yn) + 2.0 * p2 * xn * yn
+                        qb[x] = fyp * yd + cyp
+                        Xb[x] = X
+                        Yb[x] = Y
+                        Zb[x] = Z
+                n_geom = 0
+                n_row = 0
+                for x in range(W):
+                    s = st[x]
+                    if s == 0:
+                        continue
+                    X = Xb[x]
+                    if s == 2 or not (X == X):
+                        n_geom += 1
+                        continue
+                    if has_row and abs(qb[x] - row[y, x]) > 0.5 * row_span[y, x] + row_tol:
+                        n_row += 1
+                        continue
+                    P[y, x, 0] = X
+                    P[y, x, 1] = Yb[x]
+                    P[y, x, 2] = Zb[x]
+                    valid[y, x] = True
+                reasons[y, 0] = n_geom
+                reasons[y, 1] = n_row
 
 
 @numba.njit(parallel=True, cache=True)
-def _gather(keep, P, normals, colour, offsets, inv_f, xyz, nrm, rgb, size, pixel):  # pragma: no cover
+def _gather(keep, P, normals, colour, offsets, inv_f, xyz, nrm, rgb, size, pixel, n_threads):  # pragma: no cover
     """Compact the kept pixels of the images into point arrays, row by row (offsets: per-row start)."""
     H, W = keep.shape
-    for yu in numba.prange(H):
-        y = np.int64(yu)
-        k = offsets[y]
-        for x in range(W):
-            if not keep[y, x]:
-                continue
-            for c in range(3):
-                xyz[k, c] = P[y, x, c]
-                nrm[k, c] = normals[y, x, c]
-                rgb[k, c] = colour[y, x, c]
-            size[k] = P[y, x, 2] * inv_f
-            pixel[k, 0] = x
-            pixel[k, 1] = y
-            k += 1
+    n_bands = (H + _TRI_BAND - 1) // _TRI_BAND
+    counter = np.zeros(1, np.int64)
+    for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
+        while True:
+            band = next_item(counter)
+            if band >= n_bands:
+                break
+            for yu in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
+                y = np.int64(yu)
+                k = offsets[y]
+                for x in range(W):
+                    if not keep[y, x]:
+                        continue
+                    for c in range(3):
+                        xyz[k, c] = P[y, x, c]
+                        nrm[k, c] = normals[y, x, c]
+                        rgb[k, c] = colour[y, x, c]
+                    size[k] = P[y, x, 2] * inv_f
+                    pixel[k, 0] = x
+                    pixel[k, 1] = y
+                    k += 1
 
 
 @numba.njit(parallel=True, cache=True)
-def _support_and_normals(P, valid, rel_tol, min_support, keep, normals):  # pragma: no cover
+def _support_and_normals(P, valid, rel_tol, min_support, keep, normals, n_threads):  # pragma: no cover
     """Reject points without ``min_support`` neighbours (8-neighbourhood) within ``rel_tol * Z``
     of their depth; compute normals from neighbouring points' differences."""
     H, W = valid.shape
-    for y in numba.prange(H):
-        for x in range(W):
-            keep[y, x] = False
-            if not valid[y, x]:
-                continue
-            z = P[y, x, 2]
-            tol = rel_tol * z
-            cnt = 0
-            for dy in range(-1, 2):
-                yy = y + dy
-                if yy < 0 or yy >= H:
-                    continue
-                for dx in range(-1, 2):
-                    xx = x + dx
-                    if (dx == 0 and dy == 0) or xx < 0 or xx >= W:
+    n_bands = (H + _TRI_BAND - 1) // _TRI_BAND
+    counter = np.zeros(1, np.int64)
+    for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
+        while True:
+            band = next_item(counter)
+            if band >= n_bands:
+                break
+            for y in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
+                for x in range(W):
+                    keep[y, x] = False
+                    if not valid[y, x]:
                         continue
-                    if valid[yy, xx] and abs(P[yy, xx, 2] - z) <= tol:
-                        cnt += 1
-            keep[y, x] = cnt >= min_support
-    for yu in numba.prange(H):
-        y = np.int64(yu)
-        for x in range(W):
-            if not keep[y, x]:
-                continue
-            z = P[y, x, 2]
-            tol = rel_tol * z
-            # Horizontal and vertical differences: central where both sides agree, else one-sided.
-            hx0 = x - 1 if x > 0 and keep[y, x - 1] and abs(P[y, x - 1, 2] - z) <= tol else x
-            hx1 = x + 1 if x + 1 < W and keep[y, x + 1] and abs(P[y, x + 1, 2] - z) <= tol else x
-            vy0 = y - 1 if y > 0 and keep[y - 1, x] and abs(P[y - 1, x, 2] - z) <= tol else y
-            vy1 = y + 1 if y + 1 < H and keep[y + 1, x] and abs(P[y + 1, x, 2] - z) <= tol else y
-            X0 = P[y, x, 0]
-            Y0 = P[y, x, 1]
-            if hx0 == hx1 or vy0 == vy1:
-                # No tangent estimate: face the camera.
-                nrm = np.sqrt(X0 * X0 + Y0 * Y0 + z * z)
-                normals[y, x, 0] = -X0 / nrm
-                normals[y, x, 1] = -Y0 / nrm
-                normals[y, x, 2] = -z / nrm
-                continue
-            ax = P[y, hx1, 0] - P[y, hx0, 0]
-            ay = P[y, hx1, 1] - P[y, hx0, 1]
-            az = P[y, hx1, 2] - P[y, hx0, 2]
-            bx = P[vy1, x, 0] - P[vy0, x, 0]
-            by = P[vy1, x, 1] - P[vy0, x, 1]
-            bz = P[vy1, x, 2] - P[vy0, x, 2]
-            nx = ay * bz - az * by
-            ny = az * bx - ax * bz
-            nz = ax * by - ay * bx
-            nrm = np.sqrt(nx * nx + ny * ny + nz * nz)
-            if nrm == 0.0:
-                nrm = np.sqrt(X0 * X0 + Y0 * Y0 + z * z)
-                nx = -X0
-                ny = -Y0
-                nz = -z
-            if nx * X0 + ny * Y0 + nz * z > 0.0:
-                nx = -nx
-                ny = -ny
-                nz = -nz
-            normals[y, x, 0] = nx / nrm
-            normals[y, x, 1] = ny / nrm
-            normals[y, x, 2] = nz / nrm
+                    z = P[y, x, 2]
+                    tol = rel_tol * z
+                    cnt = 0
+                    for dy in range(-1, 2):
+                        yy = y + dy
+                        if yy < 0 or yy >= H:
+                            continue
+                        for dx in range(-1, 2):
+                            xx = x + dx
+                            if (dx == 0 and dy == 0) or xx < 0 or xx >= W:
+                                continue
+                            if valid[yy, xx] and abs(P[yy, xx, 2] - z) <= tol:
+                                cnt += 1
+                    keep[y, x] = cnt >= min_support
+    n_bands2 = (H + _TRI_BAND - 1) // _TRI_BAND
+    counter2 = np.zeros(1, np.int64)
+    for _thread2 in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
+        while True:
+            band = next_item(counter2)
+            if band >= n_bands2:
+                break
+            for yu in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
+                y = np.int64(yu)
+                for x in range(W):
+                    if not keep[y, x]:
+                        continue
+                    z = P[y, x, 2]
+                    tol = rel_tol * z
+                    # Horizontal and vertical differences: central where both sides agree, else one-sided.
+                    hx0 = x - 1 if x > 0 and keep[y, x - 1] and abs(P[y, x - 1, 2] - z) <= tol else x
+                    hx1 = x + 1 if x + 1 < W and keep[y, x + 1] and abs(P[y, x + 1, 2] - z) <= tol else x
+                    vy0 = y - 1 if y > 0 and keep[y - 1, x] and abs(P[y - 1, x, 2] - z) <= tol else y
+                    vy1 = y + 1 if y + 1 < H and keep[y + 1, x] and abs(P[y + 1, x, 2] - z) <= tol else y
+                    X0 = P[y, x, 0]
+                    Y0 = P[y, x, 1]
+                    if hx0 == hx1 or vy0 == vy1:
+                        # No tangent estimate: face the camera.
+                        nrm = np.sqrt(X0 * X0 + Y0 * Y0 + z * z)
+                        normals[y, x, 0] = -X0 / nrm
+                        normals[y, x, 1] = -Y0 / nrm
+                        normals[y, x, 2] = -z / nrm
+                        continue
+                    ax = P[y, hx1, 0] - P[y, hx0, 0]
+                    ay = P[y, hx1, 1] - P[y, hx0, 1]
+                    az = P[y, hx1, 2] - P[y, hx0, 2]
+                    bx = P[vy1, x, 0] - P[vy0, x, 0]
+                    by = P[vy1, x, 1] - P[vy0, x, 1]
+                    bz = P[vy1, x, 2] - P[vy0, x, 2]
+                    nx = ay * bz - az * by
+                    ny = az * bx - ax * bz
+                    nz = ax * by - ay * bx
+                    nrm = np.sqrt(nx * nx + ny * ny + nz * nz)
+                    if nrm == 0.0:
+                        nrm = np.sqrt(X0 * X0 + Y0 * Y0 + z * z)
+                        nx = -X0
+                        ny = -Y0
+                        nz = -z
+                    if nx * X0 + ny * Y0 + nz * z > 0.0:
+                        nx = -nx
+                        ny = -ny
+                        nz = -nz
+                    normals[y, x, 0] = nx / nrm
+                    normals[y, x, 1] = ny / nrm
+                    normals[y, x, 2] = nz / nrm
 
 
 def triangulate(
@@ -460,20 +543,23 @@ def _triangulate(
     else:
         row_span = np.ones((1, 1), np.float32) if not has_row else np.ones((h, w), np.float32)
     tb = tables if tables is not None else rig_tables(rig)
+    if tb.p4.size == 0:  # tables made without rig_tables()
+        tb = _packed(tb)
     P = np.empty((h, w, 3), np.float32)
     vmask = np.empty((h, w), bool)
     reasons = np.zeros((h, 2), np.int64)
     _intersect_grid(np.ascontiguousarray(decoded.column, np.float32), np.ascontiguousarray(decoded.row, np.float32),
-                    row_span, has_row, float(row_tolerance), tb.cam_a, tb.cam_b, tb.cam_stride, tb.cam_org,
-                    tb.pa, tb.pb, tb.pta, tb.ptb, tb.p_org, np.ascontiguousarray(rig.R, np.float64),
+                    row_span, has_row, float(row_tolerance), tb.cam_ab, tb.cam_stride, tb.cam_org,
+                    tb.p4, tb.p_org, np.ascontiguousarray(rig.R, np.float64),
                     np.ascontiguousarray(rig.T, np.float64).ravel(), np.ascontiguousarray(proj.K, np.float64),
-                    np.ascontiguousarray(proj.dist[:5], np.float64), iterations, P, vmask, reasons)
+                    np.ascontiguousarray(proj.dist[:5], np.float64), iterations, P, vmask, reasons, numba.get_num_threads())
     del row_span
     t_int = time.perf_counter()
     n_geom, n_row_reject = (int(v) for v in reasons.sum(axis=0))
     keep = np.empty((h, w), bool)
     normals_img = np.zeros((h, w, 3), np.float32)
-    _support_and_normals(P, vmask, np.float32(support_tolerance), min_support, keep, normals_img)
+    _support_and_normals(P, vmask, np.float32(support_tolerance), min_support, keep, normals_img,
+                         numba.get_num_threads())
     n_valid = int(np.count_nonzero(vmask))
     del vmask
     counts = np.count_nonzero(keep, axis=1)
@@ -487,7 +573,7 @@ def _triangulate(
     pixel = np.empty((n_pts, 2), np.int32)
     f_cam = 0.5 * (cam.fx + cam.fy)
     _gather(keep, P, normals_img, np.ascontiguousarray(decoded.colour), offsets, np.float32(1.0 / f_cam),
-            xyz, normals, rgb, size, pixel)
+            xyz, normals, rgb, size, pixel, numba.get_num_threads())
     del normals_img
     # The range image: Z where a point was kept (P is reused in place to save memory).
     range_image = np.ascontiguousarray(P[..., 2])
