@@ -102,6 +102,62 @@ def test_batch_of_frames_equals_frames_one_by_one() -> None:
         rz.render_batch(cams * 2, pts, col, size, ranges * 2, ms * 2)
 
 
+def _cloud(seed: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Points around the origin, some behind a camera at z = -400 and some off its frame,
+    colours with ties, sizes from none to splats wider than a pixel."""
+    rng = np.random.default_rng(seed)
+    pts = rng.normal(0, 150, (n, 3)).astype(np.float32)
+    pts[: n // 10, 2] = -410 - np.abs(pts[: n // 10, 2])  # behind the camera
+    col = rng.integers(0, 2**24, n).astype(np.uint32)
+    col[: n // 3] = 5
+    size = (rng.exponential(1.0, n) * rng.integers(0, 2, n)).astype(np.float32)
+    return pts, col, size
+
+
+def test_ranges_cut_anywhere_draw_the_same_frame() -> None:
+    """The kernel projects points in batches and prefetches ahead across ranges: cutting the
+    points into ranges of any lengths (empty, one point, batch sizes and one off) changes
+    nothing, and points behind the camera or off the frame are not drawn."""
+    pts, col, size = _cloud(7, 5000)
+    cam = Camera.look_at([0, 0, -400], [0, 0, 0], [0, -1, 0], 60, 120, 90)
+    whole = Rasterizer(120, 90, threads=1).render(cam, pts, col, size)
+    cuts = np.array([0, 0, 1, 2, 255, 511, 512, 768, 769, 769, 2000, 4999, 5000])
+    ranges = np.stack([cuts[:-1], cuts[1:]], axis=1)
+    for threads in (1, 2, 5):
+        part = Rasterizer(120, 90, threads=threads).render(cam, pts, col, size, ranges)
+        assert np.array_equal(part.rgb, whole.rgb) and np.array_equal(part.depth, whole.depth)
+    assert 0.05 < np.isfinite(whole.depth).mean() < 0.99  # drawn points, and background
+    ahead = Rasterizer(120, 90, threads=1).render(cam, pts[5000 // 10 :], col[5000 // 10 :], size[5000 // 10 :])
+    assert np.array_equal(ahead.rgb, whole.rgb)  # the points behind the camera drew nothing
+
+
+def test_buffers_are_clean_for_the_next_frame(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The resolve clears the key buffers it reads (no clearing pass): a frame drawn after
+    another equals it drawn by a new rasteriser, also after a draw that failed half-way."""
+    from shared.render import raster
+
+    pts, col, size = _cloud(8, 4000)
+    near_cam = Camera.look_at([0, 0, -250], [0, 0, 0], [0, -1, 0], 70, 96, 64)
+    far_cam = Camera.look_at([300, 0, -900], [0, 0, 0], [0, -1, 0], 40, 96, 64)
+    fresh = Rasterizer(96, 64, threads=2).render(far_cam, pts, col, size)
+    rz = Rasterizer(96, 64, threads=2)
+    rz.render(near_cam, pts, col, size)
+    again = rz.render(far_cam, pts, col, size)
+    assert np.array_equal(again.rgb, fresh.rgb) and np.array_equal(again.depth, fresh.depth)
+    batch = rz.render_batch([near_cam, far_cam], pts, col, size, [np.array([[0, 4000]])] * 2, [np.zeros(1)] * 2)
+    assert np.array_equal(batch[1].depth, fresh.depth)
+    assert np.array_equal(rz.render(far_cam, pts, col, size).depth, fresh.depth)
+
+    def fail(*args: object) -> None:
+        raise RuntimeError("resolve interrupted")
+
+    with monkeypatch.context() as m:
+        m.setattr(raster, "_resolve", fail)
+        with pytest.raises(RuntimeError):
+            rz.render(near_cam, pts, col, size)  # keys splatted, never resolved nor cleared
+    assert np.array_equal(rz.render(far_cam, pts, col, size).depth, fresh.depth)
+
+
 def test_select_nodes_respects_budget_and_parents() -> None:
     # Root with two children, each with two children; right branch behind the camera.
     center = np.array(
