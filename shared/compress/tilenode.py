@@ -41,7 +41,6 @@ do not parse is an :class:`InputError`, never wrong points.
 
 from __future__ import annotations
 
-import logging
 import struct
 import zlib
 
@@ -49,8 +48,6 @@ import numba
 import numpy as np
 
 from shared.core.errors import InputError
-
-log = logging.getLogger(__name__)
 
 #: The metadata.json ``encoding`` of tiles whose nodes this module codes.
 ENCODING = "GRAYLIGHT_OCTREE"

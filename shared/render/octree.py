@@ -88,7 +88,7 @@ MIN_PART_POINTS = 1 << 20  # smallest range of the cloud a pass hands to a worke
 PLAN_FILE = "plan.json"
 MAX_OPEN_FILES = 256
 #: Node encodings of ``octree.bin``: option value -> metadata.json "encoding".
-NODE_CODECS = {"plain": "DEFAULT", "octree": "GRAYLIGHT_OCTREE"}
+NODE_CODECS = {"plain": "DEFAULT", "octree": tilenode.ENCODING}
 
 
 @dataclass
@@ -1108,7 +1108,9 @@ def _code_nodes(
             f.write(data)
             out[nm] = {"points": info["points"], "offset": pos, "size": len(data)}
             pos += len(data)
+    plain = octree_bin.stat().st_size
     os.replace(coded, octree_bin)
+    log.info("octree-coded %d nodes: %d -> %d bytes (%.2fx)", len(names), plain, pos, plain / max(pos, 1))
     return out, pos
 
 
