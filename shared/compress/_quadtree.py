@@ -244,7 +244,7 @@ def fit_block(t, valid, y0, x0, B, coef, ws):
     a = ws[48:54]
     L = ws[54:90].reshape((6, 6))
     yv = ws[90:96]
-    for m in range(4):
+    for m in range(2 if B <= MINB else 4):  # a 4x4 block: constant or plane (more never paid here)
         k = K_OF[m]
         if m > 0 and n < 2 * k:
             break
