@@ -483,6 +483,8 @@ def decode_node(data: bytes | memoryview, dtype: np.dtype, count: int | None = N
     not a well-formed node of that layout.
     """
     data = bytes(data)
+    if not data and count == 0:  # an empty node (an ancestor kept for the hierarchy): no bytes
+        return np.empty(0, dtype)
     if len(data) < _HEAD.size:
         raise InputError(where, f"octree-coded node of {len(data)} bytes is truncated")
     magic, n, plen, zlen, crc = _HEAD.unpack_from(data)

@@ -118,7 +118,8 @@ async ({ nodes, params }) => {
   }
   const broken = nodes.find((n) => n.count > 100);
   const bad = await call(coded.slice(broken.coded[0], broken.coded[0] + broken.coded[1] - 9), broken.count, "GRAYLIGHT_OCTREE");
-  return { mismatched, points, badError: bad.error ?? null, plainBytes: plain.byteLength, codedBytes: coded.byteLength };
+  const empty = await call(new ArrayBuffer(0), 0, "GRAYLIGHT_OCTREE");
+  return { mismatched, points, badError: bad.error ?? null, emptyCount: empty.error ?? empty.points.count, plainBytes: plain.byteLength, codedBytes: coded.byteLength };
 }
 """
 
@@ -188,6 +189,7 @@ def test_worker_decodes_coded_nodes_to_the_plain_nodes_points(server, browser, t
         page.close()
     assert out["points"] == meta["points"] == sum(n["count"] for n in nodes)
     assert out["badError"] and "octree-coded node" in out["badError"]
+    assert out["emptyCount"] == 0  # an empty node (no bytes) decodes to no points
     n = out["points"]
     lines = [f"\nbrowser decode of {n} points in {len(nodes)} nodes (Chromium, one decoder worker, best of {reps}; "
              f"load average {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores):"]  # fmt: skip

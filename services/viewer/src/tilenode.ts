@@ -83,6 +83,12 @@ export async function decodeOctreeNode(buffer: ArrayBuffer, count: number, param
   const fail = (problem: string): never => {
     throw new Error(`octree-coded node: ${problem}`);
   };
+  if (count === 0 && buffer.byteLength === 0) {
+    // An empty node (an ancestor kept for the hierarchy) has no bytes at all, as in plain tiles.
+    const none = params.layout;
+    return { count: 0, positions: new Float32Array(0), colors: none.color ? new Uint8Array(0) : null,
+             sizes: none.size ? new Float32Array(0) : null, normals: none.normal >= 0 ? new Float32Array(0) : null };
+  }
   if (buffer.byteLength < HEAD) fail(`${buffer.byteLength} bytes is truncated`);
   const head = new DataView(buffer);
   if (head.getUint32(0, true) !== MAGIC) fail("wrong magic (not an octree-coded node)");

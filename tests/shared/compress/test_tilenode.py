@@ -198,6 +198,9 @@ def test_bad_nodes_are_clear_errors() -> None:
     rng = np.random.default_rng(3)
     rec = _records(500, rng)
     data = tilenode.encode_node(rec)
+    assert len(tilenode.decode_node(b"", rec.dtype, 0)) == 0  # an empty node has no bytes, as in plain tiles
+    with pytest.raises(InputError, match="truncated"):
+        tilenode.decode_node(b"", rec.dtype, 5)
     with pytest.raises(InputError, match="truncated"):
         tilenode.decode_node(data[:8], rec.dtype)
     with pytest.raises(InputError, match="magic"):
