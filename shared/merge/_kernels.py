@@ -121,3 +121,69 @@ def free_space_hits(q, K, dist, zmin, tol, bad):  # pragma: no cover
         zs = zmin[v, u]
         if zs > 0.0 and z < zs - tol[k]:
             bad[k] = True
+
+
+@numba.njit(cache=True, nogil=True)
+def track_correspondences(src, src_n, rel, tgt, tgt_n, nbr, idx, descend, dmax, cos_min, q_out, m_out,
+                          r_out):  # pragma: no cover
+    """Point-to-plane correspondences of moved source samples, found or followed on the target's
+    neighbour graph.
+
+    src, src_n : (N, 3) float64 source samples (mm) and unit normals in their own frame; rel : (4, 4)
+    float64 source -> target frame. tgt, tgt_n : (T, 3) float64 target samples and unit normals;
+    nbr : (T, K) int32 each target's K nearest other targets. idx : (N,) int64, in: a target per
+    source sample (-1: none), out: with ``descend``, the target reached by greedy descent on the
+    graph from it (the nearest target when the start was near: poses change little between the
+    iterations of a fit, so this replaces a k-d tree search). A pair is kept when the distance is at
+    most ``dmax`` (mm) and the normals' cosine at least ``cos_min``. Writes the kept pairs compacted
+    into q_out (N, 3) (moved source, target frame), m_out (N, 3) (target normal), r_out (N,)
+    (``m . (q - target)``, mm) and returns how many.
+    """
+    n = src.shape[0]
+    K = nbr.shape[1]
+    d2max = dmax * dmax
+    c = 0
+    for k in range(n):
+        t = idx[k]
+        if t < 0:
+            continue
+        q0 = rel[0, 0] * src[k, 0] + rel[0, 1] * src[k, 1] + rel[0, 2] * src[k, 2] + rel[0, 3]
+        q1 = rel[1, 0] * src[k, 0] + rel[1, 1] * src[k, 1] + rel[1, 2] * src[k, 2] + rel[1, 3]
+        q2 = rel[2, 0] * src[k, 0] + rel[2, 1] * src[k, 1] + rel[2, 2] * src[k, 2] + rel[2, 3]
+        e0 = q0 - tgt[t, 0]
+        e1 = q1 - tgt[t, 1]
+        e2 = q2 - tgt[t, 2]
+        best = e0 * e0 + e1 * e1 + e2 * e2
+        if descend:
+            for _step in range(256):
+                move = -1
+                for a in range(K):
+                    u = nbr[t, a]
+                    f0 = q0 - tgt[u, 0]
+                    f1 = q1 - tgt[u, 1]
+                    f2 = q2 - tgt[u, 2]
+                    d = f0 * f0 + f1 * f1 + f2 * f2
+                    if d < best:
+                        best = d
+                        move = u
+                if move < 0:
+                    break
+                t = move
+            idx[k] = t
+        if best > d2max:
+            continue
+        n0 = rel[0, 0] * src_n[k, 0] + rel[0, 1] * src_n[k, 1] + rel[0, 2] * src_n[k, 2]
+        n1 = rel[1, 0] * src_n[k, 0] + rel[1, 1] * src_n[k, 1] + rel[1, 2] * src_n[k, 2]
+        n2 = rel[2, 0] * src_n[k, 0] + rel[2, 1] * src_n[k, 1] + rel[2, 2] * src_n[k, 2]
+        if n0 * tgt_n[t, 0] + n1 * tgt_n[t, 1] + n2 * tgt_n[t, 2] < cos_min:
+            continue
+        q_out[c, 0] = q0
+        q_out[c, 1] = q1
+        q_out[c, 2] = q2
+        m_out[c, 0] = tgt_n[t, 0]
+        m_out[c, 1] = tgt_n[t, 1]
+        m_out[c, 2] = tgt_n[t, 2]
+        r_out[c] = (tgt_n[t, 0] * (q0 - tgt[t, 0]) + tgt_n[t, 1] * (q1 - tgt[t, 1])
+                    + tgt_n[t, 2] * (q2 - tgt[t, 2]))
+        c += 1
+    return c
