@@ -131,6 +131,18 @@ def test_ranges_cut_anywhere_draw_the_same_frame() -> None:
     assert np.array_equal(ahead.rgb, whole.rgb)  # the points behind the camera drew nothing
 
 
+def test_frame_widths_with_and_without_packed_colour_words_agree() -> None:
+    """Frames whose width is a multiple of 4 get their colours written 4 pixels to 3 words, other
+    widths byte by byte: one more column on the right leaves the first 120 columns as they were."""
+    pts, col, size = _cloud(9, 6000)
+    cam = Camera.look_at([0, 0, -400], [0, 0, 0], [0, -1, 0], 60, 120, 90)
+    wider = Camera(R=cam.R, t=cam.t, fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, width=121, height=90)
+    a = Rasterizer(120, 90, threads=2).render(cam, pts, col, size, background=(18, 18, 24))
+    b = Rasterizer(121, 90, threads=2).render(wider, pts, col, size, background=(18, 18, 24))
+    assert np.array_equal(a.rgb, b.rgb[:, :120]) and np.array_equal(a.depth, b.depth[:, :120])
+    assert (a.rgb == (18, 18, 24)).all(axis=2).mean() > 0.01 and np.isfinite(a.depth).mean() > 0.05
+
+
 def test_buffers_are_clean_for_the_next_frame(monkeypatch: pytest.MonkeyPatch) -> None:
     """The resolve clears the key buffers it reads (no clearing pass): a frame drawn after
     another equals it drawn by a new rasteriser, also after a draw that failed half-way."""
