@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 #: Modules holding numba kernels, by domain.
 KERNEL_MODULES: dict[str, tuple[str, ...]] = {
     "sim": ("shared.sim.raycast",),
-    "scan": ("shared.scan.decode", "shared.scan.triangulate"),
+    "scan": ("shared.scan.decode", "shared.scan.triangulate", "shared.formats._png"),  # _png: frame reading
     "render": ("shared.render.octree", "shared.render.raster", "shared.render._shading", "shared.render._neighbours",
                "shared.render._match", "shared.compress.tilenode"),  # tilenode: the tiles' octree-coded nodes
     "compress": ("shared.compress._rans", "shared.compress._quadtree", "shared.compress._octree"),

@@ -211,8 +211,16 @@ def _check_size(img: np.ndarray, path: Path, expect: tuple[int, int] | None) -> 
 
 def _decode_unchanged(path: Path, expect: tuple[int, int] | None) -> np.ndarray:
     data = _read_bytes(path)
-    # No EXIF rotation: the header probe and the pattern geometry refer to the stored pixel grid.
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+    img = None
+    if data[:8].tobytes() == _PNG_MAGIC:
+        # Plain grey/RGB PNG frames decode on a faster path, the same pixels (see _png); the
+        # module (numba) loads only when a PNG is read.
+        from shared.formats._png import decode_png
+
+        img = decode_png(data)
+    if img is None:
+        # No EXIF rotation: the header probe and the pattern geometry refer to the stored pixel grid.
+        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
     if img is None:
         raise InputError(path, "corrupt or unsupported image (the decoder could not read it)")
     if img.dtype not in (np.uint8, np.uint16):
