@@ -2,24 +2,30 @@
 
 Geometry: integer voxel coordinates (the cloud quantised to its precision grid, offset to
 the chunk's minimum) become Morton codes; the octree is coded breadth-first, as in MPEG
-G-PCC: every occupied node's eight child bits, one by one (bit ``b = x + 2 y + 4 z`` of the
-child's octant, the last bit implied when the seven before are empty), each a binary event
-of an adaptive model (:func:`shared.compress._rans.model_p`) chosen by what the decoder
-already knows around that child:
+G-PCC, every decision a binary event of an adaptive model (:func:`shared.compress._rans.state_next`)
+chosen by what the decoder already knows around the node. Per occupied node:
 
-- the child's three neighbours on the "past" side (-x, -y, -z, at the child's level): a
-  sibling already coded, or a child of the node's past neighbour, coded before it (Morton
-  order is monotonic along every axis);
-- the three cells two steps back along each axis (children of the past neighbours);
-- the three face neighbours on the "future" side, at the node's level (occupied or not: the
-  whole level is known before its children are coded), and on which side of the node the
-  child lies;
-- how many siblings are already occupied (0 to 3+), and the bit's position.
+- a flag "exactly one child" (most nodes of the deepest levels of a scan's surface), in a
+  context of its occupied face neighbours, the children of its past neighbours (-x, -y, -z:
+  coded before it, Morton order being monotonic along every axis) and the occupancy of the
+  nodes two back along x and y;
+- one child: its x, y and z bits, each in a context of where the past neighbours' children
+  lie along that axis (and the nodes two back: the spacing of a scan's points shows there),
+  whether the future neighbour on that axis is occupied, and the bits already coded; the z
+  bit also sees whether the surface climbs or falls (the past x and y neighbours' own
+  neighbours above and below);
+- two children or more: the eight child bits one by one (bit ``b = x + 2 y + 4 z``; the last
+  ones implied when the count demands them), each in a context of the child's three past
+  neighbours at the child's level (a sibling already coded, or a child of the past
+  neighbour), the cells two steps back, the future face neighbours at the node's level and
+  the side of the node the child lies on, the siblings occupied so far and the bit's position.
 
 Neighbours are looked up in a dense map of the nodes of a 64^3-node region (the nodes
 sharing an ancestor six levels up, consecutive in Morton order); a neighbour outside the
-region counts as empty, in encoder and decoder alike. Models restart at every level. Points
-sharing a voxel are counted per voxel (in a table chosen by the previous voxel's count).
+region counts as empty, in encoder and decoder alike. Models restart at every level. The
+decoder loads every model a node may use before the bits that choose among them are known,
+so that the loads leave the decoding's dependency chain. Points sharing a voxel are counted
+per voxel (in a table chosen by the previous voxel's count).
 
 Attributes follow as integer channels in Morton order, each the difference from the previous
 point (neighbours in Morton order are near in space, so the differences are small), each
@@ -70,13 +76,13 @@ REGION_SHIFT = 3 * REGION_LOG
 PAD = REGION + 2
 #: Occupancy contexts: child bits of nodes with two children or more, bit (8) x occupied siblings
 #: (4) x past faces (8) x two back (8) x future faces (64); then the single-child flag (64) and
-#: the single child's x, y and z bits (128, 256, 512).
+#: the single child's x, y and z bits.
 C_BIT = 0
 C_SINGLE = C_BIT + 8 * 4 * 8 * 8 * 64
 C_X = C_SINGLE + 256
 C_Y = C_X + 512
 C_Z = C_Y + 1024
-N_OCC_CTX = C_Z + 8192
+N_OCC_CTX = C_Z + 8192 * 16
 _OCCUPIED = 256
 _CODED = 512
 
@@ -152,11 +158,14 @@ def _child_cell(ci, b):
 
 @njit(cache=True, nogil=True, inline="always")
 def _neighbours(atlas, ci):
-    """The region map's values of the six face neighbours of the node at map index ``ci``
-    (0 outside the region): (-x, -y, -z, +x, +y, +z)."""
+    """The region map's values of the node's face neighbours (0 outside the region) -x, -y,
+    -z, +x, +y, +z, of the nodes two back along x and y, and the occupancy of the past x and y
+    neighbours' neighbours above and below (4 bits: where the surface climbs or falls)."""
     return (np.int64(atlas[ci - 1]), np.int64(atlas[ci - PAD]), np.int64(atlas[ci - PAD * PAD]),
             np.int64(atlas[ci + 1]), np.int64(atlas[ci + PAD]), np.int64(atlas[ci + PAD * PAD]),
-            np.int64(atlas[ci - 2]), np.int64(atlas[ci - 2 * PAD]))
+            np.int64(atlas[ci - 2]), np.int64(atlas[ci - 2 * PAD]),
+            ((atlas[ci - 1 + PAD * PAD] >> 8) & 1) | (((atlas[ci - 1 - PAD * PAD] >> 8) & 1) << 1)
+            | (((atlas[ci - PAD + PAD * PAD] >> 8) & 1) << 2) | (((atlas[ci - PAD - PAD * PAD] >> 8) & 1) << 3))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -208,13 +217,14 @@ def _y_context(bx, xm, ym, zm, yp, ym2):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _z_context(bx, by, xm, ym, zm, zp, xm2, ym2):
+def _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, slope):
     """Context of a single child's z bit (its x and y bits known)."""
     col = bx | (by << 1)
     return C_Z + (((zm >> (col | 4)) & 1) | (((zm >> col) & 1) << 1) | (((zp >> 8) & 1) << 2)
                   | (((xm >> (1 | (by << 1))) & 1) << 3) | (((xm >> (5 | (by << 1))) & 1) << 4)
                   | (((ym >> (bx | 2)) & 1) << 5) | (((ym >> (bx | 6)) & 1) << 6) | (col << 7)
-                  | (_any(xm2, 0xF0) << 9) | (_any(xm2, 0x0F) << 10) | (_any(ym2, 0xF0) << 11) | (_any(ym2, 0x0F) << 12))
+                  | (_any(xm2, 0xF0) << 9) | (_any(xm2, 0x0F) << 10) | (_any(ym2, 0xF0) << 11) | (_any(ym2, 0x0F) << 12)
+                  | (slope << 13))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -292,7 +302,7 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
                 while j < c1 and (levels[j] >> 3) == key:
                     byte |= 1 << (levels[j] & 7)
                     j += 1
-                xm, ym, zm, xp, yp, zp, xm2, ym2 = _neighbours(atlas, ci)
+                xm, ym, zm, xp, yp, zp, xm2, ym2, slope = _neighbours(atlas, ci)
                 single = POPCOUNT[byte] == 1
                 n = _emit(tab, val, nb, n, models, _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2), 1 if single else 0, 0)
                 if single:
@@ -301,7 +311,7 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
                     bz = 1 if byte & 0xF0 else 0
                     n = _emit(tab, val, nb, n, models, _x_context(xm, ym, zm, xp, xm2), bx, 1)
                     n = _emit(tab, val, nb, n, models, _y_context(bx, xm, ym, zm, yp, ym2), by, 2)
-                    n = _emit(tab, val, nb, n, models, _z_context(bx, by, xm, ym, zm, zp, xm2, ym2), bz, 3)
+                    n = _emit(tab, val, nb, n, models, _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, np.int64(slope)), bz, 3)
                 else:
                     cur = 0
                     ncur = 0
@@ -390,7 +400,7 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
             for i in range(r0, r1):
                 key = cur[i]
                 ci = curc[i]
-                xm, ym, zm, xp, yp, zp, xm2, ym2 = _neighbours(atlas, ci)
+                xm, ym, zm, xp, yp, zp, xm2, ym2, slope = _neighbours(atlas, ci)
                 # Every model this node may use next is loaded before the bit that picks it
                 # is known: the loads leave the decoding's dependency chain.
                 cs = _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2)
@@ -404,8 +414,8 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
                 single, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(ss))
                 models[cs] = state_next(ss, single)
                 if single:
-                    czs = (_z_context(0, 0, xm, ym, zm, zp, xm2, ym2), _z_context(1, 0, xm, ym, zm, zp, xm2, ym2),
-                           _z_context(0, 1, xm, ym, zm, zp, xm2, ym2), _z_context(1, 1, xm, ym, zm, zp, xm2, ym2))
+                    czs = (_z_context(0, 0, xm, ym, zm, zp, xm2, ym2, np.int64(slope)), _z_context(1, 0, xm, ym, zm, zp, xm2, ym2, np.int64(slope)),
+                           _z_context(0, 1, xm, ym, zm, zp, xm2, ym2, np.int64(slope)), _z_context(1, 1, xm, ym, zm, zp, xm2, ym2, np.int64(slope)))
                     sz = (models[czs[0]], models[czs[1]], models[czs[2]], models[czs[3]])
                     bx, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(sx))
                     models[cx] = state_next(sx, bx)

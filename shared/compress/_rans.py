@@ -1,7 +1,11 @@
-"""A static-model rANS entropy coder with many context tables, in numba (private kernels).
+"""A rANS entropy coder with many static context tables and adaptive binary models, in numba
+(private kernels).
 
 The coders of this package turn their data into a stream of *events*: a symbol of one of up
-to :data:`MAX_TABLES` context tables, or a few raw bits. The encoder counts the symbols of
+to :data:`MAX_TABLES` context tables, a few raw bits, or a binary decision carrying its own
+probability (:data:`BIN`, from an adaptive model: :func:`state_p`, :func:`state_next`; the
+encoder runs the models forward to fill the events, the decoder runs the same integer
+updates as it reads). The encoder counts the symbols of
 every table over a chunk, normalises the counts to :data:`PROB_BITS`-bit frequencies (each
 table stored in the chunk, a few hundred bytes), and codes the events in reverse with one
 32-bit rANS state emitting 16-bit words (Duda's range variant of ANS; renormalisation as in
