@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import heapq
 import math
+import os
 import sys
 from dataclasses import dataclass
 
@@ -42,6 +43,23 @@ from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
+
+
+def _prefer_passive_openmp() -> None:
+    """Prefer OpenMP among numba's threading layers, its workers waiting passively: the policy
+    of :func:`shared.scan._bands.pin_threading_layer`, for the processes that render without
+    scanning (the preview CLI, the bench; render may not import scan). numba otherwise picks
+    TBB when a libtbb is installed, whose idle worker spins while the other thread's frame is
+    still drawing: 1280x720 preview batches (one frame a thread, 1.5 M points a frame, load
+    6-7 on 2 cores) took 9.7-9.9 ms of CPU a frame on TBB, 12.3 ms on OpenMP spinning,
+    8.3-9.1 ms on OpenMP passive, and TBB had rounds at twice its usual CPU. A layer or
+    priority set by the user wins; so does a layer numba has already started."""
+    if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
+        numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
+    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+
+
+_prefer_passive_openmp()
 
 EMPTY = np.uint64(0xFFFFFFFFFFFFFFFF)
 #: Largest splat half-side in pixels (a splat right in front of the lens stays bounded).
@@ -160,7 +178,9 @@ def _prefetch_points(fxyz, colour, size, starts, stops, r, q, count, r_end):  # 
 
 
 @numba.njit(inline="always", fastmath=True, error_model="numpy")
-def _project_batch(fxyz, size, n, ms, Rt, fx, fy, cx, cy, near, width, height, pix, depth):  # pragma: no cover
+def _project_batch(
+    fxyz, size, n, ms, Rt, fx, fy, cx, cy, near, width, height, pix, depth
+):  # pragma: no cover
     """Project points 0..n of ``fxyz`` ((3n,) float32 x, y, z) with sizes ``size`` (n,): ``pix[j]``
     (int64) is the pixel index y * width + x of a one-pixel splat, width * height (the spare
     slot) when the point is not drawn (behind the near plane, off the frame), or -1 for a splat
@@ -208,7 +228,9 @@ def _project_batch(fxyz, size, n, ms, Rt, fx, fy, cx, cy, near, width, height, p
 
 
 @numba.njit(parallel=True, cache=True, fastmath=True, error_model="numpy")
-def _splat(xyz, colour, size, starts, stops, min_size, task_bounds, Rts, Ks, buffers, width, boxes):  # pragma: no cover
+def _splat(
+    xyz, colour, size, starts, stops, min_size, task_bounds, Rts, Ks, buffers, width, boxes
+):  # pragma: no cover
     """Task t draws ranges task_bounds[t]:task_bounds[t+1] with camera Rts[t] (3, 4),
     Ks[t] = (fx, fy, cx, cy, near) into buffers[t] ((H * W + 1,) uint64: the frame's pixels
     row by row, then a spare slot that takes the points not drawn): one frame split over
@@ -416,7 +438,9 @@ class Rasterizer:
                Rts, Ks, buffers, self.width, boxes)  # fmt: skip
         # Each frame's box: the union of its buffers' boxes.
         g = boxes.reshape(frames, -1, 4)
-        frame_boxes = np.stack([g[:, :, 0].min(1), g[:, :, 1].max(1), g[:, :, 2].min(1), g[:, :, 3].max(1)], axis=1)
+        frame_boxes = np.stack(
+            [g[:, :, 0].min(1), g[:, :, 1].max(1), g[:, :, 2].min(1), g[:, :, 3].max(1)], axis=1
+        )
         rgb = np.empty((frames, self.height, self.width, 3), np.uint8)
         depth = np.empty((frames, self.height, self.width), np.float32)
         packed = self.width % 4 == 0 and sys.byteorder == "little"

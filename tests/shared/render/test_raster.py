@@ -127,7 +127,9 @@ def test_ranges_cut_anywhere_draw_the_same_frame() -> None:
         part = Rasterizer(120, 90, threads=threads).render(cam, pts, col, size, ranges)
         assert np.array_equal(part.rgb, whole.rgb) and np.array_equal(part.depth, whole.depth)
     assert 0.05 < np.isfinite(whole.depth).mean() < 0.99  # drawn points, and background
-    ahead = Rasterizer(120, 90, threads=1).render(cam, pts[5000 // 10 :], col[5000 // 10 :], size[5000 // 10 :])
+    ahead = Rasterizer(120, 90, threads=1).render(
+        cam, pts[5000 // 10 :], col[5000 // 10 :], size[5000 // 10 :]
+    )
     assert np.array_equal(ahead.rgb, whole.rgb)  # the points behind the camera drew nothing
 
 
@@ -156,7 +158,9 @@ def test_buffers_are_clean_for_the_next_frame(monkeypatch: pytest.MonkeyPatch) -
     rz.render(near_cam, pts, col, size)
     again = rz.render(far_cam, pts, col, size)
     assert np.array_equal(again.rgb, fresh.rgb) and np.array_equal(again.depth, fresh.depth)
-    batch = rz.render_batch([near_cam, far_cam], pts, col, size, [np.array([[0, 4000]])] * 2, [np.zeros(1)] * 2)
+    batch = rz.render_batch(
+        [near_cam, far_cam], pts, col, size, [np.array([[0, 4000]])] * 2, [np.zeros(1)] * 2
+    )
     assert np.array_equal(batch[1].depth, fresh.depth)
     assert np.array_equal(rz.render(far_cam, pts, col, size).depth, fresh.depth)
 
