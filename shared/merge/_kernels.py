@@ -187,3 +187,49 @@ def track_correspondences(src, src_n, rel, tgt, tgt_n, nbr, idx, descend, dmax, 
                     + tgt_n[t, 2] * (q2 - tgt[t, 2]))
         c += 1
     return c
+
+
+@numba.njit(cache=True, nogil=True)
+def voxel_representatives(order, starts, xyz, normals, out_xyz, out_n):  # pragma: no cover
+    """One representative sample per voxel.
+
+    ``order`` (N,) int64 sorts the points by voxel (stably: within a voxel in input order) and
+    ``starts`` (C + 1,) int64 bounds each voxel's run in it; xyz, normals (N, 3) float64 (mm, unit).
+    Per voxel, writes the point nearest the voxel's mean (the first such in input order) to
+    out_xyz (C, 3) and the voxel's summed normal (not normalised) to out_n (C, 3).
+    """
+    C = starts.shape[0] - 1
+    for c in range(C):
+        s, e = starts[c], starts[c + 1]
+        m0 = 0.0
+        m1 = 0.0
+        m2 = 0.0
+        n0 = 0.0
+        n1 = 0.0
+        n2 = 0.0
+        for t in range(s, e):
+            k = order[t]
+            m0 += xyz[k, 0]
+            m1 += xyz[k, 1]
+            m2 += xyz[k, 2]
+            n0 += normals[k, 0]
+            n1 += normals[k, 1]
+            n2 += normals[k, 2]
+        cnt = e - s
+        m0 /= cnt
+        m1 /= cnt
+        m2 /= cnt
+        best = np.inf
+        bk = order[s]
+        for t in range(s, e):
+            k = order[t]
+            d = (xyz[k, 0] - m0) ** 2 + (xyz[k, 1] - m1) ** 2 + (xyz[k, 2] - m2) ** 2
+            if d < best:
+                best = d
+                bk = k
+        out_xyz[c, 0] = xyz[bk, 0]
+        out_xyz[c, 1] = xyz[bk, 1]
+        out_xyz[c, 2] = xyz[bk, 2]
+        out_n[c, 0] = n0
+        out_n[c, 1] = n1
+        out_n[c, 2] = n2

@@ -42,7 +42,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from shared.core.errors import InputError
-from shared.merge._kernels import point_to_plane_system, track_correspondences
+from shared.merge._kernels import point_to_plane_system, track_correspondences, voxel_representatives
 from shared.merge.views import ViewCloud
 
 log = logging.getLogger(__name__)
@@ -257,25 +257,23 @@ def _about_axis(a: np.ndarray, p: np.ndarray, deg: float) -> np.ndarray:
 
 
 def _voxel_mean(xyz: np.ndarray, normals: np.ndarray, voxel: float) -> tuple[np.ndarray, np.ndarray]:
-    """One sample per voxel: the point nearest the voxel's mean (a real surface point: the mean
-    itself would sit inside curved surfaces) with the voxel's renormalised mean normal."""
+    """One sample per voxel of ``voxel`` mm: the point nearest the voxel's mean (a real surface
+    point: the mean itself would sit inside curved surfaces) with the voxel's renormalised mean
+    normal. xyz, normals (N, 3) float64; returns (C, 3) float64 each, voxels in key order."""
     keys = np.floor(xyz / voxel).astype(np.int64)
     keys -= keys.min(axis=0)
     dims = keys.max(axis=0) + 1
     flat = (keys[:, 0] * dims[1] + keys[:, 1]) * dims[2] + keys[:, 2]
-    _, inv, counts = np.unique(flat, return_inverse=True, return_counts=True)
-    inv = inv.ravel()
-    mean = np.zeros((len(counts), 3))
-    nrm = np.zeros((len(counts), 3))
-    for a in range(3):
-        mean[:, a] = np.bincount(inv, weights=xyz[:, a], minlength=len(counts)) / counts
-        nrm[:, a] = np.bincount(inv, weights=normals[:, a], minlength=len(counts))
-    d = np.sum((xyz - mean[inv]) ** 2, axis=1)
-    order = np.lexsort((d, inv))
-    first = order[np.searchsorted(inv[order], np.arange(len(counts)))]
+    order = np.argsort(flat, kind="stable")
+    cut = np.flatnonzero(np.diff(flat[order])) + 1
+    starts = np.concatenate([[0], cut, [len(flat)]]).astype(np.int64)
+    out_xyz = np.empty((len(starts) - 1, 3))
+    nrm = np.empty((len(starts) - 1, 3))
+    voxel_representatives(order, starts, np.ascontiguousarray(xyz, np.float64),
+                          np.ascontiguousarray(normals, np.float64), out_xyz, nrm)
     length = np.linalg.norm(nrm, axis=1)
     ok = length > 1e-9
-    return xyz[first][ok], nrm[ok] / length[ok, None]
+    return out_xyz[ok], nrm[ok] / length[ok, None]
 
 
 def _voxel_for(views: Sequence[ViewCloud], target: int) -> float:
@@ -611,13 +609,16 @@ def _view_stats(S: list[Samples], poses: np.ndarray, voxel: float, params: Regis
     inl = np.zeros(V)
     for i in views:
         covered = np.zeros(len(S[i].xyz), bool)
-        for j in views:
-            if j == i:
-                continue
+        # The views that share the most with view i first (its edges), then only what is still uncovered.
+        near = {j for e in fits for j in e if i in e}
+        for j in sorted((j for j in views if j != i), key=lambda j: j not in near):
+            todo = np.flatnonzero(~covered)
+            if not len(todo):
+                break
             rel = np.linalg.solve(poses[j], poses[i])
-            d, _ = S[j].tree.query(_transform(rel, S[i].xyz), k=1, distance_upper_bound=2.0 * voxel,
-                                   workers=_workers(len(S[i].xyz)))
-            covered |= np.isfinite(d)
+            d, _ = S[j].tree.query(_transform(rel, S[i].xyz[todo]), k=1, distance_upper_bound=2.0 * voxel,
+                                   workers=_workers(len(todo)))
+            covered[todo[np.isfinite(d)]] = True
         overlap[i] = covered.mean()
         mine = [(f.rms, f.inliers, f.n) for e, f in fits.items() if i in e and np.isfinite(f.rms)]
         if mine:
