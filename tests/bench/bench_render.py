@@ -222,38 +222,47 @@ def bench_preview(work: Path) -> None:
     rz.render(cams[0], scene.xyz, scene.colour, scene.size)
     full = time.perf_counter() - t0
 
-    # The machine is shared and its speed drifts: the peer and ours alternate in three rounds
-    # (the same frames each), and the ratio is the median of the rounds' ratios.
-    rounds: list[tuple[float, float]] = []
+    # The machine is shared and its speed drifts: the peer and ours alternate in five rounds
+    # (the same frames each), and the ratio is the median of the rounds' ratios. CPU seconds a
+    # frame (this process, all its threads: llvmpipe's too) are printed beside, as they move
+    # less with the load than wall time.
+    rounds: list[tuple[float, float, float, float]] = []  # fps ours, fps peer, CPU ms a frame ours, peer
     far = 1e3 * float(np.linalg.norm(scene.bounds_max - scene.bounds_min))
     try:
         gl = GLRasterizer(width, height)
         gl.upload(scene.xyz, scene.colour, scene.size)
         gl.render(cams[0], *sel[0], far)
         renderer = gl.renderer
-        for _ in range(3):
-            t0 = time.perf_counter()
+        for _ in range(5):
+            c0, t0 = time.process_time(), time.perf_counter()
             for cam, (ranges, ms) in zip(cams, sel, strict=True):
                 gl.render(cam, ranges, ms, far)
             gl_round = len(cams) / (time.perf_counter() - t0)
-            rounds.append((max(_batch_fps(rz, cams, sel, scene), _batch_fps(rz, cams, sel, scene)), gl_round))
+            gl_cpu = (time.process_time() - c0) / len(cams) * 1e3
+            c0 = time.process_time()
+            ours_round = max(_batch_fps(rz, cams, sel, scene), _batch_fps(rz, cams, sel, scene))
+            rounds.append((ours_round, gl_round, (time.process_time() - c0) / (2 * len(cams)) * 1e3, gl_cpu))
         gl.release()
     except Exception as exc:  # the peer is optional on a machine without EGL
         renderer = f"unavailable: {exc!r}"
-        rounds = [(_batch_fps(rz, cams, sel, scene), float("nan"))]
+        c0 = time.process_time()
+        rounds = [(_batch_fps(rz, cams, sel, scene), float("nan"), (time.process_time() - c0) / len(cams) * 1e3,
+                   float("nan"))]  # fmt: skip
     ours = float(np.median([r[0] for r in rounds]))
     gl_fps = float(np.median([r[1] for r in rounds]))
-    ratios = sorted(o / g for o, g in rounds)
+    ours_cpu = float(np.median([r[2] for r in rounds]))
+    gl_cpu = float(np.median([r[3] for r in rounds]))
+    ratios = sorted(r[0] / r[1] for r in rounds)
     mean_pts = sum(pts) / len(pts)
     print(f"preview frames {width}x{height}, {n / 1e6:.1f} M-point scan, {mean_pts / 1e6:.2f} M points a frame "
           f"(budget {DEFAULT_BUDGET / 1e6:.1f} M), same {len(cams)} orbit frames:")  # fmt: skip
-    print(f"  graylight CPU rasteriser     {ours:7.2f} fps  {ours * mean_pts / 1e6:7.1f} M pts/s   "
-          f"(frame a thread; one frame over all threads: {ours_single:.2f} fps)")  # fmt: skip
-    print(
-        f"  moderngl GL_POINTS           {gl_fps:7.2f} fps  {gl_fps * mean_pts / 1e6:7.1f} M pts/s   ({renderer})"
-    )
+    print(f"  graylight CPU rasteriser     {ours:7.2f} fps  {ours * mean_pts / 1e6:7.1f} M pts/s  {ours_cpu:6.1f} ms CPU "
+          f"a frame  (frame a thread; one frame over all threads: {ours_single:.2f} fps)")  # fmt: skip
+    print(f"  moderngl GL_POINTS           {gl_fps:7.2f} fps  {gl_fps * mean_pts / 1e6:7.1f} M pts/s  {gl_cpu:6.1f} ms CPU "
+          f"a frame  ({renderer})")  # fmt: skip
     print(f"  ratio {ratios[len(ratios) // 2]:.1f}x median of {len(ratios)} alternating rounds "
-          f"({', '.join(f'{r:.1f}' for r in ratios)})   (target >= 15x and >= 10 fps)")  # fmt: skip
+          f"({', '.join(f'{r:.1f}' for r in ratios)}), {gl_cpu / ours_cpu:.1f}x in CPU a frame   "
+          f"(target >= 15x and >= 10 fps; load average {os.getloadavg()[0]:.1f})")  # fmt: skip
     print(
         f"  (all {scene.points / 1e6:.1f} M points in one frame: {full * 1e3:.0f} ms, {scene.points / full / 1e6:.0f} M pts/s)"
     )
