@@ -21,6 +21,7 @@ are undone by a small numba kernel; both release the GIL, so the reading threads
 from __future__ import annotations
 
 import struct
+import threading
 import zlib
 
 import numba
@@ -121,9 +122,34 @@ def _unfilter(raw, h, rb, bpp, out):  # pragma: no cover
     return True
 
 
+_READY = threading.Event()
+_LOADING = threading.Lock()
+
+
+def _kernel_ready() -> bool:
+    """Whether :func:`_unfilter` can run now. The first caller loads it (numba's first
+    dispatch in a process, about 0.3-0.9 s: its target, then the cached machine code) while
+    other threads asking meanwhile get False and decode their frames with OpenCV instead of
+    waiting on numba's compiler lock: a scan's reading threads keep going from the start."""
+    if _READY.is_set():
+        return True
+    if not _LOADING.acquire(blocking=False):
+        return False
+    try:
+        if not _READY.is_set():
+            # The signature of the real calls: bytes from the inflater (read-only), one row.
+            _unfilter(np.frombuffer(bytes(2), np.uint8), 1, 1, 1, np.empty((1, 1), np.uint8))
+            _READY.set()
+    finally:
+        _LOADING.release()
+    return True
+
+
 def decode_png(data: np.ndarray) -> np.ndarray | None:
     """Decode a plain PNG (see the module docstring) from its bytes ``data`` ((n,) uint8), or
     return None for OpenCV to decode it."""
+    if not _kernel_ready():
+        return None
     buf = data.tobytes() if isinstance(data, np.ndarray) else bytes(data)
     if not buf.startswith(_PNG_MAGIC):
         return None
