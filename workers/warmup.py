@@ -42,7 +42,7 @@ KERNEL_MODULES: dict[str, tuple[str, ...]] = {
     "render": ("shared.render.octree", "shared.render.raster", "shared.render._shading", "shared.render._neighbours",
                "shared.render._match", "shared.compress.tilenode"),  # tilenode: the tiles' octree-coded nodes
     "compress": ("shared.compress._rans", "shared.compress._quadtree", "shared.compress._octree"),
-    "merge": ("shared.merge._kernels",),
+    "merge": ("shared.merge._kernels", "shared.merge._fusion_kernels"),
 }
 DOMAINS = tuple(KERNEL_MODULES)
 

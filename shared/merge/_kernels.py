@@ -94,36 +94,6 @@ def grid_reduce(order, starts, xyz, normals, rgb, conf, view, out_xyz, out_n, ou
 
 
 @numba.njit(cache=True, nogil=True)
-def free_space_hits(q, K, dist, zmin, tol, bad):  # pragma: no cover
-    """Mark points that lie in front of a view's measured surface.
-
-    q : (N, 3) float64 points in that view's camera frame (mm); K (3, 3), dist (5,) OpenCV
-    k1 k2 p1 p2 k3; zmin (H, W) float32 nearest measured Z around each pixel (0: nothing measured);
-    tol (N,) mm. Sets ``bad[k]`` when point k projects into the image and ``Z < zmin - tol``.
-    """
-    H, W = zmin.shape
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    k1, k2, p1, p2, k3 = dist[0], dist[1], dist[2], dist[3], dist[4]
-    for k in range(q.shape[0]):
-        z = q[k, 2]
-        if z <= 1e-6:
-            continue
-        x = q[k, 0] / z
-        y = q[k, 1] / z
-        r2 = x * x + y * y
-        radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-        xd = x * radial + 2.0 * p1 * x * y + p2 * (r2 + 2.0 * x * x)
-        yd = y * radial + p1 * (r2 + 2.0 * y * y) + 2.0 * p2 * x * y
-        u = int(np.floor(fx * xd + cx + 0.5))
-        v = int(np.floor(fy * yd + cy + 0.5))
-        if u < 0 or u >= W or v < 0 or v >= H:
-            continue
-        zs = zmin[v, u]
-        if zs > 0.0 and z < zs - tol[k]:
-            bad[k] = True
-
-
-@numba.njit(cache=True, nogil=True)
 def track_correspondences(src, src_n, rel, tgt, tgt_n, nbr, idx, descend, dmax, cos_min, q_out, m_out,
                           r_out):  # pragma: no cover
     """Point-to-plane correspondences of moved source samples, found or followed on the target's

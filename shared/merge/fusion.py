@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import logging
 import os
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -32,7 +33,8 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.formats.ply import CLOUD_DTYPE, read_header, write_ply_records
-from shared.merge._kernels import free_space_hits, grid_reduce
+from shared.merge._fusion_kernels import cell_keys, free_space_violations
+from shared.merge._kernels import grid_reduce
 from shared.merge.views import ViewCloud
 
 log = logging.getLogger(__name__)
@@ -101,33 +103,40 @@ def sample_confidence(view: ViewCloud) -> np.ndarray:
     return np.clip(conf * cos * dist_term, 0.0, 1.0).astype(np.float32)
 
 
-def _free_space_mask(views: list[ViewCloud], poses: np.ndarray, pts: list[np.ndarray], params: FusionParams) -> list[np.ndarray]:
-    """Per view, True where a sample is NOT in another captured view's free space."""
-    keep = [np.ones(len(p), bool) for p in pts]
-    for k, vk in enumerate(views):
-        if vk.range_image is None or vk.K is None:
-            continue
-        z = np.nan_to_num(vk.range_image, nan=0.0).astype(np.float32)
-        # The nearest surface around each pixel: a point must be in front of all of them.
-        zmin = cv2.erode(z, np.ones((3, 3), np.uint8))
-        size_k = float(np.nanmedian(vk.size)) if len(vk) else 0.0
-        inv = np.linalg.inv(poses[k])
-        dist = np.zeros(5)
-        if vk.dist is not None:
-            dist[: min(5, len(vk.dist))] = vk.dist[:5]
-        for i, p in enumerate(pts):
-            if i == k or len(p) == 0:
+def _free_space_mask(views: list[ViewCloud], poses: np.ndarray, params: FusionParams, threads: int) -> list[np.ndarray]:
+    """Per view, True where a sample is NOT in another captured view's free space.
+
+    For each captured view k (its eroded range image built once), every other view's points are
+    tested in ``threads`` threads (the kernel releases the GIL), one view per task.
+    """
+    bad = [np.zeros(len(v), np.bool_) for v in views]
+    xyz = [np.ascontiguousarray(v.xyz, np.float64) for v in views]
+    size = [np.ascontiguousarray(v.size, np.float32) for v in views]
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        for k, vk in enumerate(views):
+            if vk.range_image is None or vk.K is None:
                 continue
-            q = p @ inv[:3, :3].T + inv[:3, 3]
-            tol = params.free_space_tolerance * np.maximum(views[i].size.astype(np.float64), size_k) + params.free_space_mm
-            bad = np.zeros(len(q), np.bool_)
-            free_space_hits(q, np.asarray(vk.K, np.float64), dist, zmin, tol, bad)
-            keep[i] &= ~bad
-    return keep
+            z = np.nan_to_num(vk.range_image, nan=0.0).astype(np.float32)
+            # The nearest surface around each pixel: a point must be in front of all of them.
+            zmin = cv2.erode(z, np.ones((3, 3), np.uint8))
+            size_k = float(np.nanmedian(vk.size)) if len(vk) else 0.0
+            inv = np.linalg.inv(poses[k])
+            K = np.asarray(vk.K, np.float64)
+            dist = np.zeros(5)
+            if vk.dist is not None:
+                dist[: min(5, len(vk.dist))] = vk.dist[:5]
+
+            def test(i: int, k: int = k, inv: np.ndarray = inv, K: np.ndarray = K, dist: np.ndarray = dist,
+                     zmin: np.ndarray = zmin, size_k: float = size_k) -> None:
+                free_space_violations(xyz[i], size[i], inv @ poses[i], K, dist, zmin, size_k,
+                                      params.free_space_tolerance, params.free_space_mm, bad[i])
+
+            list(pool.map(test, [i for i in range(len(views)) if i != k and len(views[i])]))
+    return [~b for b in bad]
 
 
 def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams | None = None,
-               free_space: bool = True) -> FusedCloud:
+               free_space: bool = True, threads: int = 2) -> FusedCloud:
     """Fuse registered views into one cloud (see the module docstring).
 
     Parameters
@@ -136,14 +145,15 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
     poses : (V, 4, 4) view -> scan set frame.
     params : see :class:`FusionParams`.
     free_space : remove free-space violations (needs captured views' range images).
+    threads : threads of the free-space test (its kernel releases the GIL).
     """
     params = params or FusionParams()
     if not views:
         raise InputError("views", "nothing to fuse")
-    pts = [v.xyz @ P[:3, :3].T + P[:3, 3] for v, P in zip(views, poses, strict=True)]
+    poses = np.asarray(poses, np.float64)
     conf = [sample_confidence(v) for v in views]
-    keep = _free_space_mask(views, poses, pts, params) if free_space else [np.ones(len(p), bool) for p in pts]
-    n_in = int(sum(len(p) for p in pts))
+    keep = _free_space_mask(views, poses, params, threads) if free_space else [np.ones(len(v), bool) for v in views]
+    n_in = int(sum(len(v) for v in views))
     n_free = int(sum(int((~k).sum()) for k in keep))
     keep = [k & (c >= params.min_confidence) for k, c in zip(keep, conf, strict=True)]
     n_oblique = 0
@@ -152,32 +162,42 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
             oblique = _view_cos(v) < params.min_view_cos
             n_oblique += int(np.count_nonzero(oblique & k))
             k &= ~oblique
-    xyz = np.concatenate([p[k] for p, k in zip(pts, keep, strict=True)])
-    normals = np.concatenate([(v.normals.astype(np.float64) @ P[:3, :3].T)[k] for v, P, k in zip(views, poses, keep, strict=True)])
-    rgb = np.concatenate([(v.rgb if v.rgb is not None else np.full((len(v), 3), 200, np.uint8))[k]
-                          for v, k in zip(views, keep, strict=True)]).astype(np.float64)
-    size = np.concatenate([v.size[k] for v, k in zip(views, keep, strict=True)]).astype(np.float64)
-    c = np.concatenate([cc[k] for cc, k in zip(conf, keep, strict=True)]).astype(np.float64)
-    view = np.concatenate([np.full(int(k.sum()), v.index, np.int64) for v, k in zip(views, keep, strict=True)])
-    if len(xyz) == 0:
+    # The kept samples of every view, moved into the set frame, in one set of arrays (normals,
+    # colours and confidences in their own dtypes: float64 copies of 10^7 samples cost gigabytes).
+    sel = [np.flatnonzero(k) for k in keep]
+    n = int(sum(len(s) for s in sel))
+    if n == 0:
         raise InputError("views", "no sample survived the confidence and free-space tests")
-    # Size classes: powers of two of the smallest size, each with its own grid.
+    xyz = np.empty((n, 3))
+    normals = np.empty((n, 3), np.float32)
+    rgb = np.empty((n, 3), np.uint8)
+    size = np.empty(n, np.float32)
+    c = np.empty(n, np.float32)
+    view = np.empty(n, np.uint16)
+    o = 0
+    for v, P, s, cc in zip(views, poses, sel, conf, strict=True):
+        part = slice(o, o + len(s))
+        xyz[part] = v.xyz[s] @ P[:3, :3].T + P[:3, 3]
+        normals[part] = v.normals[s] @ P[:3, :3].T.astype(np.float32)
+        rgb[part] = v.rgb[s] if v.rgb is not None else 200
+        size[part] = v.size[s]
+        c[part] = cc[s]
+        view[part] = v.index
+        o += len(s)
+    del sel, keep, conf
+    # Size classes: powers of two of the smallest size, each with its own grid; samples whose
+    # normals point different ways (the two sides of a thin part, a rim) never merge.
     s0 = max(float(np.min(size[size > 0])) if np.any(size > 0) else 1.0, 1e-6)
-    level = np.floor(np.log2(np.maximum(size, s0) / s0) + 0.5).astype(np.int64)
-    cell = params.cell_factor * s0 * np.exp2(level)
-    ijk = np.floor(xyz / cell[:, None]).astype(np.int64)
-    ijk -= ijk.min(axis=0)
-    dims = ijk.max(axis=0) + 1
-    level -= level.min()
-    # Samples whose normals point different ways (the two sides of a thin part, a rim) never merge.
-    axis = np.argmax(np.abs(normals), axis=1)
-    side = axis * 2 + (normals[np.arange(len(normals)), axis] > 0)
-    key = (((level * dims[0] + ijk[:, 0]) * dims[1] + ijk[:, 1]) * dims[2] + ijk[:, 2]) * 6 + side
+    key = np.empty(n, np.int64)
+    level = np.empty(n, np.int64)
+    cell_keys(xyz, size, normals, s0, params.cell_factor, key, level)
     # One sort gives the cells: runs of equal keys.
     order = np.argsort(key, kind="stable")
     sk = key[order]
+    del key
     bounds = np.flatnonzero(sk[1:] != sk[:-1]) + 1
-    starts = np.concatenate([[0], bounds, [len(sk)]]).astype(np.int64)
+    del sk
+    starts = np.concatenate([[0], bounds, [n]]).astype(np.int64)
     first = order[starts[:-1]]
     C = len(first)
     out_xyz = np.empty((C, 3))
@@ -187,11 +207,11 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
     out_view = np.empty(C, np.int64)
     out_count = np.empty(C, np.int64)
     grid_reduce(order, starts, xyz, normals, rgb, c, view, out_xyz, out_n, out_rgb, out_conf, out_view, out_count)
-    out_size = cell[first].astype(np.float32) / np.float32(params.cell_factor)
+    out_size = (np.float32(s0) * np.exp2(level[first]).astype(np.float32))
     stats = {"samples": n_in, "free_space_violations": n_free,
              "oblique": n_oblique,
-             "low_confidence": max(0, int(n_in - n_free - n_oblique - len(xyz))),
-             "merged_points": int(C), "size_classes": int(len(np.unique(level))),
+             "low_confidence": max(0, int(n_in - n_free - n_oblique - n)),
+             "merged_points": int(C), "size_classes": int(len(np.unique(level[first]))),
              "points_from_several_views": int(np.count_nonzero(out_count > 1))}
     log.info("fused %d samples into %d points (%d free-space violations)", n_in, C, n_free)
     return FusedCloud(xyz=out_xyz.astype(np.float32), rgb=out_rgb.astype(np.uint8), normals=out_n.astype(np.float32),
