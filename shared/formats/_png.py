@@ -32,23 +32,42 @@ _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _INERT = frozenset((b"tEXt", b"zTXt", b"iTXt", b"tIME", b"pHYs"))
 
 
-def _inflate(stream: bytes, size: int) -> bytes | np.ndarray | None:
-    """The zlib ``stream`` inflated to exactly ``size`` bytes (adler32 checked), or None."""
+_SCRATCH = threading.local()
+
+
+def _scratch(name: str, size: int) -> np.ndarray:
+    """This thread's reusable uint8 buffer ``name`` of at least ``size`` bytes: the compressed
+    stream and the filtered rows of a frame are read and written in memory that is already
+    mapped (a fresh 15 MB bytes object a frame cost a page fault per 4 KB)."""
+    buf = getattr(_SCRATCH, name, None)
+    if buf is None or buf.size < size:
+        buf = np.empty(size + size // 4, np.uint8)
+        setattr(_SCRATCH, name, buf)
+    return buf
+
+
+def _inflate(stream: np.ndarray, size: int) -> np.ndarray | None:
+    """The zlib ``stream`` ((n,) uint8) inflated to exactly ``size`` bytes (adler32 checked)
+    into this thread's scratch buffer, or None."""
+    out = _scratch("raw", size)[:size]
     try:
         import imagecodecs
 
         if imagecodecs.DEFLATE.available:
-            out = imagecodecs.deflate_decode(stream, out=size)
-            return out if len(out) == size else None
+            got = imagecodecs.deflate_decode(stream, out=out)
+            return out if len(got) == size else None
     except ImportError:  # pragma: no cover - imagecodecs is a dependency
         pass
     except Exception:  # noqa: BLE001 - any decoder failure: OpenCV decodes (and reports) it
         return None
     try:  # pragma: no cover - without libdeflate
-        out = zlib.decompress(stream, bufsize=size)
+        data = zlib.decompress(stream, bufsize=size)
     except zlib.error:  # pragma: no cover
         return None
-    return out if len(out) == size else None  # pragma: no cover
+    if len(data) != size:  # pragma: no cover
+        return None
+    out[:] = np.frombuffer(data, np.uint8)  # pragma: no cover
+    return out  # pragma: no cover
 
 
 @numba.njit(inline="always")
@@ -137,8 +156,8 @@ def _kernel_ready() -> bool:
         return False
     try:
         if not _READY.is_set():
-            # The signature of the real calls: bytes from the inflater (read-only), one row.
-            _unfilter(np.frombuffer(bytes(2), np.uint8), 1, 1, 1, np.empty((1, 1), np.uint8))
+            # The signature of the real calls (a scratch buffer), on one row of one pixel.
+            _unfilter(np.zeros(2, np.uint8), 1, 1, 1, np.empty((1, 1), np.uint8))
             _READY.set()
     finally:
         _LOADING.release()
@@ -150,32 +169,33 @@ def decode_png(data: np.ndarray) -> np.ndarray | None:
     return None for OpenCV to decode it."""
     if not _kernel_ready():
         return None
-    buf = data.tobytes() if isinstance(data, np.ndarray) else bytes(data)
-    if not buf.startswith(_PNG_MAGIC):
+    arr = np.frombuffer(data, np.uint8) if not isinstance(data, np.ndarray) else data.reshape(-1)
+    view = memoryview(arr)
+    if view[: len(_PNG_MAGIC)] != _PNG_MAGIC:
         return None
     pos = len(_PNG_MAGIC)
-    end = len(buf)
+    end = len(view)
     header: tuple[int, ...] | None = None
-    idat: list[bytes] = []
+    idat: list[tuple[int, int]] = []  # (offset, length) of each IDAT chunk's data
     done = False
     while pos + 12 <= end:
-        (length,) = struct.unpack_from(">I", buf, pos)
-        kind = buf[pos + 4 : pos + 8]
+        (length,) = struct.unpack_from(">I", view, pos)
+        kind = bytes(view[pos + 4 : pos + 8])
         if pos + 12 + length > end:
             return None
-        body = buf[pos + 8 : pos + 8 + length]
-        (crc,) = struct.unpack_from(">I", buf, pos + 8 + length)
-        if zlib.crc32(body, zlib.crc32(kind)) != crc:
+        (crc,) = struct.unpack_from(">I", view, pos + 8 + length)
+        if zlib.crc32(view[pos + 4 : pos + 8 + length]) != crc:  # type and data
             return None
+        body = pos + 8
         pos += 12 + length
         if kind == b"IHDR":
             if header is not None or length != 13:
                 return None
-            header = struct.unpack(">IIBBBBB", body)
+            header = struct.unpack_from(">IIBBBBB", view, body)
         elif kind == b"IDAT":
             if header is None:
                 return None
-            idat.append(body)
+            idat.append((body, length))
         elif kind == b"IEND":
             done = True
             break
@@ -190,11 +210,17 @@ def decode_png(data: np.ndarray) -> np.ndarray | None:
     channels = 3 if colour == 2 else 1
     bpp = channels * depth // 8
     rb = width * bpp
-    raw = _inflate(b"".join(idat), height * (rb + 1))
+    total = sum(n for _, n in idat)
+    stream = _scratch("stream", total)[:total]
+    k = 0
+    for off, n in idat:
+        stream[k : k + n] = arr[off : off + n]
+        k += n
+    raw = _inflate(stream, height * (rb + 1))
     if raw is None:
         return None
     rows = np.empty((height, rb), np.uint8)
-    if not _unfilter(np.frombuffer(raw, np.uint8), height, rb, bpp, rows):
+    if not _unfilter(raw, height, rb, bpp, rows):
         return None
     if depth == 16:
         img = rows.view(">u2").astype(np.uint16)  # big-endian samples to native order
