@@ -15,9 +15,15 @@ at 3 MP and 15 MP, and the first run of the CLI stages against their second (the
    each in a child process: wall time, CPU time and peak memory (the child's own ru_maxrss).
    Targets: 3 MP <= 2 s, 15 MP <= 5 s, peak < 3 GB. The captures are rendered once by the
    virtual rig and kept in the temporary folder for later runs.
-4. ``scan``, ``tiles`` and ``preview`` of the 2048x1536 capture on an empty numba cache (a fresh
+4. Triangulation of the 2048x1536 capture's decode (in-process, warm): points per CPU-second of
+   the process (all threads), the figure that does not depend on what else loads the cores.
+   Target: >= 10 M points per CPU-second.
+5. ``scan``, ``tiles`` and ``preview`` of the 2048x1536 capture on an empty numba cache (a fresh
    ``NUMBA_CACHE_DIR``: compiles), and on one that ``python -m workers.warmup`` filled (what
    ``make setup`` does), first and second run. Target: first run after set-up <= 1.3x the second.
+
+Sections can be run alone: ``python -m tests.bench.bench_scan [decode] [real] [triangulate] [sizes]
+[first-run]`` (all without arguments).
 """
 
 from __future__ import annotations
@@ -63,16 +69,19 @@ def bench_decode_throughput() -> None:
     # The machine is shared and its speed drifts over seconds: the two decoders alternate in
     # rounds (OpenCV once, ours best of 5), and each round's ratio compares neighbours in time.
     rounds = []
+    cpu_cv, cpu_ours = [], []
     for _ in range(3):
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         ok, _ = gp.decode([frames[:40], frames[:40]], None, [black, black], [white, white],
                           cv2.structured_light.DECODE_3D_UNDERWORLD)
         t_cv = (time.perf_counter() - t0) / 2  # two cameras
+        cpu_cv.append((time.process_time() - c0) / 2)
         best = np.inf
         for _ in range(5):
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             decode_stack(white, black, cols, rows, (1024, 768))
             best = min(best, time.perf_counter() - t0)
+            cpu_ours.append(time.process_time() - c0)
         rounds.append((best, t_cv))
     ours_s, cv_s = (float(np.median([r[i] for r in rounds])) for i in (0, 1))
     ratios = sorted(cv / ours for ours, cv in rounds)
@@ -82,6 +91,9 @@ def bench_decode_throughput() -> None:
           f"each round, ok={ok})")
     print(f"  ratio  {ratios[1]:.1f}x median of rounds ({', '.join(f'{r:.1f}' for r in ratios)})  (target >= 50x; "
           f"load average {os.getloadavg()[0]:.1f})")
+    c_ours, c_cv = float(np.median(cpu_ours)), float(np.median(cpu_cv))
+    print(f"  CPU seconds a decode (all threads, median): ours {c_ours:.4f} s, OpenCV {c_cv:.3f} s per camera, "
+          f"ratio {c_cv / c_ours:.1f}x")  # fmt: skip
     # What differs between machines of one kind: numba's threading layer (TBB when libtbb is
     # installed, else OpenMP, else its own workqueue) and the threads kernel_threads() grants.
     print(f"  numba threading layer {numba.threading_layer()}, kernel threads now {kernel_threads()} of "
@@ -112,6 +124,30 @@ def bench_real_captures() -> None:
         print(f"  capture_{k} {lit.sum():8d}  {100 * ours:6.1f} %  {100 * theirs:6.1f} %")
     if ours_all:
         print(f"  worst: ours {100 * min(ours_all):.1f} %, OpenCV {100 * min(cv_all):.1f} %  (target: ours >= 90 %)")
+
+
+def bench_triangulation() -> None:
+    """Triangulation of the 2048x1536 capture's decode, in-process and warm: wall and CPU
+    seconds (process, all threads) of the best of five, points per CPU-second."""
+    from shared.formats.capture import load_capture
+    from shared.formats.rig import load_rig
+    from shared.scan.triangulate import rig_tables, triangulate
+
+    capture = _capture((2048, 1536))
+    decoded = decode_capture(load_capture(capture))
+    rig = load_rig(capture / "rig.json")
+    tables = rig_tables(rig)
+    triangulate(decoded, rig, tables=tables)  # kernels loaded, pages touched once
+    runs = []
+    for _ in range(5):
+        t0, c0 = time.perf_counter(), time.process_time()
+        tri = triangulate(decoded, rig, tables=tables)
+        runs.append((time.process_time() - c0, time.perf_counter() - t0))
+    cpu, wall = min(runs)
+    n = len(tri)
+    print(f"triangulation, 2048x1536 capture ({n / 1e6:.2f} M points), best of 5: wall {wall:.3f} s, CPU {cpu:.3f} s "
+          f"-> {n / cpu / 1e6:.1f} M points per CPU-second (target >= 10), {n / wall / 1e6:.1f} M points/s wall; "
+          f"load average {os.getloadavg()[0]:.1f}")  # fmt: skip
 
 
 def _capture(size: tuple[int, int]) -> Path:
@@ -204,14 +240,23 @@ def bench_first_run() -> None:
         shutil.rmtree(work, ignore_errors=True)
 
 
-def main() -> None:
-    if (REAL / "capture_0").is_dir():
-        bench_decode_throughput()
-        bench_real_captures()
-    else:
+def main(argv: list[str] | None = None) -> None:
+    sections = {"decode", "real", "triangulate", "sizes", "first-run"}
+    # Other words (make bench's own arguments, when run from tests.bench.run) are not sections.
+    wanted = (set(sys.argv[1:] if argv is None else argv) & sections) or sections
+    if {"decode", "real"} & wanted and not (REAL / "capture_0").is_dir():
         print(f"real captures not found at {REAL}: skipping the decode and real-capture sections")
-    bench_scan_sizes()
-    bench_first_run()
+        wanted -= {"decode", "real"}
+    if "decode" in wanted:
+        bench_decode_throughput()
+    if "real" in wanted:
+        bench_real_captures()
+    if "triangulate" in wanted:
+        bench_triangulation()
+    if "sizes" in wanted:
+        bench_scan_sizes()
+    if "first-run" in wanted:
+        bench_first_run()
 
 
 if __name__ == "__main__":
