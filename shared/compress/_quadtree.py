@@ -71,7 +71,6 @@ L_RES = 8
 
 #: Parameters of the models 0..3 (constant, plane, bilinear, quadratic) and their estimated bits.
 K_OF = np.array([1, 3, 4, 6], np.int64)
-IDX6 = np.arange(6)
 WS_SIZE = 96
 MODEL_BITS = np.array([8.0, 24.0, 32.0, 48.0])
 TWO_PI_E = 2.0 * math.pi * math.e
@@ -103,37 +102,44 @@ def model_eval(m, c, X, Y):
 
 
 @njit(cache=True, nogil=True)
-def _solve(M, r, idx, k, a, L, y):
-    """Least squares by Cholesky on the k x k sub-system ``idx``; False if singular. ``L``
-    (6, 6) and ``y`` (6,) are scratch (no allocation per block)."""
+def _cholesky(M, r, kmax, L, y):
+    """Cholesky factor ``L`` of the leading kmax x kmax block of the normal equations ``M`` (a
+    small ridge added) and the forward solve ``L y = r``; returns how many leading pivots are
+    sound. The models are nested (1, X, Y, XY, XX, YY), so the first k rows of L and y are those
+    of the k-parameter model: its residual is ``dd - sum(y[:k] ** 2)`` and only the chosen model
+    needs a back substitution (:func:`_back`). ``L`` (6, 6) and ``y`` (6,) are scratch."""
     tr = 0.0
-    for i in range(k):
-        tr += M[idx[i], idx[i]]
+    for i in range(kmax):
+        tr += M[i, i]
     ridge = 1e-12 * tr + 1e-300
-    for i in range(k):
+    for i in range(kmax):
         for j in range(i + 1):
-            s = M[idx[i], idx[j]]
+            s = M[i, j]
             if i == j:
                 s += ridge
             for m in range(j):
                 s -= L[i, m] * L[j, m]
             if i == j:
-                if s <= 1e-9 * (M[idx[i], idx[i]] + 1e-300):
-                    return False
+                if s <= 1e-9 * (M[i, i] + 1e-300):
+                    return i
                 L[i, i] = math.sqrt(s)
             else:
                 L[i, j] = s / L[j, j]
-    for i in range(k):
-        s = r[idx[i]]
+        s = r[i]
         for m in range(i):
             s -= L[i, m] * y[m]
         y[i] = s / L[i, i]
+    return kmax
+
+
+@njit(cache=True, nogil=True)
+def _back(L, y, k, a):
+    """The coefficients ``a`` (k,) of the k-parameter model from :func:`_cholesky`'s factors."""
     for i in range(k - 1, -1, -1):
         s = y[i]
         for m in range(i + 1, k):
             s -= L[m, i] * a[m]
         a[i] = s / L[i, i]
-    return True
 
 
 @njit(cache=True, nogil=True, fastmath=True)  # encoder only: the decoder never fits
@@ -236,31 +242,32 @@ def fit_block(t, valid, y0, x0, B, coef, ws):
     r[3] = r3
     r[4] = r4
     r[5] = r5
-    idx = IDX6
     best_m = 0
     best_cost = 1e300
     best_a = ws[42:48]
     best_a[:] = 0.0
-    a = ws[48:54]
     L = ws[54:90].reshape((6, 6))
     yv = ws[90:96]
-    for m in range(2 if B <= MINB else 4):  # a 4x4 block: constant or plane (more never paid here)
+    mmax = 1 if B <= MINB else 3  # a 4x4 block: constant or plane (more never paid there)
+    while mmax > 0 and n < 2 * K_OF[mmax]:
+        mmax -= 1
+    sound = _cholesky(M, r, K_OF[mmax], L, yv)
+    yy = 0.0
+    done = 0
+    for m in range(mmax + 1):
         k = K_OF[m]
-        if m > 0 and n < 2 * k:
+        if k > sound:
             break
-        if not _solve(M, r, idx, k, a, L, yv):
-            continue
-        sse = dd
-        for i in range(k):
-            sse -= a[i] * r[i]
+        while done < k:
+            yy += yv[done] * yv[done]
+            done += 1
         dof = n - k if n > k else 1
-        s2 = max(sse, 0.0) / dof / (FINE * FINE)
+        s2 = max(dd - yy, 0.0) / dof / (FINE * FINE)
         cost = 0.5 * n * math.log2(1.0 + TWO_PI_E * s2) + MODEL_BITS[m]
         if cost < best_cost:
             best_cost = cost
             best_m = m
-            for i in range(6):
-                best_a[i] = a[i] if i < k else 0.0
+    _back(L, yv, K_OF[best_m], best_a)
     coef[0] = np.int64(round(tref + best_a[0]))
     coef[1] = np.int64(round(best_a[1] * inv * (1 << A_SHIFT)))
     coef[2] = np.int64(round(best_a[2] * inv * (1 << A_SHIFT)))
@@ -402,16 +409,19 @@ def _encode_events(t, valid, lossless, tab, val, nb):
                 pB = B
     if n < 0:
         return -1
-    # 3. residuals in raster order, context from the three upper neighbours
-    pf = _fill_prediction(H, W, leaves, lcoef, nleaf)
+    # 3. residuals in raster order, context from the three upper neighbours; the predictions
+    # one row at a time, exactly as the decoder makes them (no band-sized array)
+    cells = _leaf_cells(H, W, leaves, nleaf)
+    pf = np.zeros(W, np.int64)
     up = np.zeros(W + 2, np.uint64)  # zigzag residuals of the row above, one pad either side
     cur = np.zeros(W + 2, np.uint64)
     for y in range(H):
+        _row_prediction(y, W, cells, leaves, lcoef, pf)
         for x in range(W):
             if not valid[y, x]:
                 cur[x + 1] = up[x + 1]
                 continue
-            p = pf[y, x]
+            p = pf[x]
             if lossless:
                 r = (t[y, x] >> F_SHIFT) - ((p + (FINE >> 1)) >> F_SHIFT)
             else:
@@ -425,38 +435,21 @@ def _encode_events(t, valid, lossless, tab, val, nb):
 
 
 @njit(cache=True, nogil=True)
-def _fill_prediction(H, W, leaves, lcoef, nleaf):
-    """Every leaf's prediction (fine units) on its pixels: (H, W) int64. The same integers as
-    :func:`model_eval`, with the linear and quadratic sums stepped along each row (adds only)."""
-    pf = np.zeros((H, W), np.int64)
-    for i in range(nleaf):
-        x0 = leaves[i, 0]
-        y0 = leaves[i, 1]
-        B = leaves[i, 2]
-        m = leaves[i, 3]
-        c0, c1, c2, c3, c4, c5 = lcoef[i, 0], lcoef[i, 1], lcoef[i, 2], lcoef[i, 3], lcoef[i, 4], lcoef[i, 5]
-        if m < 2:
-            c3 = 0
-        if m < 3:
-            c4 = 0
-            c5 = 0
-        if m < 1:
-            c1 = 0
-            c2 = 0
-        X0 = 1 - B
-        x1 = min(x0 + B, W)
-        for y in range(y0, min(y0 + B, H)):
-            Y = 2 * (y - y0) - (B - 1)
-            lin = c1 * X0 + c2 * Y  # c1 X + c2 Y, X stepping by 2
-            quad = c3 * X0 * Y + c4 * X0 * X0 + c5 * Y * Y
-            dq = c3 * 2 * Y + c4 * (4 * X0 + 4)  # quad(X + 2) - quad(X)
-            row = pf[y]
-            for x in range(x0, x1):
-                row[x] = c0 + (lin >> A_SHIFT) + (quad >> Q_SHIFT)
-                lin += 2 * c1
-                quad += dq
-                dq += 8 * c4
-    return pf
+def finite_abs_max(z):
+    """Largest ``|z|`` over the valid (non-NaN) samples of ``z`` (H, W) float32, as a float, and
+    their count; (0.0, 0) when every sample is a hole. One pass, no temporaries."""
+    H, W = z.shape
+    m = np.float32(0.0)
+    n = 0
+    for y in range(H):
+        for x in range(W):
+            v = z[y, x]
+            if v == v:
+                a = abs(v)
+                if a > m:
+                    m = a
+                n += 1
+    return float(m), n
 
 
 @njit(cache=True, nogil=True)
@@ -482,7 +475,8 @@ def encode_band(t, valid, lossless):
     """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool.
     Returns (packed tables uint8, rANS words uint16)."""
     H, W = t.shape
-    cap = 2 * H * W + 64 * (H + 1) + 4096
+    # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
+    cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
     while True:
         tab = np.empty(cap, np.int8)
         val = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
@@ -658,8 +652,9 @@ def _leaf_cells(H, W, leaves, nleaf):
 
 @njit(cache=True, nogil=True, inline="always")
 def _row_prediction(y, W, cells, leaves, lcoef, row):
-    """Every leaf's prediction along row y into ``row`` (W,) int64: the integers of
-    :func:`_fill_prediction`, one row at a time so that they stay in cache."""
+    """Every leaf's prediction (fine units) along row y into ``row`` (W,) int64: the integers of
+    :func:`model_eval`, with the linear and quadratic sums stepped along the row (adds only).
+    Encoder and decoder both predict through it, one row at a time (the row stays in cache)."""
     cy = y // MINB
     x = 0
     while x < W:

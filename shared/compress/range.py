@@ -74,8 +74,8 @@ class _Plan:
 def _plan(z: np.ndarray, quantum: float | None, max_error: float | None) -> _Plan:
     if (quantum is None) == (max_error is None):
         raise InputError("--quantum/--max-error", "give exactly one of a quantum and an error bound")
-    finite = np.abs(z[~np.isnan(z)])
-    zmax = float(finite.max()) if finite.size else 1.0
+    zmax, nvalid = qt.finite_abs_max(z)
+    zmax = zmax if nvalid else 1.0
     ulp = float(np.spacing(np.float32(max(zmax, 1e-30))))
     if quantum is not None:
         q = float(quantum)
