@@ -35,6 +35,7 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -75,6 +76,7 @@ class RegistrationParams:
     first_tolerance : the first pass's tolerance, degrees and mm (the final pass refines further).
     refresh : the nearest targets come from the k-d tree every this many iterations (followed on the
         targets' neighbour graph in between).
+    threads : threads of the correspondence searches (results do not depend on it).
     normal_agreement : least cosine between the normals of corresponding points.
     seed : seed of the RANSAC of the global registration.
     """
@@ -96,6 +98,7 @@ class RegistrationParams:
     final_stride: int = 2
     first_tolerance: float = 5e-3
     refresh: int = 10
+    threads: int = 2
     normal_agreement: float = 0.5
     seed: int = 0
 
@@ -348,8 +351,20 @@ def refine_poses(S: list[Samples], poses: np.ndarray, edges: Sequence[tuple[int,
     ones on the targets' neighbour graph (the poses move by a fraction of a sample). It stops when
     no view's samples move by more than ``tolerance_deg`` / ``tolerance_mm`` (RMS displacement),
     or when the steps stop shrinking below ``stall_factor`` times that (the correspondences
-    alternate between neighbouring samples). Returns the poses and the last fit of every edge.
+    alternate between neighbouring samples). The searches of the edges run in ``params.threads``
+    threads; the result does not depend on them. Returns the poses and the last fit of every edge.
     """
+    # Threads of this call only (a pool kept across calls would not survive a worker's fork).
+    pool = ThreadPoolExecutor(max_workers=max(1, params.threads), thread_name_prefix="registration")
+    try:
+        return _refine_loop(S, poses, edges, voxel, params, fixed, start_dist, stride, pool)
+    finally:
+        pool.shutdown()
+
+
+def _refine_loop(S: list[Samples], poses: np.ndarray, edges: Sequence[tuple[int, int]], voxel: float,
+                 params: RegistrationParams, fixed: int, start_dist: float | None, stride: int,
+                 pool: ThreadPoolExecutor) -> tuple[np.ndarray, dict[tuple[int, int], _EdgeFit]]:
     poses = poses.copy()
     d_final = 0.5 * voxel
     dmax = max(start_dist or 4.0 * voxel, d_final)
@@ -360,8 +375,8 @@ def refine_poses(S: list[Samples], poses: np.ndarray, edges: Sequence[tuple[int,
     src_n = {v: np.ascontiguousarray(S[v].normals[::stride]) for v in used}
     radius = {v: float(np.sqrt(np.mean(np.sum((S[v].xyz - S[v].xyz.mean(axis=0)) ** 2, axis=1)))) for v in used}
     centre = {v: S[v].xyz.mean(axis=0) for v in used}
-    nmax = max((len(x) for x in src.values()), default=0)
-    q_out, m_out, r_out = np.empty((nmax, 3)), np.empty((nmax, 3)), np.empty(nmax)
+    dirs = [d for i, j in edges for d in ((i, j), (j, i))]
+    list(pool.map(lambda v: S[v].neighbours(), used))  # built once, before the threads share them
     idx: dict[tuple[int, int], np.ndarray] = {}
     fits: dict[tuple[int, int], _EdgeFit] = {}
     exact = True
@@ -373,29 +388,40 @@ def refine_poses(S: list[Samples], poses: np.ndarray, edges: Sequence[tuple[int,
         H = np.zeros((6 * len(movable), 6 * len(movable)))
         g = np.zeros(6 * len(movable))
         fits = {}
-        for i, j in edges:
+        def direction(ab: tuple[int, int], dmax: float = dmax, exact: bool = exact) -> tuple[Any, Any, tuple]:
+            # One direction of one edge: its normal equations (set frame) and fit statistics.
+            a, b = ab
+            rel = np.ascontiguousarray(np.linalg.solve(poses[b], poses[a]))  # view a -> view b
+            if exact:
+                q = _transform(rel, src[a])
+                _, nearest = S[b].tree.query(q, k=1, distance_upper_bound=dmax, workers=_workers(len(q)))
+                idx[ab] = np.where(nearest < len(S[b].target_xyz), nearest, -1).astype(np.int64)
+            n_src = len(src[a])
+            q_out, m_out, r_out = np.empty((n_src, 3)), np.empty((n_src, 3)), np.empty(n_src)
+            c = track_correspondences(src[a], src_n[a], rel, S[b].target_xyz, S[b].target_normals, S[b].neighbours(),
+                                      idx[ab], not exact, dmax, params.normal_agreement, q_out, m_out, r_out)
+            if c < 12:
+                return None, None, (0.0, np.inf, 0.0, 0)
+            r = r_out[:c]
+            Rb, tb = poses[b][:3, :3], poses[b][:3, 3]
+            p = q_out[:c] @ Rb.T + tb
+            m = m_out[:c] @ Rb.T
+            sigma = 1.4826 * float(np.median(np.abs(r))) + 1e-9
+            cut = float(np.clip(4.7 * sigma, 0.25 * voxel, dmax))
+            w = _tukey(r, cut)
+            Hk, gk, ek = point_to_plane_system(p, m, r, w)
+            sw = float(w.sum())
+            return Hk, gk, (c / n_src, float(np.sqrt(ek / max(sw, 1e-12))), float(np.mean(w > 0)), c)
+
+        # The directions run in threads (the k-d tree and the kernels release the GIL); the sums
+        # are taken in edge order, so the result does not depend on the threads.
+        results = list(pool.map(direction, dirs))
+        for e, (i, j) in enumerate(edges):
             stats = []
-            for a, b in ((i, j), (j, i)):
-                rel = np.ascontiguousarray(np.linalg.solve(poses[b], poses[a]))  # view a -> view b
-                if exact:
-                    q = _transform(rel, src[a])
-                    _, nearest = S[b].tree.query(q, k=1, distance_upper_bound=dmax, workers=_workers(len(q)))
-                    idx[(a, b)] = np.where(nearest < len(S[b].target_xyz), nearest, -1).astype(np.int64)
-                c = track_correspondences(src[a], src_n[a], rel, S[b].target_xyz, S[b].target_normals,
-                                          S[b].neighbours(), idx[(a, b)], not exact, dmax, params.normal_agreement,
-                                          q_out, m_out, r_out)
-                n_src = len(src[a])
-                if c < 12:
-                    stats.append((0.0, np.inf, 0.0, 0))
+            for (a, b), (Hk, gk, st) in zip(dirs[2 * e:2 * e + 2], results[2 * e:2 * e + 2], strict=True):
+                stats.append(st)
+                if Hk is None:
                     continue
-                r = r_out[:c].copy()
-                Rb, tb = poses[b][:3, :3], poses[b][:3, 3]
-                p = q_out[:c] @ Rb.T + tb
-                m = m_out[:c] @ Rb.T
-                sigma = 1.4826 * float(np.median(np.abs(r))) + 1e-9
-                cut = float(np.clip(4.7 * sigma, 0.25 * voxel, dmax))
-                w = _tukey(r, cut)
-                Hk, gk, ek = point_to_plane_system(p, m, r, w)
                 # J_a = [p x m, m] for the source view a, -J_a for the target view b.
                 for u, su in ((a, 1.0), (b, -1.0)):
                     if u not in col:
@@ -406,8 +432,6 @@ def refine_poses(S: list[Samples], poses: np.ndarray, edges: Sequence[tuple[int,
                         if v2 in col:
                             kv = 6 * col[v2]
                             H[ku:ku + 6, kv:kv + 6] += su * sv * Hk
-                sw = float(w.sum())
-                stats.append((c / n_src, float(np.sqrt(ek / max(sw, 1e-12))), float(np.mean(w > 0)), c))
             fits[(i, j)] = _EdgeFit(overlap=float(np.mean([s[0] for s in stats])), rms=float(np.mean([s[1] for s in stats])),
                                     inliers=float(np.mean([s[2] for s in stats])), n=int(sum(s[3] for s in stats)))
         if not movable:
@@ -583,17 +607,20 @@ def _all_overlap_edges(S: list[Samples], poses: np.ndarray, voxel: float, params
     that bend a pose graph). The shares are estimated on about 1000 samples a view (to a percent
     or two: enough to rank and prune pairs), after a 200-sample test that skips the pairs that
     clearly do not overlap."""
-    found: dict[tuple[int, int], float] = {}
     dist, cos_min = 2.0 * voxel, params.normal_agreement
-    for x, i in enumerate(views):
-        for j in views[x + 1:]:
-            if min(_overlap_share(S, poses, i, j, dist, cos_min, 200),
-                   _overlap_share(S, poses, j, i, dist, cos_min, 200)) < 0.5 * params.min_overlap:
-                continue
-            ov = min(_overlap_share(S, poses, i, j, dist, cos_min, 1000),
-                     _overlap_share(S, poses, j, i, dist, cos_min, 1000))
-            if ov >= params.min_overlap:
-                found[(i, j)] = ov
+
+    def share(pair: tuple[int, int]) -> float:
+        i, j = pair
+        if min(_overlap_share(S, poses, i, j, dist, cos_min, 200),
+               _overlap_share(S, poses, j, i, dist, cos_min, 200)) < 0.5 * params.min_overlap:
+            return 0.0
+        return min(_overlap_share(S, poses, i, j, dist, cos_min, 1000),
+                   _overlap_share(S, poses, j, i, dist, cos_min, 1000))
+
+    pairs = [(i, j) for x, i in enumerate(views) for j in views[x + 1:]]
+    with ThreadPoolExecutor(max_workers=max(1, params.threads), thread_name_prefix="registration") as pool:
+        shares = list(pool.map(share, pairs))
+    found = {e: ov for e, ov in zip(pairs, shares, strict=True) if ov >= params.min_overlap}
     keep: set[tuple[int, int]] = set()
     for v in views:
         mine = sorted((e for e in found if v in e), key=lambda e: -found[e])
