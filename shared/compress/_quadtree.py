@@ -493,11 +493,37 @@ def encode_band(t, valid, lossless):
 
 @njit(cache=True, nogil=True)
 def _count(ii, y0, x0, B, H, W):
-    y1 = min(y0 + B, H)
-    x1 = min(x0 + B, W)
+    """Valid MINB x MINB cells in block (y0, x0, B) (clipped to H x W) from the cell-level
+    integral image ``ii`` (see :func:`_cell_integral`); blocks are aligned to cells."""
     if y0 >= H or x0 >= W:
         return 0
-    return ii[y1, x1] - ii[y0, x1] - ii[y1, x0] + ii[y0, x0]
+    c0y = y0 // MINB
+    c0x = x0 // MINB
+    c1y = (min(y0 + B, H) + MINB - 1) // MINB
+    c1x = (min(x0 + B, W) + MINB - 1) // MINB
+    return ii[c1y, c1x] - ii[c0y, c1x] - ii[c1y, c0x] + ii[c0y, c0x]
+
+
+@njit(cache=True, nogil=True)
+def _cell_integral(valid):
+    """Integral image over MINB x MINB cells of "the cell holds a valid sample":
+    (ceil(H / MINB) + 1, ceil(W / MINB) + 1) int32 (a band's mask is 16x larger)."""
+    H, W = valid.shape
+    ch = (H + MINB - 1) // MINB
+    cw = (W + MINB - 1) // MINB
+    occ = np.zeros(cw, np.int32)
+    ii = np.zeros((ch + 1, cw + 1), np.int32)
+    for cy in range(ch):
+        occ[:] = 0
+        for y in range(cy * MINB, min(cy * MINB + MINB, H)):
+            for x in range(W):
+                if valid[y, x]:
+                    occ[x // MINB] = 1
+        acc = 0
+        for cx in range(cw):
+            acc += occ[cx]
+            ii[cy + 1, cx + 1] = ii[cy, cx + 1] + acc
+    return ii
 
 
 @njit(cache=True, nogil=True)
@@ -555,12 +581,7 @@ def _decode_mask(xa, xb, pos, words, nw, sym, fb, valid):
 @njit(cache=True, nogil=True)
 def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef):
     H, W = valid.shape
-    ii = np.zeros((H + 1, W + 1), np.int32)
-    for y in range(H):
-        acc = 0
-        for x in range(W):
-            acc += valid[y, x]
-            ii[y + 1, x + 1] = ii[y, x + 1] + acc
+    ii = _cell_integral(valid)
     nleaf = 0
     stack = np.empty((64, 4), np.int64)
     pm = 0
