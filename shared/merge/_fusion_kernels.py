@@ -95,3 +95,35 @@ def cell_keys(xyz, size, normals, s0, cell_factor, keys, level):  # pragma: no c
                 ax = a
         side = 2 * ax + (1 if normals[p, ax] > 0 else 0)
         keys[p] = ((((level[p] - lmin) * d0 + i) * d1 + j) * d2 + k) * 6 + side
+
+
+@numba.njit(cache=True, nogil=True)
+def ray_terms(xyz, normals, dist, cos):  # pragma: no cover
+    """Distance from the sensor and cosine of the viewing angle of every sample of a view.
+
+    xyz : (N, 3) float64 mm in the view's own frame (the sensor at the origin); normals : (N, 3)
+    float32 unit, facing the sensor. Writes dist (N,) float64 mm and cos (N,) float64
+    ``-n . x / |x|`` (1: seen head-on).
+    """
+    for i in range(xyz.shape[0]):
+        x, y, z = xyz[i, 0], xyz[i, 1], xyz[i, 2]
+        d = np.sqrt(x * x + y * y + z * z)
+        dist[i] = d
+        cos[i] = -(normals[i, 0] * x + normals[i, 1] * y + normals[i, 2] * z) / max(d, 1e-9)
+
+
+@numba.njit(cache=True, nogil=True)
+def gather_moved(xyz, normals, sel, P, out_xyz, out_n, offset):  # pragma: no cover
+    """Copy the selected samples of a view, moved by a rigid motion, into the fused arrays.
+
+    xyz : (N, 3) float64 mm; normals : (N, 3) float32; sel : (M,) int64 indices of the samples
+    kept; P : (4, 4) float64 view -> set frame. Writes rows ``offset .. offset + M`` of out_xyz
+    (float64) and out_n (float32): ``R x + T`` and ``R n``. One pass, no (M, 3) temporaries
+    (numpy's ``(M, 3) @ (3, 3)`` measured 4x slower than this on 750 000 samples).
+    """
+    for m in range(sel.shape[0]):
+        i = sel[m]
+        o = offset + m
+        for a in range(3):
+            out_xyz[o, a] = P[a, 0] * xyz[i, 0] + P[a, 1] * xyz[i, 1] + P[a, 2] * xyz[i, 2] + P[a, 3]
+            out_n[o, a] = P[a, 0] * normals[i, 0] + P[a, 1] * normals[i, 1] + P[a, 2] * normals[i, 2]

@@ -33,7 +33,7 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.formats.ply import CLOUD_DTYPE, read_header, write_ply_records
-from shared.merge._fusion_kernels import cell_keys, free_space_violations
+from shared.merge._fusion_kernels import cell_keys, free_space_violations, gather_moved, ray_terms
 from shared.merge._kernels import grid_reduce
 from shared.merge.views import ViewCloud
 
@@ -86,21 +86,24 @@ class FusedCloud:
         return int(self.xyz.shape[0])
 
 
-def _view_cos(view: ViewCloud) -> np.ndarray:
-    d = np.linalg.norm(view.xyz, axis=1)
-    return -np.einsum("ij,ij->i", view.normals.astype(np.float64), view.xyz) / np.maximum(d, 1e-9)
+def _ray_terms(view: ViewCloud) -> tuple[np.ndarray, np.ndarray]:
+    """(N,) float64 distance from the sensor (mm) and viewing-angle cosine of every sample."""
+    d = np.empty(len(view))
+    cos = np.empty(len(view))
+    ray_terms(np.ascontiguousarray(view.xyz, np.float64), np.ascontiguousarray(view.normals, np.float32), d, cos)
+    return d, cos
 
 
-def sample_confidence(view: ViewCloud) -> np.ndarray:
-    """(N,) float32 confidence in [0, 1] of each sample of a view (see the module docstring)."""
+def sample_confidence(view: ViewCloud, terms: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """(N,) float32 confidence in [0, 1] of each sample of a view (see the module docstring);
+    ``terms`` are the view's :func:`_ray_terms` when already computed."""
     conf = view.confidence.astype(np.float64)
     if view.K is None:
         return np.clip(conf, 0.0, 1.0).astype(np.float32)
-    d = np.linalg.norm(view.xyz, axis=1)
-    cos = np.clip(-np.einsum("ij,ij->i", view.normals.astype(np.float64), view.xyz) / np.maximum(d, 1e-9), 0.0, 1.0)
+    d, cos = terms if terms is not None else _ray_terms(view)
     d_ref = float(np.median(d))
     dist_term = np.clip((d_ref / np.maximum(d, 1e-9)) ** 2, 0.0, 1.5)
-    return np.clip(conf * cos * dist_term, 0.0, 1.0).astype(np.float32)
+    return np.clip(conf * np.clip(cos, 0.0, 1.0) * dist_term, 0.0, 1.0).astype(np.float32)
 
 
 def _free_space_mask(views: list[ViewCloud], poses: np.ndarray, params: FusionParams, threads: int) -> list[np.ndarray]:
@@ -151,15 +154,18 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
     if not views:
         raise InputError("views", "nothing to fuse")
     poses = np.asarray(poses, np.float64)
-    conf = [sample_confidence(v) for v in views]
+    conf, grazing = [], []
+    for v in views:
+        terms = _ray_terms(v) if v.K is not None else None
+        conf.append(sample_confidence(v, terms))
+        grazing.append(None if terms is None else terms[1] < params.min_view_cos)
     keep = _free_space_mask(views, poses, params, threads) if free_space else [np.ones(len(v), bool) for v in views]
     n_in = int(sum(len(v) for v in views))
     n_free = int(sum(int((~k).sum()) for k in keep))
     keep = [k & (c >= params.min_confidence) for k, c in zip(keep, conf, strict=True)]
     n_oblique = 0
-    for k, v in zip(keep, views, strict=True):
-        if v.K is not None:
-            oblique = _view_cos(v) < params.min_view_cos
+    for k, oblique in zip(keep, grazing, strict=True):
+        if oblique is not None:
             n_oblique += int(np.count_nonzero(oblique & k))
             k &= ~oblique
     # The kept samples of every view, moved into the set frame, in one set of arrays (normals,
@@ -177,14 +183,14 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
     o = 0
     for v, P, s, cc in zip(views, poses, sel, conf, strict=True):
         part = slice(o, o + len(s))
-        xyz[part] = v.xyz[s] @ P[:3, :3].T + P[:3, 3]
-        normals[part] = v.normals[s] @ P[:3, :3].T.astype(np.float32)
+        gather_moved(np.ascontiguousarray(v.xyz, np.float64), np.ascontiguousarray(v.normals, np.float32), s, P,
+                     xyz, normals, o)
         rgb[part] = v.rgb[s] if v.rgb is not None else 200
         size[part] = v.size[s]
         c[part] = cc[s]
         view[part] = v.index
         o += len(s)
-    del sel, keep, conf
+    del sel, keep, conf, grazing
     # Size classes: powers of two of the smallest size, each with its own grid; samples whose
     # normals point different ways (the two sides of a thin part, a rim) never merge.
     s0 = max(float(np.min(size[size > 0])) if np.any(size > 0) else 1.0, 1e-6)
