@@ -16,13 +16,20 @@
    in a child process: wall time and peak memory. Targets: under 2 minutes and under 6 GB.
    The scan set is rendered once into the temporary folder and kept for later runs.
 
-Measured here (2 shared cores, load average about 5):
-- simulated 12 views: ours 16.7 s, worst view 0.0057 deg / 0.019 mm; Open3D 30.9 s, 0.048 deg /
-  0.19 mm; small_gicp 32.6 s, 0.095 deg / 0.19 mm: ours 8x more accurate, 1.86x faster (the 2x
-  target is not reached);
-- dragon against Stanford: ours 17.0 s, 0.65 deg / 1.50 mm; Open3D 9.5 s, 0.86 deg / 1.59 mm;
-  small_gicp 7.7 s, 0.60 deg / 1.39 mm (every method is about 0.6 deg from Stanford's poses: see
-  tests/shared/merge/test_dragon.py; ours is 0.56x Open3D's speed here: not reached);
+Parts run alone by name: ``python -m tests.bench.bench_merge sim dragon`` (registration only).
+Times are printed as wall and CPU seconds (Open3D's ICP uses both cores, ours runs the edges' searches
+in 2 threads); on the shared machine the CPU ratio is the steadier one.
+
+Measured here (2 shared cores, load average 5-6, three runs):
+- simulated 12 views: ours 3.1-3.4 s CPU (4.8-7.4 s wall), worst view 0.0059 deg / 0.020 mm;
+  Open3D 14.5-15.1 s CPU (27.6-29.7 s wall), 0.048 deg / 0.19 mm; small_gicp 15.3-15.7 s CPU,
+  0.095 deg / 0.19 mm: ours 8x more accurate, 4.5-4.9x less CPU, 3.7-6.0x less wall (target 2x:
+  reached; before: 1.86x wall);
+- dragon against Stanford: ours 1.75-1.92 s CPU (1.8-5.6 s wall), 0.65 deg / 1.50 mm; Open3D
+  4.7-4.9 s CPU (2.8-13.8 s wall), 0.86 deg / 1.59 mm; small_gicp 3.2-3.6 s CPU, 0.60 deg / 1.39 mm:
+  2.5-2.8x less CPU (target 2x: reached; before 0.56x); wall ratios 1.6-3.9x swing with the load
+  (one run of five under 2x). Every method is about 0.6 deg from Stanford's poses, which are not
+  the optimum of any objective tried: see tests/shared/merge/test_dragon.py;
 - whole merge: 198.5 s wall, 187 s CPU (not reached: load 37 s, register 49 s, fuse 20 s, Poisson
   depth 9 80 s, LODs 6 s), peak 5.09 GB (reached).
 """
