@@ -242,6 +242,16 @@ def _to_grey(img: np.ndarray) -> np.ndarray:
     return cv2.cvtColor(img, cv2.COLOR_BGRA2GRAY)
 
 
+def prepare_png_reading() -> None:
+    """Make the fast PNG path ready now (load its kernel: numba's first dispatch in a process,
+    up to about a second), e.g. on a thread that would otherwise wait while others read
+    frames; they decode with OpenCV until it is ready. Returns at once if another thread is
+    loading it."""
+    from shared.formats._png import _kernel_ready
+
+    _kernel_ready()
+
+
 def read_grey(path: str | os.PathLike[str], expect: tuple[int, int] | None = None) -> np.ndarray:
     """Read an image as grey levels.
 

@@ -57,7 +57,7 @@ import numpy as np
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
 from shared.formats.capture import Capture, CodeImage, code_bits
-from shared.formats.images import read_grey, read_grey_and_colour
+from shared.formats.images import prepare_png_reading, probe_image, read_grey, read_grey_and_colour
 from shared.scan._bands import next_item
 
 log = logging.getLogger(__name__)
@@ -817,19 +817,37 @@ def decode_capture(
     def planes(entries: Sequence[CodeImage]) -> list[_Plane]:
         return [_Plane(e.bit, e.pattern, e.inverse) for e in entries]
 
+    col_planes, row_planes = planes(capture.columns), planes(capture.rows)
+    # The size and depth from the white frame's header, so that every image can be queued for
+    # reading at once: the pool reads while this thread makes the fast PNG path ready (numba's
+    # first dispatch in a process, up to about a second) and then waits for white and black.
+    info = probe_image(capture.white)
+    itemsize = 2 if info.bit_depth > 8 else 1
     with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        fw = pool.submit(read_grey_and_colour, capture.white)
         fb = pool.submit(read_grey, capture.black)
-        white, colour = read_grey_and_colour(capture.white)
-        black = fb.result()
-        if black.shape != white.shape:
-            raise InputError(
-                capture.black,
-                f"image is {black.shape[1]}x{black.shape[0]}, but the white frame is {white.shape[1]}x{white.shape[0]}",
-            )
+        readers = (_reader(col_planes, info.size, itemsize, pool), _reader(row_planes, info.size, itemsize, pool))
+        try:
+            prepare_png_reading()
+            white, colour = fw.result()
+            black = fb.result()
+            if white.shape[::-1] != info.size:  # a header that disagrees with its pixels
+                raise InputError(capture.white, f"header says {info.width}x{info.height}, pixels are "
+                                 f"{white.shape[1]}x{white.shape[0]}")  # fmt: skip
+            if black.shape != white.shape:
+                raise InputError(
+                    capture.black,
+                    f"image is {black.shape[1]}x{black.shape[0]}, but the white frame is "
+                    f"{white.shape[1]}x{white.shape[0]}",
+                )
+        except BaseException:
+            for r in readers:
+                r.cancel()
+            raise
         return _decode(
-            white, black, colour, planes(capture.columns), planes(capture.rows),
+            white, black, colour, col_planes, row_planes,
             (capture.projector_width, capture.projector_height), str(capture.white), str(capture.black),
-            progress, subpixel, params or DecodeParams(), pool,
+            progress, subpixel, params or DecodeParams(), pool, readers,
         )
 
 
@@ -902,6 +920,7 @@ def _decode_inner(
     subpixel: bool,
     params: DecodeParams,
     pool: ThreadPoolExecutor | None,
+    readers: tuple[_Reader, _Reader] | None = None,
 ) -> Decoded:
 
     t0 = time.perf_counter()
@@ -931,9 +950,12 @@ def _decode_inner(
         _grey_rgb(white, 8 if white.dtype == np.uint16 else 0, colour)
     lit = slab.take((h, w), np.bool_)
     itemsize = 2 if scale > 1 else 1
-    col_reader = _reader(col_planes, (w, h), itemsize, pool)
-    # The rows' images start loading now, while the columns are decoded.
-    row_reader = _reader(row_planes, (w, h), itemsize, pool)
+    if readers is not None:  # queued by decode_capture as soon as the size was known
+        col_reader, row_reader = readers
+    else:
+        col_reader = _reader(col_planes, (w, h), itemsize, pool)
+        # The rows' images start loading now, while the columns are decoded.
+        row_reader = _reader(row_planes, (w, h), itemsize, pool)
     try:
         cols = _AxisOut(slab.take((h, w), np.float32), slab.take((h, w), np.int8), slab.take((h, w), np.float32), lit)
         col_counts = _decode_axis(col_planes, white, black, params, scale, col_bits, pw, True, subpixel, False, cols,
