@@ -33,7 +33,8 @@ from shared.formats.images import probe_image
 from shared.formats.ply import write_ply
 from shared.formats.rig import Rig, check_rig_matches, load_rig
 from shared.scan.decode import Decoded, decode_capture, load_decoded, save_decoded
-from shared.scan.triangulate import Triangulated, rig_tables, triangulate
+from shared.scan.triangulate import Triangulated, triangulate
+from shared.scan.triangulate import load_kernels as load_triangulation_kernels
 
 log = logging.getLogger(__name__)
 
@@ -209,10 +210,11 @@ def scan(
     assert capture.rig is not None
     t_ingest = time.perf_counter()
     report_progress(0.02)
-    # The rig's undistortion tables (about a second of CPU, OpenCV without the GIL) are
-    # computed while the images are read and decoded, on a core shared with the readers.
+    # The rig's undistortion tables (about a second of CPU, OpenCV without the GIL, unless
+    # cached) are made and the triangulation kernels loaded while the images are read and
+    # decoded, on a core shared with the readers.
     with ThreadPoolExecutor(max_workers=1) as pool:
-        tables = pool.submit(rig_tables, rig_model)
+        tables = pool.submit(load_triangulation_kernels, rig_model)
         # One image-reading thread a core: PNG inflation releases the GIL.
         decoded = decode_capture(capture, progress=lambda f: report_progress(0.02 + 0.73 * f),
                                  threads=os.cpu_count() or 2)

@@ -499,6 +499,21 @@ def _support_and_normals(P, valid, rel_tol, min_support, keep, normals, n_thread
                     normals[y, x, 2] = nz / nrm
 
 
+def load_kernels(rig: Rig, tables: RigTables | None = None) -> RigTables:
+    """Load the triangulation kernels into this process (from numba's cache; compiled if it
+    lacks them) by triangulating a 4x4 image with nothing decoded, and return the rig's
+    tables: :func:`shared.scan.pipeline.scan` runs this on a thread while the images are read
+    and decoded, so the first real triangulation does not wait for the loading. The calls
+    have the real ones' signatures (a decode's arrays are C-ordered float32 and int8)."""
+    tb = tables if tables is not None else rig_tables(rig)
+    nan = np.full((4, 4), np.nan, np.float32)
+    empty = Decoded(column=nan, row=nan.copy(), confidence=np.zeros((4, 4), np.float32),
+                    colour=np.zeros((4, 4, 3), np.uint8), lit=np.zeros((4, 4), np.bool_),
+                    column_level=np.full((4, 4), -1, np.int8), row_level=np.full((4, 4), -1, np.int8))  # fmt: skip
+    triangulate(empty, rig, tables=tb)
+    return tb
+
+
 def triangulate(
     decoded: Decoded,
     rig: Rig,
