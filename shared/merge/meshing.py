@@ -40,7 +40,9 @@ class MeshParams:
     trim_factor : a vertex farther than this many local sample sizes from every sample is trimmed.
     lods : face-count fractions of the level-of-detail meshes. max_points : a larger cloud is thinned on
     a grid to about this many points before the reconstruction. threads : Poisson's OpenMP threads
-    (measured here: 2 threads on a busy 2-core machine took 3-10x the CPU time of 1, spinning).
+    (measured here on a busy 2-core machine, load 5-6: 2 threads took 3-10x the CPU time of 1 with
+    OpenMP's default spinning, and with ``OMP_WAIT_POLICY=PASSIVE`` the same CPU and the same wall
+    time as 1, 51 s: one thread it is).
 
     Measured on the 12-view 2048x1536 bunny turntable merge (4.2 M fused points, 0.19 mm samples,
     277 mm across with the plate, merged RMS 0.023 mm against the true surface; the issue's bound

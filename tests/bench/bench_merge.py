@@ -33,7 +33,11 @@ Measured here (2 shared cores, load average 5-6, three runs):
   point-to-plane residual of neighbouring scans is 0.118 mm with their poses, 0.082 mm with ours,
   0.084 mm with Open3D's and 0.082 mm with small_gicp's;
 - whole merge: 198.5 s wall, 187 s CPU (not reached: load 37 s, register 49 s, fuse 20 s, Poisson
-  depth 9 80 s, LODs 6 s), peak 5.09 GB (reached).
+  depth 9 80 s, LODs 6 s), peak 5.09 GB (reached). Now 90.2 s wall, 67.0 s CPU, peak 4.24 GB at
+  load 4-6 (both reached; stages in wall seconds: load 24.6, register 13.2, fuse 5.5, Poisson
+  depth 9 41.3, LODs 2.1, write 1.7; the same run's mesh: Hausdorff 95th percentile 1.98x the
+  merged cloud's 0.022 mm RMS, bound 3x). An earlier run of the same code at load 4-5 took
+  127.2 s wall, 76.5 s CPU: the wall time follows the other processes on the 2 cores.
 """
 
 from __future__ import annotations
