@@ -499,17 +499,64 @@ def _grey_rgb(grey, shift, out):  # pragma: no cover
 # --------------------------------------------------------------------------- threads
 
 
-def kernel_threads() -> int:
-    """Threads for the numba kernels: all of numba's, whatever the load.
+def _own_running() -> int:
+    """Runnable threads of this process right now (the caller among them), from
+    /proc/self/task; 1 when unknown."""
+    n = 0
+    try:
+        tasks = list(Path("/proc/self/task").iterdir())
+    except OSError:
+        return 1
+    for task in tasks:
+        try:
+            stat = (task / "stat").read_text()
+        except OSError:
+            continue  # the thread has ended
+        # The state letter follows the command name, which may itself hold ") ".
+        n += stat[stat.rindex(")") + 2 : stat.rindex(")") + 3] == "R"
+    return max(n, 1)
 
-    The kernels hand their bands of rows out dynamically (:mod:`shared.scan._bands`), so a
-    thread that another process has descheduled holds up at most the band it is on, and two
-    threads are not slower than one on a busy machine. (With numba's fixed split of a prange
-    they were: 47 ms against 33 ms for the bench's 1.3 MP decode beside other busy
-    processes; the 1-minute load average then chose one thread, which halved the speed on a
-    shared machine that had come free and lagged behind one that had not.)
+
+def _others_running() -> int | None:
+    """Runnable threads of other processes right now (from /proc/loadavg's count of runnable
+    tasks, less this process's own: its image readers and kernel workers are no competition),
+    or None when unknown."""
+    # Own threads first: one that stops running before loadavg is read then errs towards
+    # "free", which is what this count is for.
+    own = _own_running()
+    try:
+        running = int(Path("/proc/loadavg").read_text().split()[3].split("/")[0])
+    except (OSError, ValueError, IndexError):
+        return None
+    return max(running - own, 0)
+
+
+def _cores() -> int:
+    try:
+        return len(os.sched_getaffinity(0))
+    except (AttributeError, OSError):  # pragma: no cover - not Linux
+        return os.cpu_count() or 1
+
+
+def kernel_threads() -> int:
+    """Threads for the numba kernels: as many as there are cores free right now (cores less
+    the runnable threads of other processes at this moment), at least one, at most numba's.
+
+    Two costs decide it. A thread that another process deschedules mid-launch used to hold
+    up the whole launch with numba's fixed split of a prange; the kernels now hand bands out
+    dynamically (:mod:`shared.scan._bands`), so the others take its work. But every launch
+    still ends when all its threads have arrived, and a worker waiting for a core holds up
+    the end by a scheduler time slice: on 2 cores beside 4-5 busy processes, two threads
+    took 28-52 ms for the bench's 1.3 MP decode against 29 ms on one. The count is the
+    current one, not the 1-minute load average, which lags: on a shared machine that has
+    just come free the average kept one thread for a minute (half the speed), and on one
+    that has just filled it kept two.
     """
-    return int(numba.config.NUMBA_NUM_THREADS)
+    limit = int(numba.config.NUMBA_NUM_THREADS)
+    others = _others_running()
+    if others is None:
+        return limit
+    return max(1, min(limit, _cores() - others))
 
 
 @contextmanager
