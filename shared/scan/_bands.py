@@ -6,8 +6,9 @@ descheduled thread then holds up the whole launch while the others wait: two thr
 measured slower than one (47 ms against 33 ms for the 1.3 MP 42-frame decode beside two
 busy processes). The kernels here run ``prange`` over the threads instead, and every thread
 takes the next band from a shared counter (an atomic fetch-and-add) until none is left: a
-thread that runs takes the work of one that does not, so all threads are never slower than
-one, and a quiet machine still splits the work evenly.
+thread that runs takes the work of one that does not, and a quiet machine still splits the
+work evenly. (A launch still ends only when every thread has arrived, so on a machine with
+no core free a worker's wait for one still costs: ``kernel_threads()`` counts free cores.)
 
 Use in a kernel::
 
