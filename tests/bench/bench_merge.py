@@ -36,8 +36,8 @@ Measured here (2 shared cores, load average 5-6, three runs):
   depth 9 80 s, LODs 6 s), peak 5.09 GB (reached). Now 90.2 s wall, 67.0 s CPU, peak 4.24 GB at
   load 4-6 (both reached; stages in wall seconds: load 24.6, register 13.2, fuse 5.5, Poisson
   depth 9 41.3, LODs 2.1, write 1.7; the same run's mesh: Hausdorff 95th percentile 1.98x the
-  merged cloud's 0.022 mm RMS, bound 3x). An earlier run of the same code at load 4-5 took
-  127.2 s wall, 76.5 s CPU: the wall time follows the other processes on the 2 cores.
+  merged cloud's 0.022 mm RMS, bound 3x). A run before the fusion's gather kernel (fuse about 4 s
+  more CPU) at load 4-5 took 127.2 s wall, 76.5 s CPU: the wall time follows the other processes.
 """
 
 from __future__ import annotations
