@@ -20,12 +20,15 @@ are undone by a small numba kernel; both release the GIL, so the reading threads
 
 from __future__ import annotations
 
+import logging
 import struct
 import threading
 import zlib
 
 import numba
 import numpy as np
+
+log = logging.getLogger(__name__)
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 #: Ancillary chunks that change nothing about the pixels OpenCV returns.
@@ -142,6 +145,7 @@ def _unfilter(raw, h, rb, bpp, out):  # pragma: no cover
 
 
 _READY = threading.Event()
+_BROKEN = threading.Event()
 _LOADING = threading.Lock()
 
 
@@ -152,13 +156,17 @@ def _kernel_ready() -> bool:
     waiting on numba's compiler lock: a scan's reading threads keep going from the start."""
     if _READY.is_set():
         return True
-    if not _LOADING.acquire(blocking=False):
+    if _BROKEN.is_set() or not _LOADING.acquire(blocking=False):
         return False
     try:
         if not _READY.is_set():
             # The signature of the real calls (a scratch buffer), on one row of one pixel.
             _unfilter(np.zeros(2, np.uint8), 1, 1, 1, np.empty((1, 1), np.uint8))
             _READY.set()
+    except Exception:  # noqa: BLE001 - the kernel would not load: OpenCV reads every frame
+        log.warning("fast PNG path unavailable, frames decode with OpenCV", exc_info=True)
+        _BROKEN.set()
+        return False
     finally:
         _LOADING.release()
     return True
