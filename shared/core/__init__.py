@@ -1,4 +1,5 @@
-"""The bottom layer: errors, atomic files, the shared-data path and lazy exports.
+"""The bottom layer: errors, atomic files, the shared-data path and lazy exports (and, imported
+by the kernel modules only, numba's threading policy: ``shared.core.threads``).
 
 Everything else in ``shared/`` may import these; they import nothing of Graylight's.
 """

@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import heapq
 import math
-import os
 import sys
 from dataclasses import dataclass
 
@@ -44,22 +43,10 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from shared.core.threads import pin_threading_layer
 
-def _prefer_passive_openmp() -> None:
-    """Prefer OpenMP among numba's threading layers, its workers waiting passively: the policy
-    of :func:`shared.scan._bands.pin_threading_layer`, for the processes that render without
-    scanning (the preview CLI, the bench; render may not import scan). numba otherwise picks
-    TBB when a libtbb is installed, whose idle worker spins while the other thread's frame is
-    still drawing: 1280x720 preview batches (one frame a thread, 1.5 M points a frame, load
-    6-7 on 2 cores) took 9.7-9.9 ms of CPU a frame on TBB, 12.3 ms on OpenMP spinning,
-    8.3-9.1 ms on OpenMP passive, and TBB had rounds at twice its usual CPU. A layer or
-    priority set by the user wins; so does a layer numba has already started."""
-    if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
-        numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-
-_prefer_passive_openmp()
+# The scan's threading policy, for processes that render without scanning.
+pin_threading_layer()
 
 EMPTY = np.uint64(0xFFFFFFFFFFFFFFFF)
 #: Largest splat half-side in pixels (a splat right in front of the lens stays bounded).

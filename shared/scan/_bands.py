@@ -20,18 +20,19 @@ Use in a kernel::
                 break
             ...  # the band's rows
 
-Importing this module also fixes numba's threading layer (:func:`pin_threading_layer`).
+Importing this module also fixes numba's threading layer
+(:func:`shared.core.threads.pin_threading_layer`).
 """
 
 from __future__ import annotations
 
-import os
 from typing import Any
 
-import numba
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
+
+from shared.core.threads import pin_threading_layer
 
 
 @intrinsic
@@ -50,23 +51,6 @@ def next_item(typingctx: Any, counter: Any) -> Any:  # pragma: no cover - compil
         return builder.atomic_rmw("add", ptr, context.get_constant(types.int64, 1), "monotonic")
 
     return sig, codegen
-
-
-def pin_threading_layer() -> None:
-    """Prefer OpenMP among numba's threading layers, its workers waiting passively.
-
-    numba picks TBB when a libtbb is installed, else OpenMP, else its own workqueue, so two
-    machines of one kind ran the kernels on different layers (whether some package had pulled
-    in libtbb). OpenMP is there wherever numba's wheels run (libgomp) and, unlike the
-    workqueue, takes launches from several threads at once. Its workers spin for a while after
-    each launch by default; on a shared machine that burnt CPU the image readers and other
-    processes wanted (the 1.3 MP 42-frame decode: 60-77 ms of CPU a run on two threads,
-    against 36-43 ms passive, 35-46 ms on TBB, 34 ms on one thread). Either environment
-    variable set by the user wins; so does a layer numba has already started (the setting is
-    read at its first parallel launch)."""
-    if "NUMBA_THREADING_LAYER" not in os.environ and "NUMBA_THREADING_LAYER_PRIORITY" not in os.environ:
-        numba.config.THREADING_LAYER_PRIORITY = ["omp", "tbb", "workqueue"]
-    os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
 
 
 pin_threading_layer()
