@@ -62,6 +62,7 @@ from shared.merge.registration import (
 )
 from shared.merge.views import crop_to_roi, load_views
 from shared.sim.simulate import load_truth
+from tests.support.scansets import DRAGON, dragon_scanset, plane_residuals, stanford_poses
 
 REPO = Path(__file__).resolve().parents[2]
 SIM = Path(tempfile.gettempdir()) / "graylight-bench" / "scanset-bunny-turntable-12-2048x1536"
@@ -165,17 +166,9 @@ def _plane_fit(views, poses: np.ndarray) -> tuple[float, float]:
     from scipy.spatial import cKDTree
 
     trees = [cKDTree(v.xyz) for v in views]
-    out = []
-    for i in range(len(views)):
-        for a, b in ((i, (i + 1) % len(views)), ((i + 1) % len(views), i)):
-            rel = np.linalg.solve(poses[b], poses[a])
-            x = views[a].xyz @ rel[:3, :3].T + rel[:3, 3]
-            d, idx = trees[b].query(x, distance_upper_bound=1.0)
-            ok = np.isfinite(d)
-            m = views[b].normals[idx[ok]].astype(np.float64)
-            agree = np.einsum("ij,ij->i", m, views[a].normals[ok].astype(np.float64) @ rel[:3, :3].T) > 0.7
-            out.append(np.einsum("ij,ij->i", m[agree], x[ok][agree] - views[b].xyz[idx[ok][agree]]))
-    r = np.concatenate(out)
+    n = len(views)
+    r = np.concatenate([plane_residuals(views, trees, poses, a, b)
+                        for i in range(n) for a, b in ((i, (i + 1) % n), ((i + 1) % n, i))])  # fmt: skip
     return float(np.median(np.abs(r))), float(np.mean(r[np.abs(r) < 0.5]))
 
 
@@ -193,8 +186,6 @@ def bench_registration_sim() -> None:
 
 
 def bench_registration_dragon() -> None:
-    from tests.support.scansets import DRAGON, dragon_scanset, stanford_poses
-
     if not (DRAGON / "dragonStandRight.conf").is_file():
         print(f"dragon: missing {DRAGON}")
         return

@@ -5,6 +5,8 @@
 - :func:`dragon_scanset`: a ``scanset.json`` over the real Stanford dragon turntable scans (cloud
   views in metres), with or without the turntable angles; :func:`stanford_poses` reads Stanford's
   own registration (README convention ``X_world = R(q)^T X + t``) relative to view 0, in mm.
+- :func:`plane_residuals`: how well two registered views fit each other (point-to-plane residuals),
+  the figure the dragon test and the bench compare between sets of poses.
 """
 
 from __future__ import annotations
@@ -68,3 +70,17 @@ def stanford_poses() -> np.ndarray:
         out.append(P)
     P = np.stack(out)
     return np.linalg.inv(P[0]) @ P
+
+
+def plane_residuals(views: list, trees: list, poses: np.ndarray, i: int, j: int) -> np.ndarray:
+    """Point-to-plane residuals (mm, signed along view j's normals; negative: view i lies inside
+    view j) of view i's points against their nearest points of view j within 1 mm whose normals
+    agree (cosine > 0.7), under ``poses`` ((V, 4, 4), view to set frame). ``trees``: a
+    ``scipy.spatial.cKDTree`` of each view's points."""
+    rel = np.linalg.solve(poses[j], poses[i])
+    x = views[i].xyz @ rel[:3, :3].T + rel[:3, 3]
+    d, idx = trees[j].query(x, distance_upper_bound=1.0)
+    ok = np.isfinite(d)
+    m = views[j].normals[idx[ok]].astype(np.float64)
+    agree = np.einsum("ij,ij->i", m, views[i].normals[ok].astype(np.float64) @ rel[:3, :3].T) > 0.7
+    return np.einsum("ij,ij->i", m[agree], x[ok][agree] - views[j].xyz[idx[ok][agree]])

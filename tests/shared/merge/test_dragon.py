@@ -42,7 +42,7 @@ from shared.formats.scanset import load_scanset
 from shared.merge.pipeline import merge_views
 from shared.merge.registration import pose_error, register_views
 from shared.merge.views import load_views
-from tests.support.scansets import dragon_scanset, stanford_poses
+from tests.support.scansets import dragon_scanset, plane_residuals, stanford_poses
 
 pytestmark = pytest.mark.slow
 
@@ -65,18 +65,6 @@ def _neighbour_median(views, poses) -> float:
     return float(np.median(out))
 
 
-def _plane_residuals(views, trees, poses, i: int, j: int) -> np.ndarray:
-    """Point-to-plane residuals (mm) of view i's points against view j's nearest points (within
-    1 mm, normals agreeing) under ``poses``."""
-    rel = np.linalg.solve(poses[j], poses[i])
-    x = views[i].xyz @ rel[:3, :3].T + rel[:3, 3]
-    d, idx = trees[j].query(x, distance_upper_bound=1.0)
-    ok = np.isfinite(d)
-    m = views[j].normals[idx[ok]].astype(np.float64)
-    agree = np.einsum("ij,ij->i", m, views[i].normals[ok].astype(np.float64) @ rel[:3, :3].T) > 0.7
-    return np.einsum("ij,ij->i", m[agree], x[ok][agree] - views[j].xyz[idx[ok][agree]])
-
-
 def test_dragon_registers_without_hints_and_with_angles(dragon, tmp_path: Path) -> None:
     ss, views = dragon
     stanford = stanford_poses()
@@ -96,8 +84,8 @@ def test_dragon_registers_without_hints_and_with_angles(dragon, tmp_path: Path) 
         # The tighter fit holds pair by pair, on the residual the fits minimise.
         for i in range(15):
             j = (i + 1) % 15
-            mine = np.concatenate([_plane_residuals(views, trees, reg.poses, a, b) for a, b in ((i, j), (j, i))])
-            st = np.concatenate([_plane_residuals(views, trees, stanford, a, b) for a, b in ((i, j), (j, i))])
+            mine = np.concatenate([plane_residuals(views, trees, reg.poses, a, b) for a, b in ((i, j), (j, i))])
+            st = np.concatenate([plane_residuals(views, trees, stanford, a, b) for a, b in ((i, j), (j, i))])
             assert np.median(np.abs(mine)) < np.median(np.abs(st)), f"pair {i}-{j}"
     a, b = runs.values()
     agree = [pose_error(a.poses[i], b.poses[i], views[i].xyz) for i in range(15)]
