@@ -42,8 +42,8 @@ Measured here (2 shared cores, load average 5-6, three runs):
 
 from __future__ import annotations
 
+import json
 import os
-import subprocess
 import sys
 import tempfile
 import time
@@ -62,6 +62,7 @@ from shared.merge.registration import (
 )
 from shared.merge.views import crop_to_roi, load_views
 from shared.sim.simulate import load_truth
+from tests.bench._child import run_graylight
 from tests.support.scansets import DRAGON, dragon_scanset, plane_residuals, stanford_poses
 
 REPO = Path(__file__).resolve().parents[2]
@@ -204,28 +205,15 @@ def bench_registration_dragon() -> None:
 def bench_whole_merge() -> None:
     folder = _sim_scanset()
     out = Path(tempfile.mkdtemp(prefix="graylight-bench-merge-"))
-    exe = REPO / ".venv" / "bin" / "graylight"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "services.cli.main"]
     load = os.getloadavg()[0]
-    t0 = time.perf_counter()
-    with tempfile.TemporaryFile("w+") as so, tempfile.TemporaryFile("w+") as se:
-        proc = subprocess.Popen([*cmd, "merge", str(folder), "--out", str(out / "m")], stdout=so, stderr=se, text=True)
-        _, status, usage = os.wait4(proc.pid, 0)
-        wall = time.perf_counter() - t0
-        so.seek(0)
-        se.seek(0)
-        stdout, stderr = so.read(), se.read()
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"graylight merge failed: {stderr.strip()[-500:]}")
-    import json
-
+    run = run_graylight(["merge", str(folder), "--out", str(out / "m")])  # peak: the merge's own
     report = json.loads((out / "m" / "report.json").read_text())
     print("graylight merge, simulated 12-view 2048x1536 turntable scan set, PNG files -> merged cloud and meshes:")
-    print(f"  wall {wall:.1f} s (target < 120 s), CPU {usage.ru_utime + usage.ru_stime:.1f} s, peak memory "
-          f"{usage.ru_maxrss / 1024**2:.2f} GB (target < 6 GB); load average at start {load:.1f}")
+    print(f"  wall {run.wall:.1f} s (target < 120 s), CPU {run.cpu:.1f} s, peak memory "
+          f"{run.peak_gb:.2f} GB (target < 6 GB); load average at start {load:.1f}")
     print(f"  stages (s): {report['seconds']}")
     print(f"  {report['points']['merged']} merged points, {report['mesh']['faces']} faces (Poisson depth "
-          f"{report['mesh']['depth']}); {stdout.strip().splitlines()[0]}")
+          f"{report['mesh']['depth']}); {run.stdout.strip().splitlines()[0]}")
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -43,6 +43,7 @@ import numpy as np
 from shared.core.datapaths import shared_data_dir
 from shared.formats.capture import numbered_frames, opencv_order_capture
 from shared.scan.decode import decode_capture, decode_stack, kernel_threads
+from tests.bench._child import run_graylight
 
 REPO = Path(__file__).resolve().parents[2]
 REAL = shared_data_dir() / "procam-kamino410"
@@ -168,22 +169,9 @@ def _capture(size: tuple[int, int]) -> Path:
 
 def _cli(args: list[str], env: dict[str, str] | None = None) -> tuple[float, float, float, str]:
     """``graylight ARGS`` in a child process: wall seconds, CPU seconds (user + system), peak
-    memory in GB and stdout. wait4 gives this child's own usage (RUSAGE_CHILDREN would report
-    the largest peak of every child the bench has run so far)."""
-    exe = REPO / ".venv" / "bin" / "graylight"
-    cmd = [str(exe)] if exe.exists() else [sys.executable, "-m", "services.cli.main"]
-    os.sync()  # no run pays for the writeback of the one before
-    t0 = time.perf_counter()
-    with tempfile.TemporaryFile("w+") as so, tempfile.TemporaryFile("w+") as se:
-        proc = subprocess.Popen([*cmd, *args], stdout=so, stderr=se, text=True, env=env)
-        _, status, usage = os.wait4(proc.pid, 0)
-        wall = time.perf_counter() - t0
-        so.seek(0)
-        se.seek(0)
-        stdout, stderr = so.read(), se.read()
-    if os.waitstatus_to_exitcode(status) != 0:
-        raise RuntimeError(f"graylight {args[0]} failed: {stderr.strip()[-500:]}")
-    return wall, usage.ru_utime + usage.ru_stime, usage.ru_maxrss / 1024**2, stdout
+    memory in GB (the command's own, not the bench's: :mod:`tests.bench._child`) and stdout."""
+    run = run_graylight(args, env)
+    return run.wall, run.cpu, run.peak_gb, run.stdout
 
 
 def bench_scan_sizes() -> None:
