@@ -277,7 +277,17 @@ class InstanceRow:
     depends_on: tuple[str, ...]
 
 
-def fan_out(graph: Iterable[StageSpec], parent: str, count: int) -> list[InstanceRow]:
+@dataclass(frozen=True)
+class FanOut:
+    """What a finished stage fans out into: the map stages ``maps`` (replacing any instances
+    they had) and their instance ``rows``; no rows when the stage counted no items, and the
+    stages downstream then read none."""
+
+    maps: tuple[str, ...]
+    rows: tuple[InstanceRow, ...]
+
+
+def fan_out(graph: Iterable[StageSpec], parent: str, count: int) -> FanOut:
     """The rows of every map stage of ``graph`` that fans out from stage ``parent``, ``count``
     instances each, in graph order (all instances of one map stage, then the next).
 
@@ -286,7 +296,6 @@ def fan_out(graph: Iterable[StageSpec], parent: str, count: int) -> list[Instanc
     view's ingest, decode and triangulate, runs item by item, each step its own task. Any other
     upstream stage it names is read whole.
     """
-    graph = tuple(graph)
     maps = [m for m in graph if m.fanout_from == parent]
     siblings = {m.name for m in maps}
     rows: list[InstanceRow] = []
@@ -294,7 +303,7 @@ def fan_out(graph: Iterable[StageSpec], parent: str, count: int) -> list[Instanc
         for i in range(count):
             deps = tuple(f"{d}{FANOUT_SEP}{i}" if d in siblings else d for d in m.depends_on)
             rows.append(InstanceRow(f"{m.name}{FANOUT_SEP}{i}", m.queue, deps))
-    return rows
+    return FanOut(tuple(m.name for m in maps), tuple(rows))
 
 
 def stage_key(

@@ -45,10 +45,9 @@ from sqlalchemy.orm import DeclarativeBase, Mapped, Session, mapped_column, sess
 
 from shared.service.config import get_settings
 from shared.service.jobs import (
-    FANOUT_SEP,
     JOB_ACTIVE,
     STAGE_WAITING,
-    InstanceRow,
+    FanOut,
     JobState,
     StageSpec,
     StageState,
@@ -620,26 +619,26 @@ class JobStore:
             )
             return res.rowcount > 0
 
-    def _expand(self, s: Session, parent: StageRow, rows: Sequence[InstanceRow]) -> None:
-        """Add the map-stage instances ``rows`` (:func:`shared.service.jobs.fan_out` of ``parent``)
-        and make every other stage that reads one of those map stages read all its instances
-        (the fan-in). A re-run of the parent replaces earlier instances."""
-        if len(rows) >= FANOUT_SLOTS - 1:
-            raise ValueError(f"stage {parent.name} fans out into {len(rows)} pieces, more than {FANOUT_SLOTS - 2}")
-        maps = {base_name(r.name) for r in rows}
-        prefixes = tuple(f"{m}{FANOUT_SEP}" for m in maps)
-        existing = s.scalars(select(StageRow).where(StageRow.job_id == parent.job_id)).all()
-        for r in existing:
-            if r.name.startswith(prefixes):
+    def _expand(self, s: Session, parent: StageRow, fan: FanOut) -> None:
+        """Add the map-stage instances of ``fan`` (:func:`shared.service.jobs.fan_out` of
+        ``parent``), replacing any earlier ones (a re-run of the parent), and make every other
+        stage that reads one of those map stages read all its instances (the fan-in; none when
+        the parent counted no items)."""
+        if len(fan.rows) >= FANOUT_SLOTS - 1:  # the instances sit between the parent and the next stage
+            raise ValueError(f"stage {parent.name} fans out into {len(fan.rows)} rows, more than {FANOUT_SLOTS - 2}")
+        maps = set(fan.maps)
+        rows = s.scalars(select(StageRow).where(StageRow.job_id == parent.job_id)).all()
+        for r in rows:
+            if base_name(r.name) in maps and r.name not in maps:
                 s.delete(r)
         s.flush()
-        for k, r in enumerate(rows):
+        for k, r in enumerate(fan.rows):
             s.add(StageRow(job_id=parent.job_id, name=r.name, position=parent.position + 1 + k, queue=r.queue,
                            depends_on=list(r.depends_on), state=StageState.PENDING))  # fmt: skip
-        instances: dict[str, list[str]] = {m: [r.name for r in rows if base_name(r.name) == m] for m in maps}
-        for r in s.scalars(select(StageRow).where(StageRow.job_id == parent.job_id)).all():
+        instances: dict[str, list[str]] = {m: [r.name for r in fan.rows if base_name(r.name) == m] for m in maps}
+        for r in rows:
             if base_name(r.name) in maps:
-                continue  # an instance reads its own item of a sibling map stage (fan_out said which)
+                continue  # deleted above: an instance reads its own item of a sibling (fan_out said which)
             deps = list(r.depends_on or ())
             if any(base_name(d) in maps for d in deps):
                 kept = [d for d in deps if base_name(d) not in maps]
@@ -656,11 +655,11 @@ class JobStore:
         output_key: str,
         summary: dict[str, Any] | None = None,
         reused: bool = False,
-        expand: Sequence[InstanceRow] = (),
+        expand: FanOut | None = None,
     ) -> tuple[bool, list[Stage]]:
-        """Mark a held stage succeeded, queue what it unblocks. ``expand`` lists the map-stage
-        instances this stage fans out into (:func:`shared.service.jobs.fan_out`). Returns
-        (whether the lease was still ours, stages to publish)."""
+        """Mark a held stage succeeded, queue what it unblocks. ``expand`` is what this stage
+        fans out into (:func:`shared.service.jobs.fan_out`). Returns (whether the lease was
+        still ours, stages to publish)."""
         now = time.time()
         with self.session() as s, s.begin():
             res = s.execute(
@@ -676,7 +675,7 @@ class JobStore:
             row = s.get(StageRow, stage_id)
             assert row is not None
             self._event(s, row.job_id, row.name, StageState.RUNNING, StageState.SUCCEEDED, "reused" if reused else None)
-            if expand:
+            if expand is not None and expand.maps:
                 self._expand(s, row, expand)
             newly = self._refresh_job_state(s, row.job_id)
             return True, self._stages_by_id(s, newly)

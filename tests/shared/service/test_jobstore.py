@@ -14,6 +14,7 @@ from shared.service.jobs import (
     CAPTURE,
     JOB_TRANSITIONS,
     STAGE_TRANSITIONS,
+    FanOut,
     StageSpec,
     fan_out,
     graph_for,
@@ -106,7 +107,7 @@ CHAIN = (
 )
 
 
-def _complete(store: JobStore, stage_id: int, expand: list | tuple = ()) -> list:
+def _complete(store: JobStore, stage_id: int, expand: FanOut | None = None) -> list:
     claim = store.claim_stage(stage_id, "test")
     assert claim is not None
     ok, newly = store.complete_stage(stage_id, claim.token, "k" * 64, expand=expand)
@@ -132,12 +133,20 @@ def test_chained_fan_out_runs_item_by_item(store: JobStore) -> None:
     # Rows sort in graph order: every x, then every y, then the join.
     order = [s.name for s in sorted(store.get_job(job.id).stages, key=lambda s: s.position)]
     assert order == ["plan", "x#0", "x#1", "x#2", "y#0", "y#1", "y#2", "join"]
+    _complete(store, store.get_job(job.id).stage("join").id)
+    assert store.get_job(job.id).state == "succeeded"
     # A re-run of the plan replaces the instances (two items now) and the join's fan-in with them.
     store.reset_stages(job.id, [s.name for s in store.get_job(job.id).stages])
     _complete(store, store.get_job(job.id).stage("plan").id, fan_out(CHAIN, "plan", 2))
     j = store.get_job(job.id)
     assert sorted(s.name for s in j.stages) == ["join", "plan", "x#0", "x#1", "y#0", "y#1"]
     assert sorted(j.stage("join").depends_on) == ["plan", "y#0", "y#1"]
+    # A plan that counts no items: the instances go, and the join reads the plan alone and runs.
+    store.reset_stages(job.id, [s.name for s in store.get_job(job.id).stages])
+    newly = _complete(store, store.get_job(job.id).stage("plan").id, fan_out(CHAIN, "plan", 0))
+    j = store.get_job(job.id)
+    assert sorted(s.name for s in j.stages) == ["join", "plan"] and j.stage("join").depends_on == ("plan",)
+    assert [s.name for s in newly] == ["join"]
 
 
 def test_concurrent_completions_queue_join_once(store: JobStore) -> None:
