@@ -875,7 +875,8 @@ def decode_capture(
         fb = pool.submit(read_grey, capture.black)
         readers = (_reader(col_planes, info.size, itemsize, pool), _reader(row_planes, info.size, itemsize, pool))
         try:
-            prepare_png_reading()
+            if info.format == "png":  # other formats never take the fast path: no kernel to load
+                prepare_png_reading()
             white, colour = fw.result()
             black = fb.result()
             if white.shape[::-1] != info.size:  # a header that disagrees with its pixels
