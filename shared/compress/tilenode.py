@@ -494,12 +494,18 @@ def decode_node(data: bytes | memoryview, dtype: np.dtype, count: int | None = N
         raise InputError(where, f"node holds {n} points, the hierarchy says {count}")
     if _HEAD.size + zlen > len(data):
         raise InputError(where, f"octree-coded node of {len(data)} bytes is truncated (its zlib stream has {zlen})")
+    # Inflate at most one byte more than the head announces (a corrupt node cannot expand into
+    # gigabytes), and accept the stream only if it ends there and nothing follows it, as the
+    # viewer's DecompressionStream requires.
+    inflater = zlib.decompressobj()
     try:
-        payload = zlib.decompress(data[_HEAD.size : _HEAD.size + zlen])
+        payload = inflater.decompress(data[_HEAD.size : _HEAD.size + zlen], plen + 1)
     except zlib.error as exc:
         raise InputError(where, f"octree-coded node is corrupt ({exc})") from None
-    if len(payload) != plen or plen < _PAYLOAD_HEAD.size:
-        raise InputError(where, f"octree-coded node inflates to {len(payload)} bytes, its head says {plen}")
+    if len(payload) != plen or plen < _PAYLOAD_HEAD.size or not inflater.eof:
+        raise InputError(where, f"octree-coded node inflates to {len(payload)}+ bytes, its head says {plen}")
+    if inflater.unused_data:
+        raise InputError(where, f"octree-coded node has {len(inflater.unused_data)} bytes after its zlib stream")
     ox, oy, oz, depth, k, flags, _pad, nocc, ncells, ncount, mask = _PAYLOAD_HEAD.unpack_from(payload)
     given = np.dtype(dtype)
     dtype = _codec_dtype(given, where)
