@@ -118,8 +118,13 @@ def test_everything_else_goes_to_opencv(tmp_path: Path) -> None:
     bad_crc = bytearray(good)
     bad_crc[40] ^= 0xFF  # inside the first IDAT
     assert decode_png(np.frombuffer(bytes(bad_crc), np.uint8)) is None
-    short = _png(grey[:-1], [4]).replace(struct.pack(">II", 30, 19), struct.pack(">II", 30, 20))
-    assert decode_png(np.frombuffer(short, np.uint8)) is None
+    ihdr = _chunk(b"IHDR", struct.pack(">IIBBBBB", 30, 20, 8, 0, 0, 0, 0))  # 30x20, every CRC right
+    for rows in (20, 19, 21):  # the right image stream, then one row short and one row long
+        more = np.vstack([grey, grey[:1]])[:rows]
+        stream = zlib.compress(_filtered(more, 1, [4] * rows))
+        file = b"\x89PNG\r\n\x1a\n" + ihdr + _chunk(b"IDAT", stream) + _chunk(b"IEND", b"")
+        got = decode_png(np.frombuffer(file, np.uint8))
+        assert np.array_equal(got, grey) if rows == 20 else got is None, rows
     assert decode_png(np.frombuffer(good[:-12], np.uint8)) is None
     raw = bytearray(_filtered(grey, 1, [4]))
     raw[0] = 7
