@@ -172,6 +172,11 @@ def _kernel_ready() -> bool:
     return True
 
 
+#: Frames larger than this (pixels) go to OpenCV: the fast path allocates from the header before
+#: inflating, and OpenCV's own limit refuses an absurd header with an error the reader reports.
+MAX_PIXELS = 64_000_000
+
+
 def decode_png(data: np.ndarray) -> np.ndarray | None:
     """Decode a plain PNG (see the module docstring) from its bytes ``data`` ((n,) uint8), or
     return None for OpenCV to decode it."""
@@ -196,6 +201,8 @@ def decode_png(data: np.ndarray) -> np.ndarray | None:
             return None
         body = pos + 8
         pos += 12 + length
+        if header is None and kind != b"IHDR":  # IHDR comes first (libpng refuses anything else)
+            return None
         if kind == b"IHDR":
             if header is not None or length != 13:
                 return None
@@ -213,7 +220,7 @@ def decode_png(data: np.ndarray) -> np.ndarray | None:
         return None
     width, height, depth, colour, compression, filtering, interlace = header
     if (depth not in (8, 16) or colour not in (0, 2) or compression or filtering or interlace
-            or width == 0 or height == 0):  # fmt: skip
+            or width == 0 or height == 0 or width * height > MAX_PIXELS):  # fmt: skip
         return None
     channels = 3 if colour == 2 else 1
     bpp = channels * depth // 8

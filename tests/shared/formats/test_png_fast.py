@@ -113,6 +113,14 @@ def test_everything_else_goes_to_opencv(tmp_path: Path) -> None:
     assert np.array_equal(decode_png(np.frombuffer(text, np.uint8)), grey)
     gamma = _png(grey, [4], extra=_chunk(b"gAMA", struct.pack(">I", 45455)))
     assert decode_png(np.frombuffer(gamma, np.uint8)) is None
+    # A chunk before IHDR, and a header past the fast path's size limit (allocated before inflating).
+    first = bytes(text)
+    ihdr_end = 8 + 25
+    before = first[:8] + _chunk(b"tEXt", b"Comment\x00x") + first[8:ihdr_end] + first[ihdr_end:]
+    assert decode_png(np.frombuffer(before, np.uint8)) is None
+    huge = (b"\x89PNG\r\n\x1a\n" + _chunk(b"IHDR", struct.pack(">IIBBBBB", 100_000, 100_000, 8, 0, 0, 0, 0))
+            + _chunk(b"IDAT", zlib.compress(b"\x00" * 100)) + _chunk(b"IEND", b""))  # fmt: skip
+    assert decode_png(np.frombuffer(huge, np.uint8)) is None
     # Interlacing, a bad CRC, a short or long image stream, a missing IEND, an unknown filter.
     assert decode_png(np.frombuffer(_png(grey, [4], interlace=1), np.uint8)) is None
     bad_crc = bytearray(good)
