@@ -241,14 +241,6 @@ def _emit(tab, val, nb, n, models, ctx, bit, kind):
     return n + 1
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _take(xa, xb, pos, words, nw, models, ctx):
-    """Decode a binary event of context ``ctx``'s model and adapt it: (bit, xa, xb, pos)."""
-    bit, xa, xb, pos = get_bit(xa, xb, pos, words, nw, model_p(models, ctx))
-    model_update(models, ctx, bit)
-    return bit, xa, xb, pos
-
-
 @njit(cache=True, nogil=True)
 def _levels(vox, depth):
     """Every level of the octree of sorted distinct codes ``vox``, top-down in one array
