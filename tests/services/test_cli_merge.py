@@ -12,6 +12,7 @@ import pytest
 import trimesh
 
 from services.cli.main import main
+from shared.service.jobs import MESH_LOD_FILES
 from tests.support.scansets import cached_scanset
 
 
@@ -29,6 +30,8 @@ def test_merge_writes_every_output(small_set: Path, tmp_path: Path, capsys: pyte
     assert {"merged.ply", "registration.json", "mesh.ply", "mesh.glb", "mesh_lod1.glb", "mesh_lod2.glb",
             "mesh_lod3.glb", "report.json", "ranges"} <= names
     assert not [n for n in names if n.startswith(".")]
+    # The levels the job service publishes by name are exactly the ones a merge writes.
+    assert {n for n in names if n.startswith("mesh_lod")} == set(MESH_LOD_FILES)
     reg = json.loads((out / "registration.json").read_text())
     for v in reg["views"]:
         R = np.array(v["R"])
