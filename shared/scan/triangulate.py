@@ -447,12 +447,11 @@ def _support_and_normals(P, valid, rel_tol, min_support, keep, normals, n_thread
                             if valid[yy, xx] and abs(P[yy, xx, 2] - z) <= tol:
                                 cnt += 1
                     keep[y, x] = cnt >= min_support
-    n_bands2 = (H + _TRI_BAND - 1) // _TRI_BAND
-    counter2 = np.zeros(1, np.int64)
+    counter2 = np.zeros(1, np.int64)  # a fresh counter: the second pass hands out the same bands again
     for _thread2 in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
         while True:
             band = next_item(counter2)
-            if band >= n_bands2:
+            if band >= n_bands:
                 break
             for yu in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
                 y = np.int64(yu)
