@@ -22,8 +22,11 @@ sim, merge and compress) and the worker app calls it; nothing in ``shared/`` imp
 from __future__ import annotations
 
 import argparse
+import ast
 import contextlib
+import hashlib
 import importlib
+import json
 import logging
 import tempfile
 import threading
@@ -33,7 +36,11 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
+from shared.core.files import write_json_atomic
+
 log = logging.getLogger(__name__)
+
+_SHARED = Path(__file__).resolve().parents[1] / "shared"
 
 #: Modules holding numba kernels, by domain.
 KERNEL_MODULES: dict[str, tuple[str, ...]] = {
@@ -72,13 +79,112 @@ def uncovered_kernel_modules() -> list[str]:
     (read from the source text, nothing imported): their kernels compile on first use until a
     warm-up runs their stage."""
     listed = {m for mods in KERNEL_MODULES.values() for m in mods}
-    root = Path(__file__).resolve().parent
     found = []
-    for path in sorted(root.rglob("*.py")):
-        name = ".".join(("shared", *path.relative_to(root).with_suffix("").parts))
-        if path != Path(__file__).resolve() and name not in listed and "njit" in path.read_text(encoding="utf-8"):
+    for path in sorted(_SHARED.rglob("*.py")):
+        name = ".".join(("shared", *path.relative_to(_SHARED).with_suffix("").parts))
+        if name not in listed and "@njit" in path.read_text(encoding="utf-8"):
             found.append(name)
     return found
+
+
+def _module_file(name: str) -> Path | None:
+    """Source file of the ``shared`` module ``name`` (a package's ``__init__.py``), or None
+    when ``name`` is not a module (an attribute imported from one)."""
+    parts = name.split(".")[1:]
+    if not parts:
+        return _SHARED / "__init__.py"
+    for path in (_SHARED.joinpath(*parts).with_suffix(".py"), _SHARED.joinpath(*parts, "__init__.py")):
+        if path.is_file():
+            return path
+    return None
+
+
+def _shared_imports(name: str) -> set[str]:
+    """``shared`` modules that module ``name`` imports by name (anywhere in its source)."""
+    path = _module_file(name)
+    out: set[str] = set()
+    if path is None:
+        return out
+    for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            # "from pkg import mod" depends on mod; "from mod import name" on mod.
+            subs = [f"{node.module}.{a.name}" for a in node.names]
+            names = [n for n in subs if _module_file(n) is not None]
+            if len(names) < len(subs):
+                names.append(node.module)
+        else:
+            continue
+        out.update(n for n in names if (n == "shared" or n.startswith("shared.")) and _module_file(n) is not None)
+    return out
+
+
+def kernel_dependencies(name: str) -> dict[str, str]:
+    """SHA-256 of the source of every ``shared`` module that kernel module ``name`` imports,
+    directly or through others (``name`` itself left out).
+
+    numba's cache checks only the timestamp of the kernel's own file: a kernel that calls a
+    numba function of another module, or reads one of its constants (frozen into the machine
+    code), keeps loading the old machine code after that module changes. These digests let
+    :func:`flush_stale_kernels` notice it."""
+    seen: set[str] = set()
+    todo = [name]
+    while todo:
+        for dep in _shared_imports(todo.pop()):
+            if dep not in seen and dep != name:
+                seen.add(dep)
+                todo.append(dep)
+    digests = {}
+    for dep in sorted(seen):
+        path = _module_file(dep)
+        assert path is not None  # _shared_imports keeps modules only
+        digests[dep] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return digests
+
+
+def _manifest(name: str, dispatchers: list[Any]) -> Path:
+    """Where the digests of ``name``'s dependencies at its last warm-up are kept: beside its
+    kernels in numba's cache (``__pycache__`` or ``NUMBA_CACHE_DIR``), so the two go together."""
+    return Path(dispatchers[0]._cache._cache_path) / f"{name}.graylight-deps.json"
+
+
+def _module_kernels(domains: Sequence[str]) -> dict[str, list[Any]]:
+    by_module: dict[str, list[Any]] = {}
+    for qual, d in kernel_dispatchers(domains):
+        by_module.setdefault(qual.rsplit(".", 1)[0], []).append(d)
+    return by_module
+
+
+def stale_kernel_modules(domains: Sequence[str] = DOMAINS) -> list[str]:
+    """Kernel modules whose imported ``shared`` modules changed since their last warm-up (or
+    were never recorded): numba's cache would load machine code built from the old sources."""
+    stale = []
+    for name, dispatchers in _module_kernels(domains).items():
+        try:
+            recorded = json.loads(_manifest(name, dispatchers).read_text(encoding="utf-8"))
+        except (OSError, ValueError):
+            recorded = None
+        if recorded != kernel_dependencies(name):
+            stale.append(name)
+    return stale
+
+
+def flush_stale_kernels(domains: Sequence[str] = DOMAINS) -> list[str]:
+    """Empty numba's cache index of every kernel of :func:`stale_kernel_modules`, so that the
+    warm-up compiles them again. Returns the modules flushed."""
+    stale = stale_kernel_modules(domains)
+    by_module = _module_kernels(domains)
+    for name in stale:
+        for d in by_module[name]:
+            d._cache.flush()
+    return stale
+
+
+def record_kernel_dependencies(domains: Sequence[str] = DOMAINS) -> None:
+    """Record, after a warm-up, the dependency digests :func:`flush_stale_kernels` compares."""
+    for name, dispatchers in _module_kernels(domains).items():
+        write_json_atomic(_manifest(name, dispatchers), kernel_dependencies(name))
 
 
 def cached_signatures(dispatcher: Any) -> list[tuple]:
@@ -311,9 +417,14 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m workers.warmup", description=__doc__.splitlines()[0])
     parser.parse_args(argv)
     t0 = time.perf_counter()
+    flushed = flush_stale_kernels()
+    if flushed:
+        print(f"recompiling kernels whose imported modules changed: {', '.join(flushed)}")
     seconds = warm()
     # A domain whose workload could not run (the merge without shared meshes) is not checked.
-    kernels = kernel_dispatchers(tuple(d for d in DOMAINS if d in seconds))
+    ran = tuple(d for d in DOMAINS if d in seconds)
+    record_kernel_dependencies(ran)
+    kernels = kernel_dispatchers(ran)
     compiled = sum(len(d.stats.cache_misses) for _, d in kernels)
     loaded = sum(len(d.stats.cache_hits) for _, d in kernels)
     uncached = [name for name, d in kernels if not cached_signatures(d)]

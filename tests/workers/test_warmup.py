@@ -8,6 +8,7 @@ run the stages on inputs the warm-up never saw (other scenes, sizes and projecto
 
 from __future__ import annotations
 
+import hashlib
 import json
 import os
 import subprocess
@@ -16,7 +17,14 @@ from pathlib import Path
 
 import pytest
 
-from workers.warmup import DOMAINS, cached_signatures, kernel_dispatchers
+from workers.warmup import (
+    DOMAINS,
+    cached_signatures,
+    kernel_dependencies,
+    kernel_dispatchers,
+    stale_kernel_modules,
+    uncovered_kernel_modules,
+)
 
 REPO = Path(__file__).resolve().parents[2]
 
@@ -41,11 +49,34 @@ print(json.dumps({name: [str(s) for s in d.stats.cache_misses] for name, d in ke
 """
 
 
-def test_every_kernel_is_in_the_cache() -> None:
+def _warmed_domains() -> tuple[str, ...]:
     from shared.sim.scenes import mesh_path
 
     # The merge's workload needs the shared meshes (the warm-up skips it without them).
-    domains = tuple(d for d in DOMAINS if d != "merge" or mesh_path("stanford-bunny").is_file())
+    return tuple(d for d in DOMAINS if d != "merge" or mesh_path("stanford-bunny").is_file())
+
+
+def test_every_kernel_module_is_warmed() -> None:
+    assert uncovered_kernel_modules() == []
+
+
+def test_kernel_dependencies_follow_imports_across_modules() -> None:
+    # _quadtree's kernels call _rans's coder; render.octree reaches core.errors through tilenode too.
+    deps = kernel_dependencies("shared.compress._quadtree")
+    rans = REPO / "shared" / "compress" / "_rans.py"
+    assert deps["shared.compress._rans"] == hashlib.sha256(rans.read_bytes()).hexdigest()
+    assert "shared.compress._quadtree" not in deps  # numba itself watches the module's own file
+    assert {"shared.compress.tilenode", "shared.formats.ply"} <= set(kernel_dependencies("shared.render.octree"))
+
+
+def test_no_kernel_was_cached_from_older_imported_sources() -> None:
+    """The warm-up recorded, beside each module's kernels, the sources the module imports; a
+    kernel whose imported module changed since would load stale machine code."""
+    assert stale_kernel_modules(_warmed_domains()) == []
+
+
+def test_every_kernel_is_in_the_cache() -> None:
+    domains = _warmed_domains()
     kernels = kernel_dispatchers(domains)
     assert len(kernels) >= 20  # the scan, render and simulator kernels were all found
     missing = [name for name, d in kernels if not cached_signatures(d)]
