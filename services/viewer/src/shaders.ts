@@ -9,6 +9,20 @@
  * H_v = (F_v / F_s) * (Z_s / Z_v).
  */
 
+/** Fragment outputs of each pass, shared by the point and mesh fragment shaders (the render
+ * targets the renderer binds for PASS_COLOR, PASS_DEPTH and PASS_ACCUM). */
+const PASS_OUTPUTS = `#ifdef PASS_COLOR
+layout(location = 0) out vec4 oColor;
+layout(location = 1) out float oDepth;
+#endif
+#ifdef PASS_DEPTH
+layout(location = 0) out float oDepth;
+#endif
+#ifdef PASS_ACCUM
+layout(location = 0) out vec4 oAccum;
+#endif
+`;
+
 export const POINT_VS = `
 layout(location = 0) in vec3 aPosition;
 layout(location = 1) in vec3 aColor;
@@ -68,17 +82,7 @@ precision highp float;
 in vec3 vColor;
 in float vDepth;
 in float vSizePx;
-#ifdef PASS_COLOR
-layout(location = 0) out vec4 oColor;
-layout(location = 1) out float oDepth;
-#endif
-#ifdef PASS_DEPTH
-layout(location = 0) out float oDepth;
-#endif
-#ifdef PASS_ACCUM
-layout(location = 0) out vec4 oAccum;
-#endif
-
+${PASS_OUTPUTS}
 void main() {
   vec2 c = gl_PointCoord * 2.0 - 1.0;
   // Round splats. The test is in pixels and never removes a splat's only pixel: a 1-px point's
@@ -184,16 +188,7 @@ in vec3 vViewPos;
 in vec3 vNormal;
 in vec3 vColor;
 uniform int uHasNormal;
-#ifdef PASS_COLOR
-layout(location = 0) out vec4 oColor;
-layout(location = 1) out float oDepth;
-#endif
-#ifdef PASS_DEPTH
-layout(location = 0) out float oDepth;
-#endif
-#ifdef PASS_ACCUM
-layout(location = 0) out vec4 oAccum;
-#endif
+${PASS_OUTPUTS}
 void main() {
   vec3 n = uHasNormal == 1 ? vNormal : cross(dFdx(vViewPos), dFdy(vViewPos));
   float len = length(n);
