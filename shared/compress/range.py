@@ -33,6 +33,7 @@ import numpy as np
 from shared.compress import _quadtree as qt
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
+from shared.core.threads import cpu_budget
 from shared.formats.container import open_container, write_container, write_stream
 
 log = logging.getLogger(__name__)
@@ -61,7 +62,8 @@ class RangeImage:
 
 
 def _threads() -> int:
-    return max(1, min(2, os.cpu_count() or 1))
+    # Bands are coded and decoded on their own, so the stream does not depend on the count.
+    return cpu_budget()
 
 
 @dataclass(frozen=True)

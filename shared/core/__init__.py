@@ -1,7 +1,8 @@
-"""The bottom layer: errors, atomic files, the shared-data path and lazy exports (and, imported
-by the kernel modules only, numba's threading policy: ``shared.core.threads``).
+"""The bottom layer: errors, atomic files, the shared-data path, lazy exports and the process's
+CPU budget (``cpu_budget``, with numba's threading policy in ``shared.core.threads``).
 
 Everything else in ``shared/`` may import these; they import nothing of Graylight's.
+``cpu_budget`` resolves lazily: its module imports numba, and importing the package loads none.
 """
 
 from shared.core.datapaths import shared_data_dir
@@ -9,4 +10,7 @@ from shared.core.errors import GraylightError, InputError
 from shared.core.files import atomic_file, read_json, write_json_atomic
 from shared.core.lazy import lazy_exports
 
-__all__ = ["GraylightError", "InputError", "atomic_file", "lazy_exports", "read_json", "shared_data_dir", "write_json_atomic"]
+_, __getattr__, __dir__ = lazy_exports(__name__, {"cpu_budget": "threads"})
+
+__all__ = ["GraylightError", "InputError", "atomic_file", "cpu_budget", "lazy_exports", "read_json", "shared_data_dir",
+           "write_json_atomic"]  # fmt: skip

@@ -32,6 +32,7 @@ import cv2
 import numpy as np
 
 from shared.core.errors import InputError
+from shared.core.threads import cpu_budget
 from shared.formats.ply import CLOUD_DTYPE, read_header, write_ply_records
 from shared.merge._fusion_kernels import cell_keys, free_space_violations, gather_moved, ray_terms
 from shared.merge._kernels import grid_reduce
@@ -139,7 +140,7 @@ def _free_space_mask(views: list[ViewCloud], poses: np.ndarray, params: FusionPa
 
 
 def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams | None = None,
-               free_space: bool = True, threads: int = 2) -> FusedCloud:
+               free_space: bool = True, threads: int | None = None) -> FusedCloud:
     """Fuse registered views into one cloud (see the module docstring).
 
     Parameters
@@ -148,7 +149,8 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
     poses : (V, 4, 4) view -> scan set frame.
     params : see :class:`FusionParams`.
     free_space : remove free-space violations (needs captured views' range images).
-    threads : threads of the free-space test (its kernel releases the GIL).
+    threads : threads of the free-space test (its kernel releases the GIL; None: the process's
+        CPU budget, :func:`shared.core.threads.cpu_budget`; the result does not depend on it).
     """
     params = params or FusionParams()
     if not views:
@@ -159,6 +161,7 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
         terms = _ray_terms(v) if v.K is not None else None
         conf.append(sample_confidence(v, terms))
         grazing.append(None if terms is None else terms[1] < params.min_view_cos)
+    threads = cpu_budget() if threads is None else threads
     keep = _free_space_mask(views, poses, params, threads) if free_space else [np.ones(len(v), bool) for v in views]
     n_in = int(sum(len(v) for v in views))
     n_free = int(sum(int((~k).sum()) for k in keep))

@@ -26,6 +26,7 @@ from scipy.spatial import cKDTree
 
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
+from shared.core.threads import cpu_budget
 
 log = logging.getLogger(__name__)
 
@@ -139,7 +140,7 @@ def reconstruct_mesh(xyz: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size
     faces = np.asarray(m.face_matrix(), np.int64)
     n_raw = len(faces)
     tree = cKDTree(xyz, balanced_tree=False, compact_nodes=False)  # builds in half the time, queries as fast
-    d, nearest = tree.query(verts, k=1, workers=-1)
+    d, nearest = tree.query(verts, k=1, workers=cpu_budget())
     ok = d <= params.trim_factor * np.maximum(size[nearest], 1e-6) + 0.5 * extent / (1 << depth)
     faces = faces[ok[faces].all(axis=1)]
     if len(faces) == 0:
@@ -173,7 +174,7 @@ def simplify_lods(mesh: ColouredMesh, fractions: tuple[float, ...] = (1 / 4, 1 /
             v, fc = src.vertices, src.faces
         if len(fc) == 0:
             raise InputError("mesh", f"simplification to {target} faces left nothing")
-        _, idx = tree.query(v, k=1, workers=-1)
+        _, idx = tree.query(v, k=1, workers=cpu_budget())
         src = _compact(np.asarray(v, np.float64), np.asarray(fc, np.int64), mesh.colours[idx])
         out[k] = src
     return [m for m in out if m is not None]

@@ -43,6 +43,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from shared.core.errors import InputError
+from shared.core.threads import cpu_budget
 from shared.merge._kernels import point_to_plane_system, track_correspondences, voxel_representatives
 from shared.merge.views import ViewCloud
 
@@ -76,7 +77,8 @@ class RegistrationParams:
     first_tolerance : the first pass's tolerance, degrees and mm (the final pass refines further).
     refresh : the nearest targets come from the k-d tree every this many iterations (followed on the
         targets' neighbour graph in between).
-    threads : threads of the correspondence searches (results do not depend on it).
+    threads : threads of the correspondence searches (None: the process's CPU budget,
+        :func:`shared.core.threads.cpu_budget`; results do not depend on it).
     normal_agreement : least cosine between the normals of corresponding points.
     seed : seed of the RANSAC of the global registration.
     """
@@ -98,7 +100,7 @@ class RegistrationParams:
     final_stride: int = 2
     first_tolerance: float = 5e-3
     refresh: int = 10
-    threads: int = 2
+    threads: int | None = None
     normal_agreement: float = 0.5
     seed: int = 0
 
@@ -327,7 +329,11 @@ class _EdgeFit:
 
 def _workers(n: int) -> int:
     # cKDTree starts its threads on every query: for small queries that costs more than it saves.
-    return -1 if n > 60000 else 1
+    return cpu_budget() if n > 60000 else 1
+
+
+def _pool_threads(params: RegistrationParams) -> int:
+    return max(1, params.threads) if params.threads is not None else cpu_budget()
 
 
 def _tukey(r: np.ndarray, c: float) -> np.ndarray:
@@ -355,7 +361,7 @@ def refine_poses(S: list[Samples], poses: np.ndarray, edges: Sequence[tuple[int,
     threads; the result does not depend on them. Returns the poses and the last fit of every edge.
     """
     # Threads of this call only (a pool kept across calls would not survive a worker's fork).
-    pool = ThreadPoolExecutor(max_workers=max(1, params.threads), thread_name_prefix="registration")
+    pool = ThreadPoolExecutor(max_workers=_pool_threads(params), thread_name_prefix="registration")
     try:
         return _refine_loop(S, poses, edges, voxel, params, fixed, start_dist, stride, pool)
     finally:
@@ -618,7 +624,7 @@ def _all_overlap_edges(S: list[Samples], poses: np.ndarray, voxel: float, params
                    _overlap_share(S, poses, j, i, dist, cos_min, 1000))
 
     pairs = [(i, j) for x, i in enumerate(views) for j in views[x + 1:]]
-    with ThreadPoolExecutor(max_workers=max(1, params.threads), thread_name_prefix="registration") as pool:
+    with ThreadPoolExecutor(max_workers=_pool_threads(params), thread_name_prefix="registration") as pool:
         shares = list(pool.map(share, pairs))
     found = {e: ov for e, ov in zip(pairs, shares, strict=True) if ov >= params.min_overlap}
     keep: set[tuple[int, int]] = set()

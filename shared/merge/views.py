@@ -26,6 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from shared.core.errors import InputError
+from shared.core.threads import cpu_budget
 from shared.formats.capture import load_capture
 from shared.formats.ply import read_ply
 from shared.formats.rig import load_rig
@@ -90,7 +91,7 @@ def estimate_normals(xyz: np.ndarray, k: int = 16, sensor: np.ndarray | None = N
     n = len(xyz)
     k = int(min(k, max(3, n - 1)))
     tree = cKDTree(xyz)
-    dist, idx = tree.query(xyz, k=k + 1, workers=-1)
+    dist, idx = tree.query(xyz, k=k + 1, workers=cpu_budget())
     nb = xyz[idx[:, 1:]]
     centred = nb - nb.mean(axis=1, keepdims=True)
     cov = np.einsum("nki,nkj->nij", centred, centred)

@@ -21,6 +21,8 @@ import numba
 import numpy as np
 from scipy.spatial import cKDTree
 
+from shared.core.threads import cpu_budget
+
 #: Neighbours whose mean distance is a point's size (4: a grid's edge-adjacent samples).
 SIZE_NEIGHBOURS = 4
 #: Neighbours (the point included) whose covariance gives a point's normal.
@@ -46,7 +48,7 @@ def spacing_size(xyz: np.ndarray, k: int = SIZE_NEIGHBOURS, tree: cKDTree | None
     k = min(k, n - 1)
     tree = tree or kdtree(xyz)
     for a in range(0, n, BLOCK):
-        d, _ = tree.query(xyz[a : a + BLOCK], k=k + 1, workers=-1)
+        d, _ = tree.query(xyz[a : a + BLOCK], k=k + 1, workers=cpu_budget())
         out[a : a + BLOCK] = d[:, 1:].mean(axis=1)
     return out
 
@@ -137,7 +139,7 @@ def pca_normals(
     vp = np.zeros(3) if viewpoint is None else np.asarray(viewpoint, np.float64)
     tree = tree or kdtree(xyz)
     for a in range(0, n, BLOCK):
-        _, idx = tree.query(xyz[a : a + BLOCK], k=k, workers=-1)
+        _, idx = tree.query(xyz[a : a + BLOCK], k=k, workers=cpu_budget())
         # The query lists each point first (distance 0) unless a coincident point ties with it.
         idx[:, 0] = np.arange(a, a + idx.shape[0])
         _normals_kernel(xyz, np.ascontiguousarray(idx, np.int64), vp, out[a : a + BLOCK])

@@ -43,7 +43,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
-from shared.core.threads import pin_threading_layer
+from shared.core.threads import cpu_budget, pin_threading_layer
 
 # The scan's threading policy, for processes that render without scanning.
 pin_threading_layer()
@@ -396,12 +396,13 @@ class Frame:
 
 
 class Rasterizer:
-    """Reusable per-size buffers; ``threads`` buffers, one per worker thread."""
+    """Reusable per-size buffers; ``threads`` buffers, one per worker thread (default: the
+    process's CPU budget, at most numba's threads)."""
 
     def __init__(self, width: int, height: int, threads: int | None = None) -> None:
         self.width = int(width)
         self.height = int(height)
-        self.threads = int(threads or numba.get_num_threads())
+        self.threads = int(threads or min(cpu_budget(), numba.get_num_threads()))
         # One (H * W + 1,) key buffer a thread: the pixels, then the spare slot (see _splat).
         # Empty between frames: the resolve clears what it reads.
         self._buffers = np.full((self.threads, self.height * self.width + 1), EMPTY, np.uint64)

@@ -29,6 +29,7 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.core.files import atomic_file, write_json_atomic
+from shared.core.threads import cpu_budget
 from shared.formats.capture import Capture, load_capture
 from shared.formats.images import probe_image
 from shared.formats.ply import write_ply
@@ -221,7 +222,7 @@ def scan(
         tables = pool.submit(beside, rig_model)
         # One image-reading thread a core: PNG inflation releases the GIL.
         decoded = decode_capture(capture, progress=lambda f: report_progress(0.02 + 0.73 * f),
-                                 threads=os.cpu_count() or 2)
+                                 threads=cpu_budget())
         t_decode = time.perf_counter()
         decode_stats = decoded.stats
         tri = triangulate(decoded, rig_model, tables=tables.result())

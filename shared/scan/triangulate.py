@@ -36,6 +36,7 @@ import numba
 import numpy as np
 
 from shared.core.files import atomic_file
+from shared.core.threads import cpu_budget
 from shared.formats.rig import Device, Rig
 from shared.scan._bands import next_item
 from shared.scan.decode import Decoded, kernel_thread_scope
@@ -88,7 +89,7 @@ def _undistort_points(pts: np.ndarray, dev: Device) -> np.ndarray:
     blocks = [pts[i : i + _UNDISTORT_BLOCK] for i in range(0, len(pts), _UNDISTORT_BLOCK)]
     if len(blocks) == 1:
         return cv2.undistortPoints(pts, dev.K, dev.dist, criteria=_UNDISTORT_CRITERIA).reshape(-1, 2)
-    with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
+    with ThreadPoolExecutor(max_workers=cpu_budget()) as pool:
         parts = pool.map(lambda b: cv2.undistortPoints(b, dev.K, dev.dist, criteria=_UNDISTORT_CRITERIA), blocks)
         return np.concatenate([p.reshape(-1, 2) for p in parts])
 
