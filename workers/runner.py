@@ -12,6 +12,12 @@ and its new state in the database; the stages it unblocks are published.
    and mark the stage succeeded — only if the lease is still ours. When the lease is lost
    (the job was cancelled, or the reconciler gave the stage to another worker), the stage
    stops at its next progress report (:class:`LeaseLost`) and nothing is stored.
+4. Detached files (:attr:`~shared.service.jobs.StageSpec.detach`, the raw range image) are
+   stored as objects of their own before the stage's object. A stage that reads one gets it
+   beside the upstream stage's other files; when it has been deleted, the upstream stage's
+   adapter runs again here for it. Once the stage's own output is stored (or found), the
+   detached inputs it releases (:func:`~shared.service.jobs.released_inputs`) are deleted:
+   a stage that fails, or is cancelled, has stored nothing and deletes nothing.
 
 Bad input (:class:`~shared.core.errors.InputError`) fails the stage with its one-line reason
 and is never retried; transient faults (connections, timeouts) give the stage back to
@@ -32,7 +38,7 @@ from pathlib import Path
 
 from shared.core.errors import InputError
 from shared.service.archive import ArchiveLimits, extract_archive
-from shared.service.artifacts import ArtifactError, ArtifactStore
+from shared.service.artifacts import ArtifactError, ArtifactStore, detached_key, sha256_file
 from shared.service.config import Settings
 from shared.service.faults import storage_fault
 from shared.service.jobs import (
@@ -41,6 +47,7 @@ from shared.service.jobs import (
     base_name,
     fan_out,
     fanout_index,
+    released_inputs,
     root_file,
     row_key,
     stage_spec,
@@ -225,6 +232,9 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
             summary = _execute(job, stage, spec.inputs, upstream, arts, settings, beat, key)
             if summary is None:
                 return Outcome("lost", stage_id)
+        # After the output is stored, also when it was found: a run that stored it and stopped
+        # before this line left the inputs to its retry.
+        _release_inputs(job, spec.name, upstream, arts)
         expand = fan_out(GRAPHS[job.kind], spec.name, int(summary.get("fanout", 0)))
         ok, newly = store.complete_stage(stage_id, token, key, summary, reused=reused, expand=expand)
         if not ok:
@@ -297,6 +307,11 @@ def _output_key(job: Job, name: str) -> str:
     return st.output_key
 
 
+#: File in every stage object that detached files (hidden from artifact listings): each detached
+#: file's size and SHA-256, against which a re-made copy is checked.
+DETACHED_FILE = ".detached.json"
+
+
 def _execute(
     job: Job,
     stage: Stage,
@@ -307,31 +322,150 @@ def _execute(
     beat: Heartbeat,
     key: str,
 ) -> dict | None:
-    """Run the adapter into a temporary folder and store it as object ``key``; the summary,
-    or None when the lease was lost meanwhile (then nothing is stored)."""
-    # A probe job has no capture; its random capture key only makes its output its own.
-    has_capture = CAPTURE in inputs and not job.capture_ref.startswith("none:")
-    capture_dir = materialize_capture(job, arts, settings) if has_capture else None
-    local_inputs = {name: arts.fetch(k, settings.cache_dir) for name, k in upstream.items()}
-    rig_key = job.params.get("rig")
-    rig_path = arts.fetch(rig_key, settings.cache_dir) / "rig.json" if isinstance(rig_key, str) else None
+    """Run the adapter into a temporary folder and store it as object ``key`` (its detached
+    files first, each as its own object); the summary, or None when the lease was lost
+    meanwhile (then nothing is stored)."""
+    spec = stage_spec(job.kind, stage.name)
     work = settings.cache_dir / "work"
     work.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f"{stage.name}-", dir=work))
     try:
+        local_inputs = {name: arts.fetch(k, settings.cache_dir) for name, k in upstream.items()}
+        for ref in spec.detached_inputs:
+            producer, _, name = ref.partition("/")
+            if producer in local_inputs:
+                local_inputs[producer] = _with_detached(job, producer, name, local_inputs[producer], upstream[producer],
+                                                        arts, settings, beat, tmp / "inputs" / producer)  # fmt: skip
         out = tmp / "out"
         out.mkdir()
-        ctx = StageContext(
-            job_id=job.id, kind=job.kind, stage=stage.name, params=dict(job.params), capture_dir=capture_dir,
-            inputs=local_inputs, out_dir=out, progress=beat.set_progress, rig_path=rig_path,
-            index=fanout_index(stage.name),
-        )  # fmt: skip
-        summary = STAGE_FUNCS[base_name(stage.name)](ctx) or {}
+        summary = _run_adapter(job, stage.name, inputs, local_inputs, arts, settings, beat, out)
         if beat.lost.is_set():
             # Someone else holds the stage now; their run will store the same object.
             return None
         (out / SUMMARY_FILE).write_text(json.dumps(summary, default=str))
+        detached = {}
+        for name in spec.detach:
+            if (out / name).is_file():
+                detached[name] = {"size": (out / name).stat().st_size, "sha256": sha256_file(out / name)}
+                _store_detached(arts, key, name, out / name, tmp)
+        if detached:
+            (out / DETACHED_FILE).write_text(json.dumps(detached, sort_keys=True))
         arts.put_dir(key, out, move=True)
         return summary
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _run_adapter(job: Job, name: str, inputs: tuple[str, ...], local_inputs: dict[str, Path], arts: ArtifactStore,
+                 settings: Settings, beat: Heartbeat, out: Path) -> dict:
+    """Run stage row ``name``'s adapter on ``local_inputs`` (upstream row -> folder) into the empty
+    folder ``out``; its summary."""
+    # A probe job has no capture; its random capture key only makes its output its own.
+    has_capture = CAPTURE in inputs and not job.capture_ref.startswith("none:")
+    capture_dir = materialize_capture(job, arts, settings) if has_capture else None
+    rig_key = job.params.get("rig")
+    rig_path = arts.fetch(rig_key, settings.cache_dir) / "rig.json" if isinstance(rig_key, str) else None
+    ctx = StageContext(
+        job_id=job.id, kind=job.kind, stage=name, params=dict(job.params), capture_dir=capture_dir,
+        inputs=local_inputs, out_dir=out, progress=beat.set_progress, rig_path=rig_path,
+        index=fanout_index(name),
+    )  # fmt: skip
+    return STAGE_FUNCS[base_name(name)](ctx) or {}
+
+
+def _store_detached(arts: ArtifactStore, key: str, name: str, src: Path, tmp: Path) -> None:
+    """Move the file ``src`` out of a stage's output into object ``detached_key(key, name)``."""
+    folder = Path(tempfile.mkdtemp(prefix="detached-", dir=tmp))
+    target = folder / name
+    target.parent.mkdir(parents=True, exist_ok=True)
+    os.replace(src, target)
+    arts.put_dir(detached_key(key, name), folder, move=True)
+
+
+def _with_detached(job: Job, producer: str, name: str, folder: Path, key: str, arts: ArtifactStore,
+                   settings: Settings, beat: Heartbeat, view: Path) -> Path:
+    """A folder ``view`` holding the files of upstream output ``folder`` (object ``key`` of row
+    ``producer``), as links, and its detached file ``name``, hard-linked (or copied) so that a
+    concurrent deletion of the detached object cannot take it away from this run. When the
+    detached object is gone (a job that did not keep it released it), ``producer``'s adapter
+    runs again to store it. An output stored before files were detached still holds the file."""
+    view.mkdir(parents=True)
+    for p in folder.iterdir():
+        (view / p.name).symlink_to(p)
+    if (folder / name).is_file():
+        return view
+    dkey = detached_key(key, name)
+    for attempt in range(3):
+        if not arts.exists(dkey):
+            _remake_detached(job, producer, key, arts, settings, beat)
+        (view / name).unlink(missing_ok=True)
+        try:
+            _pin(arts.fetch(dkey, settings.cache_dir) / name, view / name)
+            return view
+        except (ArtifactError, FileNotFoundError):
+            if attempt == 2:
+                raise
+            log.info("job %s: the detached %s of %s went away while read; again", job.id, name, producer)
+    raise AssertionError("unreachable")  # pragma: no cover
+
+
+def _pin(src: Path, dst: Path) -> None:
+    """``dst`` a hard link to ``src`` (a copy across filesystems): it outlives ``src``'s deletion."""
+    try:
+        os.link(src, dst)
+    except FileNotFoundError:
+        raise
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+def _remake_detached(job: Job, producer: str, key: str, arts: ArtifactStore, settings: Settings,
+                     beat: Heartbeat) -> None:
+    """Store the detached files of row ``producer``'s output (object ``key``) again, from a new
+    run of its adapter on its own inputs (its other files are stored already and left alone)."""
+    spec = stage_spec(job.kind, producer)
+    row = job.stage(producer)
+    upstream = {d: _output_key(job, d) for d in row.depends_on}
+    if row_key(job.kind, producer, job.capture_key, job.params, upstream) != key:
+        raise ArtifactError(f"job {job.id}: the inputs of {producer} changed since its output {key[:12]} was stored")
+    log.info("job %s: %s of %s was deleted; running %s again for it", job.id, ", ".join(spec.detach), producer, producer)
+    stored = _detached_sums(arts, key)
+    work = settings.cache_dir / "work"
+    work.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f"{producer}-detached-", dir=work))
+    try:
+        local_inputs = {d: arts.fetch(k, settings.cache_dir) for d, k in upstream.items()}
+        out = tmp / "out"
+        out.mkdir()
+        _run_adapter(job, producer, spec.inputs, local_inputs, arts, settings, beat, out)
+        for name in spec.detach:
+            src = out / name
+            if not src.is_file():
+                raise ArtifactError(f"job {job.id}: {producer} ran again but wrote no {name}")
+            want = stored.get(name)
+            if want is not None and want.get("sha256") != sha256_file(src):
+                # The store's rule for an object rebuilt under its key: the new bytes stand.
+                log.warning("job %s: %s of %s came out different when made again", job.id, name, producer)
+            _store_detached(arts, key, name, src, tmp)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _detached_sums(arts: ArtifactStore, key: str) -> dict:
+    m = arts.manifest(key)
+    if m is None or DETACHED_FILE not in m.files:
+        return {}
+    with arts.open(key, DETACHED_FILE) as f:
+        return json.loads(f.read().decode())
+
+
+def _release_inputs(job: Job, stage: str, upstream: dict[str, str], arts: ArtifactStore) -> None:
+    """Delete the detached inputs stage row ``stage`` has made redundant (its output is stored)."""
+    for ref in released_inputs(stage_spec(job.kind, stage), job.params):
+        producer, _, name = ref.partition("/")
+        if producer not in upstream:
+            continue
+        dkey = detached_key(upstream[producer], name)
+        if arts.exists(dkey):
+            arts.delete(dkey)
+            log.info("job %s stage %s: deleted the detached %s of %s (%s)", job.id, stage, name, producer, dkey[:12])

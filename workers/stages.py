@@ -157,7 +157,9 @@ def run_export(ctx: StageContext) -> dict[str, Any]:
 
 def run_compress(ctx: StageContext) -> dict[str, Any]:
     """The range image as ``range.glr`` (and ``compress.json``); a copy of the raw ``range.npz``
-    too unless ``params.compress.keep_range`` is false."""
+    too unless ``params.compress.keep_range`` is false. The raw image is triangulate's detached
+    file (the runner lays it in ``ctx.inputs["triangulate"]``); with keep_range false the runner
+    deletes it once this output is stored (``StageSpec.release_unless``)."""
     from shared.compress.files import compress_file
 
     options = compress_options(ctx.params.get("compress"))

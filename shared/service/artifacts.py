@@ -16,6 +16,10 @@ manifest is written last, in one step (a rename locally, a single PUT on S3). An
 exists exactly when its manifest does, so a reader never sees half an output, and a
 duplicate writer (a re-delivered or re-queued task) either finds the manifest and does
 nothing or loses the race harmlessly.
+
+Objects never change; one is only ever deleted whole (:meth:`ArtifactStore.delete`). A stage
+file that a later stage may make redundant (the raw range image) is therefore stored as an
+object of its own under :func:`detached_key`, beside the stage's object.
 """
 
 from __future__ import annotations
@@ -86,6 +90,12 @@ def sha256_file(path: Path) -> str:
         for block in iter(lambda: f.read(_CHUNK), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def detached_key(key: str, name: str) -> str:
+    """The key of the object that holds file ``name`` detached from object ``key`` (SHA-256
+    hex of both): found from the stage's key alone, and deletable without touching it."""
+    return hashlib.sha256(f"{_check_key(key)}/detached/{_check_name(name)}".encode()).hexdigest()
 
 
 def _check_key(key: str) -> str:

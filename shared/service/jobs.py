@@ -14,6 +14,15 @@ map stage reads all of them; the database counts the fan-in (no Celery chords).
 
 Stage outputs are addressed by :func:`stage_key`: a SHA-256 of the stage, its version,
 its parameters and the keys of its inputs, so identical work is found, not redone.
+
+A stage may *detach* files of its output (``detach``): each is stored as an object of its own
+(:func:`shared.service.artifacts.detached_key` of the stage's key and the file's name), so that
+a later stage can delete it when it has made it redundant, although stored objects never change.
+The stages that read it name it in ``detached_inputs`` (the runner lays it beside the other
+files of the upstream output, and runs the upstream stage again for it if it has been deleted);
+``release_unless`` names the job parameter that, when false, deletes those inputs once the
+stage's own output is stored: the raw range image once ``range.glr`` is, when
+``params.compress.keep_range`` is false.
 """
 
 from __future__ import annotations
@@ -125,6 +134,10 @@ class StageSpec:
     queue (``cpu`` or ``render``); ``time_limit`` is seconds (hard; the soft limit is 90 %);
     ``publish`` are output files the API also serves under their bare name;
     ``version`` enters the output key, so bumping it makes retries re-run the stage.
+    ``detach``: files of the output stored as objects of their own (deletable; see the module
+    docstring); ``detached_inputs``: detached files of upstream stages this stage reads, as
+    ``"stage/file"``; ``release_unless``: a dotted job parameter (``"compress.keep_range"``)
+    that, when false, has the runner delete ``detached_inputs`` once this stage's output is stored.
     """
 
     name: str
@@ -136,6 +149,9 @@ class StageSpec:
     params: tuple[str, ...] = ()  # job parameters that enter this stage's key
     switch: str | None = None  # a job parameter that, when false, leaves this stage out
     fanout_from: str | None = None  # a map stage: one instance per item counted by that stage
+    detach: tuple[str, ...] = ()
+    detached_inputs: tuple[str, ...] = ()
+    release_unless: str | None = None
 
     @property
     def is_map(self) -> bool:
@@ -156,11 +172,13 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("ingest", "cpu", (CAPTURE,), 600, publish=("capture.json",), params=("rig",)),
         StageSpec("decode", "cpu", (CAPTURE, "ingest"), 3600, publish=("decoded.npz",)),
         StageSpec("triangulate", "cpu", (CAPTURE, "ingest", "decode"), 3600,
-                  publish=("cloud.ply", "triangulate.json"), params=("rig",)),
+                  publish=("cloud.ply", "triangulate.json"), params=("rig",), detach=("range.npz",)),
         # The range image compressed (range.glr); the raw range.npz is published from here
-        # unless params.compress.keep_range is false.
+        # unless params.compress.keep_range is false, and then no longer stored at all once
+        # range.glr is (triangulate's detached copy is deleted).
         StageSpec("compress", "cpu", ("triangulate",), 3600, publish=("range.glr", "range.npz", "compress.json"),
-                  params=("compress",)),
+                  params=("compress",), detached_inputs=("triangulate/range.npz",),
+                  release_unless="compress.keep_range"),
         # Tiles fan out: a plan, one task per chunk (subtree), a merge (fan-in counted in the
         # database). The merge keeps the name "tiles": its folder is what viewers load.
         StageSpec("tiles_plan", "render", ("triangulate",), 7200, switch="render", params=("tiles",)),
@@ -227,6 +245,19 @@ def graph_for(kind: str, params: Mapping[str, Any] | None = None) -> tuple[Stage
             kept.append(spec)
             names.add(spec.name)
     return tuple(kept)
+
+
+def released_inputs(spec: StageSpec, params: Mapping[str, Any]) -> tuple[str, ...]:
+    """The detached inputs (``"stage/file"``) that a succeeded ``spec`` stage of a job with
+    ``params`` makes redundant: its ``detached_inputs`` when the job parameter its
+    ``release_unless`` names is false (absent counts as true), else none. The parameter enters
+    the stage's key (it is read from ``spec.params``), so a stored output decides the same."""
+    if spec.release_unless is None:
+        return ()
+    value: Any = params
+    for part in spec.release_unless.split("."):
+        value = value.get(part, True) if isinstance(value, Mapping) else True
+    return spec.detached_inputs if value is False else ()
 
 
 def stage_spec(kind: str, name: str) -> StageSpec:

@@ -36,7 +36,7 @@ from shared.service.artifacts import ArtifactStore
 from shared.service.config import Settings
 from shared.service.jobs import QUEUES, JobState, StageState, base_name
 from shared.service.jobstore import EventRow, JobRow, JobStore, StageRow
-from shared.service.usage import ObjectSizes, stored_keys
+from shared.service.usage import ObjectSizes, detached_keys, stored_keys
 
 __all__ = ["DURATION_BUCKETS", "ServiceCollector", "broker_queue_depths", "service_registry"]
 
@@ -134,7 +134,7 @@ class ServiceCollector(Collector):
 
         keys, uploads = stored_keys(self.store)
         yield GaugeMetricFamily("graylight_artifact_store_bytes", "Bytes of stored objects held by jobs, and of uploads.",
-                                value=self.sizes.total(keys) + uploads)  # fmt: skip
+                                value=self.sizes.total(keys, deletable=detached_keys(self.store)) + uploads)  # fmt: skip
 
         c = CounterMetricFamily("graylight_reconciler_repairs", "Repairs made by the reconciler.", labels=["repair"])
         c.add_metric(["lease_expired"], int(expired or 0))

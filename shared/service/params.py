@@ -16,7 +16,8 @@ key                       kinds      meaning
                                      (:class:`shared.render.options.PreviewOptions`)
 ``compress``              scan       ``{"quantum": q}`` or ``{"max_error": e}`` (rig units, > 0; default
                                      lossless at 0.02 mm) and ``"keep_range"``: false publishes
-                                     ``range.glr`` only, not the raw ``range.npz`` (default true)
+                                     ``range.glr`` only, not the raw ``range.npz``, and deletes
+                                     the raw image once ``range.glr`` is stored (default true)
 ``seconds``               probe      how long the self-test stage sleeps, 0..60
 ========================  =========  =============================================================
 

@@ -4,22 +4,25 @@ jobs, and the bytes its captures, upload sessions and stage outputs fill in the 
 Objects in the store are content-addressed and never change, so the size of each (the sum of
 its manifest's file sizes) is read once per process and kept (:class:`ObjectSizes`). An object
 shared by two keys (the same capture submitted twice) counts for both; an object counts once
-for one key however many of its jobs use it.
+for one key however many of its jobs use it. The files a stage detaches (the raw range image,
+:attr:`shared.service.jobs.StageSpec.detach`) are objects that a later stage may delete: they
+count while they exist, their sizes read again when older than ``recheck_seconds``.
 """
 
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Iterable
 from dataclasses import dataclass
 
 from sqlalchemy import func, select
 
-from shared.service.artifacts import ArtifactStore
-from shared.service.jobs import JobState, StageState
+from shared.service.artifacts import ArtifactStore, detached_key
+from shared.service.jobs import JobState, StageState, stage_spec
 from shared.service.jobstore import JobRow, JobStore, StageRow, UploadRow
 
-__all__ = ["ObjectSizes", "Usage", "key_usage", "running_jobs", "stored_keys"]
+__all__ = ["ObjectSizes", "Usage", "detached_keys", "key_usage", "running_jobs", "stored_keys"]
 
 #: Job states that count against a key's limit of running jobs.
 UNFINISHED = (JobState.QUEUED, JobState.RUNNING)
@@ -34,30 +37,37 @@ class Usage:
 
 
 class ObjectSizes:
-    """Sizes in bytes of stored objects by key, read from their manifests once (thread-safe)."""
+    """Sizes in bytes of stored objects by key, read from their manifests once (thread-safe);
+    those of ``deletable`` objects again when older than ``recheck_seconds``."""
 
-    def __init__(self, arts: ArtifactStore, limit: int = 200_000) -> None:
+    def __init__(self, arts: ArtifactStore, limit: int = 200_000, recheck_seconds: float = 30.0) -> None:
         self.arts = arts
         self.limit = limit
-        self._sizes: dict[str, int] = {}
+        self.recheck_seconds = recheck_seconds
+        self._sizes: dict[str, tuple[int, float]] = {}  # key -> (bytes, time.monotonic() read)
         self._lock = threading.Lock()
 
-    def size(self, key: str) -> int:
+    def size(self, key: str, deletable: bool = False) -> int:
+        now = time.monotonic()
         with self._lock:
-            if key in self._sizes:
-                return self._sizes[key]
+            hit = self._sizes.get(key)
+            if hit is not None and (not deletable or now - hit[1] < self.recheck_seconds):
+                return hit[0]
         m = self.arts.manifest(key)
         if m is None:
+            with self._lock:
+                self._sizes.pop(key, None)
             return 0  # not (yet, or no longer) stored: not cached, it may appear
         n = sum(e.size for e in m.files.values())
         with self._lock:
             if len(self._sizes) >= self.limit:
                 self._sizes.clear()
-            self._sizes[key] = n
+            self._sizes[key] = (n, now)
         return n
 
-    def total(self, keys: Iterable[str]) -> int:
-        return sum(self.size(k) for k in set(keys))
+    def total(self, keys: Iterable[str], deletable: Iterable[str] = ()) -> int:
+        """Bytes of the objects ``keys`` and of the ``deletable`` ones that still exist."""
+        return sum(self.size(k) for k in set(keys)) + sum(self.size(k, deletable=True) for k in set(deletable))
 
 
 def running_jobs(store: JobStore, owner_id: int) -> int:
@@ -86,7 +96,28 @@ def stored_keys(store: JobStore, owner_id: int | None = None) -> tuple[set[str],
     return keys, uploads
 
 
+def detached_keys(store: JobStore, owner_id: int | None = None) -> set[str]:
+    """The keys of the objects detached from the outputs of ``owner_id``'s succeeded stages
+    (everyone's when None): whether each still exists is the store's to say."""
+    with store.session() as s:
+        q = select(JobRow.kind, StageRow.name, StageRow.output_key).join(JobRow, JobRow.id == StageRow.job_id).where(
+            StageRow.state == StageState.SUCCEEDED, StageRow.output_key.is_not(None)
+        )
+        if owner_id is not None:
+            q = q.where(JobRow.owner_id == owner_id)
+        rows = s.execute(q.distinct()).all()
+    keys: set[str] = set()
+    for kind, name, key in rows:
+        try:
+            spec = stage_spec(kind, name)
+        except KeyError:  # a stage of a graph that no longer has it
+            continue
+        keys.update(detached_key(key, f) for f in spec.detach)
+    return keys
+
+
 def key_usage(store: JobStore, sizes: ObjectSizes, owner_id: int) -> Usage:
     """``owner_id``'s :class:`Usage`."""
     keys, uploads = stored_keys(store, owner_id)
-    return Usage(running=running_jobs(store, owner_id), stored_bytes=sizes.total(keys) + uploads)
+    stored = sizes.total(keys, deletable=detached_keys(store, owner_id)) + uploads
+    return Usage(running=running_jobs(store, owner_id), stored_bytes=stored)

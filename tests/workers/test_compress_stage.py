@@ -11,7 +11,7 @@ import pytest
 
 from shared.compress.range import expected_lossless, read_range
 from shared.core.errors import InputError
-from shared.service.artifacts import ArtifactStore
+from shared.service.artifacts import ArtifactStore, detached_key
 from shared.service.jobs import graph_for, stage_spec
 from shared.service.params import check_job_params
 from tests.support.inprocess import run_scan_job
@@ -31,9 +31,11 @@ def test_compress_stage_lossless_keeps_the_raw_range(tmp_path: Path, small_captu
     assert "compress" in [s.name for s in graph_for("scan")]
     assert set(stage_spec("scan", "compress").publish) == {"range.glr", "range.npz", "compress.json"}
     arts, job = _run_job(tmp_path, small_capture, {})
-    raw = arts.fetch(job.stage("triangulate").output_key, tmp_path / "c1") / "range.npz"
+    # The triangulation's range image is an object of its own (detached), kept with keep_range.
+    raw = arts.fetch(detached_key(job.stage("triangulate").output_key, "range.npz"), tmp_path / "c1") / "range.npz"
     out = arts.fetch(job.stage("compress").output_key, tmp_path / "c2")
     assert _files(out) == ["compress.json", "range.glr", "range.npz"]
+    assert (out / "range.npz").read_bytes() == raw.read_bytes()
     with np.load(raw) as d:
         z = d["z"]
     back = read_range(out / "range.glr").z
@@ -45,10 +47,14 @@ def test_compress_stage_lossless_keeps_the_raw_range(tmp_path: Path, small_captu
 
 
 def test_compress_stage_bounded_drops_the_raw_range(tmp_path: Path, small_capture: Path) -> None:
+    # A job that keeps the range first, for the raw image to compare with (the second job reuses
+    # its triangulation; tests/workers/test_keep_range.py follows the dropped object itself).
+    arts, kept = _run_job(tmp_path, small_capture, {})
+    raw = arts.fetch(kept.stage("compress").output_key, tmp_path / "c1") / "range.npz"
     arts, job = _run_job(tmp_path, small_capture, {"compress": {"max_error": 0.5, "keep_range": False}})
-    raw = arts.fetch(job.stage("triangulate").output_key, tmp_path / "c1") / "range.npz"
     out = arts.fetch(job.stage("compress").output_key, tmp_path / "c2")
     assert _files(out) == ["compress.json", "range.glr"]
+    assert not arts.exists(detached_key(job.stage("triangulate").output_key, "range.npz"))
     with np.load(raw) as d:
         z = d["z"]
     back = read_range(out / "range.glr").z

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from shared.formats.ply import read_ply
-from shared.service.artifacts import ArtifactStore, sha256_file
+from shared.service.artifacts import ArtifactStore, detached_key, sha256_file
 from shared.service.jobs import graph_for
 from shared.service.jobstore import Job, JobStore, NewJob
 from tests.support.jobsvc import capture_zip, make_env
@@ -104,7 +104,8 @@ def test_runner_on_s3_store(tmp_path: Path, small_capture: Path, moto_endpoint: 
     assert done.state == "succeeded", done
     arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
     m = arts.verify(done.stage("triangulate").output_key)
-    assert {"cloud.ply", "range.npz"} <= set(m.files)
+    assert "cloud.ply" in m.files and "range.npz" not in m.files  # detached: an object of its own
+    assert set(arts.verify(detached_key(done.stage("triangulate").output_key, "range.npz")).files) == {"range.npz"}
     assert not (Path(settings.storage_url)).exists()  # nothing went to a local folder by mistake
 
 
