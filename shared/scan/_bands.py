@@ -28,6 +28,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
@@ -49,6 +50,31 @@ def next_item(typingctx: Any, counter: Any) -> Any:  # pragma: no cover - compil
         ary = context.make_array(aryty)(context, builder, args[0])
         ptr = cgutils.get_item_pointer(context, builder, aryty, ary, [context.get_constant(types.intp, 0)])
         return builder.atomic_rmw("add", ptr, context.get_constant(types.int64, 1), "monotonic")
+
+    return sig, codegen
+
+
+@intrinsic
+def prefetch(typingctx: Any, ary: Any, index: Any) -> Any:  # pragma: no cover - compiled
+    """Ask the CPU to bring the cache line of ``ary[index]`` (a 1-D array) into cache: a hint
+    (``llvm.prefetch``, a read, kept in every level), never a fault, no result. The scan
+    kernels read a row from each of 20-odd images in turn, too many short streams for the
+    hardware prefetcher; they ask for the next row of each while the current one is worked."""
+    if not (isinstance(ary, types.Array) and ary.ndim == 1 and isinstance(index, types.Integer)):
+        return None
+    sig = types.void(ary, index)
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        aryty = signature.args[0]
+        a = context.make_array(aryty)(context, builder, args[0])
+        idx = context.cast(builder, args[1], signature.args[1], types.intp)
+        ptr = cgutils.get_item_pointer(context, builder, aryty, a, [idx])
+        i8p, i32 = ir.IntType(8).as_pointer(), ir.IntType(32)
+        fnty = ir.FunctionType(ir.VoidType(), [i8p, i32, i32, i32])
+        fn = cgutils.get_or_insert_function(builder.module, fnty, "llvm.prefetch.p0")
+        # read (0), highest locality (3), data cache (1)
+        builder.call(fn, [builder.bitcast(ptr, i8p), i32(0), i32(3), i32(1)])
+        return context.get_dummy_value()
 
     return sig, codegen
 

@@ -58,7 +58,7 @@ from shared.core.errors import InputError
 from shared.core.files import atomic_file
 from shared.formats.capture import Capture, CodeImage, code_bits
 from shared.formats.images import prepare_png_reading, probe_image, read_grey, read_grey_and_colour
-from shared.scan._bands import next_item
+from shared.scan._bands import next_item, prefetch
 
 log = logging.getLogger(__name__)
 
@@ -363,6 +363,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
     nq = k if want_q else 1
     dmax = np.iinfo(diff.dtype).max
     n_bands = (H + _BAND - 1) // _BAND
+    line = 64 // white.itemsize  # image elements per cache line
     counter = np.zeros(1, np.int64)
     for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
         sg = np.empty(W, np.uint16)
@@ -380,6 +381,12 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
             if band >= n_bands:
                 break
             for y in range(band * _BAND, min(H, band * _BAND + _BAND)):
+                # The next row of each image is asked for just before this row of it is read
+                # (see prefetch): spread out so, the requests keep the memory busy.
+                ahead = min(y + 1, H - 1)
+                for x in range(0, W, line):
+                    prefetch(white[ahead], x)
+                    prefetch(black[ahead], x)
                 wr = white[y]
                 br = black[y]
                 lr = lit[y]
@@ -396,8 +403,9 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                     t = min(np.ceil(thr if with_inverse else thr * np.float32(2.0)), np.float32(dmax // 2))
                     ithr[x] = t
                     nthr[x] = -t
-                    g = np.float32(127.0) / s if s > 0 else np.float32(0.0)
-                    kq[x] = g if with_inverse else g * np.float32(0.5)
+                    if want_q:  # the q scale: only the confidence and the sub-pixel step read it
+                        g = np.float32(127.0) / s if s > 0 else np.float32(0.0)
+                        kq[x] = g if with_inverse else g * np.float32(0.5)
                     wb[x] = np.int32(wr[x]) + np.int32(br[x])
                     sg[x] = 0
                     wk[x] = 0
@@ -407,6 +415,12 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                 for j in range(k):
                     one = np.uint16(1) << bits[j]
                     p = pats[j][y]
+                    pn = pats[j][ahead]
+                    rn = refs[j][ahead]
+                    for x in range(0, W, line):
+                        prefetch(pn, x)
+                        if with_inverse:
+                            prefetch(rn, x)
                     dd = q[j] if want_q else q[0]
                     if with_inverse:
                         r = refs[j][y]
