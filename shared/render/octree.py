@@ -34,19 +34,22 @@ Out of core, in three passes whose memory does not grow with the cloud:
 1. :func:`plan_tiles` streams the PLY for bounds and attribute ranges (rejecting NaN or
    infinite coordinates), then again to count points per cell of a 128^3 grid, picks
    *chunks* (the largest octree nodes holding at most ``max_chunk`` points) and streams the
-   points once more into one file per chunk. Given a process pool, each of these passes
-   splits the cloud into contiguous ranges, one a worker; the chunk files come out the same.
-2. :func:`build_chunk` builds one chunk independently (the parallel unit: a process
+   points once more into one file per chunk. Given a pool (threads or processes), each of
+   these passes splits the cloud into contiguous ranges, one a worker; the chunk files come
+   out the same.
+2. :func:`build_chunk` builds one chunk independently (the parallel unit: a thread
    in-process, a task under the job service). Because every cell a node at level L samples
    from (level L + 7) lies inside one chunk (chunks sit at level <= 7), a chunk can also
    compute its exact share of the nodes above it.
 3. :func:`merge_tiles` concatenates the pieces into ``octree.bin``, writes
    ``hierarchy.bin`` and ``metadata.json`` and renames the finished folder into place.
 
-:func:`build_tiles` runs all three with one pool of forked workers, and fuses 2 and 3: a
-worker samples each chunk, and once every chunk's node sizes are known, writes that chunk's
-pieces straight to their places in ``octree.bin`` (same bytes as the merge, less I/O, no
-serial copy). Units are those of the PLY (millimetres for Graylight).
+:func:`build_tiles` runs all three with one pool of threads (the kernels release the GIL),
+and fuses 2 and 3: a thread samples each chunk, and once every chunk's node sizes are known,
+writes that chunk's pieces straight to their places in ``octree.bin`` (same bytes as the
+merge, less I/O, no serial copy). A cloud of at most :data:`KEEP_POINTS` points keeps the
+sampled chunks in memory meanwhile (a larger one keeps their order in files). Units are
+those of the PLY (millimetres for Graylight).
 """
 
 from __future__ import annotations
@@ -59,16 +62,17 @@ import os
 import shutil
 import tempfile
 import time
-from concurrent.futures import Executor, ProcessPoolExecutor, ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
+from typing import Any
 
 import numba
 import numpy as np
 
 from shared.compress import tilenode
 from shared.core.errors import InputError
+from shared.core.numba_start import blas_check_without_scipy_linalg
 from shared.formats.ply import CLOUD_DTYPE, iter_ply_chunks, read_header
 from shared.formats.potree import HIERARCHY_DTYPE, HIERARCHY_STEP
 
@@ -84,7 +88,8 @@ COUNT_LEVEL = 7  # level of the counting grid; chunks are never deeper than this
 BYTES_PER_NODE = HIERARCHY_DTYPE.itemsize  # 22
 MAX_DEPTH = MORTON_BITS - GRID_LEVELS  # deepest level whose sampling grid the codes resolve
 READ_CHUNK = 1 << 20  # points a slice of the passes over the cloud
-MIN_PART_POINTS = 1 << 20  # smallest range of the cloud a pass hands to a worker process
+MIN_PART_POINTS = 1 << 19  # smallest range of the cloud a pass hands to a worker
+KEEP_POINTS = 1 << 23  # clouds up to this many points keep pass 2's chunks in memory (~40 bytes a point)
 PLAN_FILE = "plan.json"
 MAX_OPEN_FILES = 256
 #: Node encodings of ``octree.bin``: option value -> metadata.json "encoding".
@@ -157,7 +162,7 @@ def _quantise1(v: float, offset: float, inv: float, top: np.int64) -> np.int64:
     return min(max(np.int64(np.floor((np.float64(v) - offset) * inv + 0.5)), 0), top)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def morton_codes(ipos: np.ndarray, qsize: int) -> np.ndarray:
     """Morton codes of integer positions.
 
@@ -179,7 +184,7 @@ def morton_codes(ipos: np.ndarray, qsize: int) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _count_unassigned(assigned: np.ndarray, lo: int, hi: int) -> int:
     c = 0
     for i in range(lo, hi):
@@ -188,7 +193,7 @@ def _count_unassigned(assigned: np.ndarray, lo: int, hi: int) -> int:
     return c
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _sample(codes: np.ndarray, assigned: np.ndarray, lo: int, hi: int, shift: int, node: int) -> int:
     """Give ``node`` the first unassigned point of every cell (``code >> shift``) in [lo, hi)."""
     last = np.int64(-1)
@@ -203,7 +208,7 @@ def _sample(codes: np.ndarray, assigned: np.ndarray, lo: int, hi: int, shift: in
     return taken
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _take_all(assigned: np.ndarray, lo: int, hi: int, node: int) -> int:
     taken = 0
     for i in range(lo, hi):
@@ -220,7 +225,7 @@ def _permute(rec: np.ndarray, order: np.ndarray) -> np.ndarray:
     return np.take(blobs, order).view(rec.dtype)
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _counting_order(keys: np.ndarray, nkeys: int) -> tuple[np.ndarray, np.ndarray]:
     """Stable order sorting small non-negative integer ``keys``; also the (nkeys + 1,) bucket starts."""
     starts = np.zeros(nkeys + 1, np.int64)
@@ -319,7 +324,7 @@ def _grow(amin, amax, k: int, v: float) -> bool:
     return True
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _scan_kernel(x, y, z, r, g, b, nx, ny, nz, sz, flags, lo, hi, amin, amax) -> tuple[int, int]:
     """One pass over a slice: grow the bounds ``lo``/``hi`` (3,) by the finite points and the
     attribute ranges ``amin``/``amax`` (7,: rgb, normal, size) by the finite values.
@@ -353,7 +358,7 @@ def _scan_kernel(x, y, z, r, g, b, nx, ny, nz, sz, flags, lo, hi, amin, amax) ->
     return bad, bad_size
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _quantise_kernel(x, y, z, offset, scale: float, qsize: int, out) -> None:
     inv = 1.0 / scale
     top = np.int64(qsize - 1)
@@ -373,7 +378,7 @@ def quantise(xyz: np.ndarray, offset: np.ndarray, scale: float, qsize: int) -> n
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _count_kernel(x, y, z, offset, scale: float, qsize: int, shift: int, counts) -> None:
     """Quantise, Morton-code and count one slice into ``counts`` (cells of ``code >> shift``)."""
     inv = 1.0 / scale
@@ -387,7 +392,7 @@ def _count_kernel(x, y, z, offset, scale: float, qsize: int, shift: int, counts)
         counts[_morton3(qx, qy, qz, mscale, mtop) >> shift] += 1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _distribute_kernel(
     x, y, z, r, g, b, nx, ny, nz, sz, flags, offset, scale, qsize, shift, cell_to_chunk, nchunks,
     pos, rgb, nrm, size, q, cid,
@@ -486,17 +491,19 @@ def _pwrite_all(fd: int, data: memoryview, offset: int) -> None:
 
 def _distribute_part(
     path: str, start: int, stop: int | None, work_dir: str, chunks: list[tuple[int, int, int]],
-    offset: np.ndarray, scale: float, qsize: int, file_offsets: np.ndarray,
+    offset: np.ndarray, scale: float, qsize: int, file_offsets: np.ndarray, memory: np.ndarray | None = None,
 ) -> int:  # fmt: skip
     """Distribution pass over points [start, stop): each chunk's points, in file order, are
     written into its chunk file from ``file_offsets[chunk]`` (bytes) on; several parts of the
-    cloud write into the same files at disjoint offsets. Returns the points written."""
+    cloud write into the same files at disjoint offsets. With ``memory`` (uint8, every chunk's
+    records one after the other) they go there instead, ``file_offsets`` counting from its
+    start. Returns the points written."""
     cell_to_chunk = _cell_to_chunk(chunks)
     shift = 3 * (MORTON_BITS - COUNT_LEVEL)
     paths = [Path(work_dir) / f"chunk_{i:05d}.bin" for i in range(len(chunks))]
     pos = np.array(file_offsets, np.int64)
     # Keep the chunk files open unless there are too many for the descriptor limit.
-    keep_open = len(chunks) <= MAX_OPEN_FILES
+    keep_open = memory is None and len(chunks) <= MAX_OPEN_FILES
     fds = [os.open(p, os.O_WRONLY) for p in paths] if keep_open else []
     written = 0
     # Buffers reused slice after slice: fresh ones would cost a page fault every 4 KiB.
@@ -515,7 +522,9 @@ def _distribute_part(
                                         rec["size"], q, cid)  # fmt: skip
             for i in np.flatnonzero(np.diff(bounds)):
                 data = memoryview(rec[bounds[i] : bounds[i + 1]]).cast("B")  # no copy
-                if keep_open:
+                if memory is not None:
+                    memory[pos[i] : pos[i] + len(data)] = data
+                elif keep_open:
                     _pwrite_all(fds[i], data, int(pos[i]))
                 else:
                     fd = os.open(paths[i], os.O_WRONLY)
@@ -585,7 +594,7 @@ def plan_tiles(
     """Pass 1: bounds, counts, chunk choice and distribution of points into chunk files.
 
     Writes ``work_dir/chunk_*.bin`` (raw :data:`POINT_DTYPE` records) and ``work_dir/plan.json``.
-    With a process ``pool`` of ``workers`` processes, each pass over a little-endian binary
+    With a ``pool`` of ``workers`` threads or processes, each pass over a little-endian binary
     PLY splits into that many contiguous ranges run in the pool (same files, byte for byte).
     ``scale`` (world units per integer step) overrides the default power of ten that spreads
     the cube over about 2**30 steps (a COPC export picks its own, see
@@ -597,6 +606,17 @@ def plan_tiles(
     DEFAULT, the default) or "octree" (octree-coded, :mod:`shared.compress.tilenode`).
     Raises :class:`InputError` for an empty cloud or NaN / infinite coordinates.
     """
+    return _plan(cloud_ply, work_dir, max_chunk=max_chunk, max_leaf=max_leaf, pool=pool, workers=workers,
+                 scale=scale, estimate_normals=estimate_normals, node_codec=node_codec)[0]  # fmt: skip
+
+
+def _plan(
+    cloud_ply: Path, work_dir: Path, *, max_chunk: int, max_leaf: int, pool: Executor | None, workers: int,
+    scale: float | None, estimate_normals: bool, node_codec: str, keep_points: int = 0,
+) -> tuple[TilePlan, np.ndarray | None]:  # fmt: skip
+    """:func:`plan_tiles`; a cloud of at most ``keep_points`` points is distributed into memory
+    rather than chunk files (``pool`` then must not be a process pool): returned beside the
+    plan, (N,) :data:`POINT_DTYPE`, chunk after chunk in plan order (None when in files)."""
     if node_codec not in NODE_CODECS:
         raise InputError("node_codec", f"must be one of {', '.join(NODE_CODECS)}, got {node_codec!r}")
     cloud_ply = Path(cloud_ply)
@@ -653,14 +673,21 @@ def plan_tiles(
             np.add.at(part_counts[k], cell_to_chunk[cells], c)
     starts = (np.cumsum(part_counts, axis=0) - part_counts) * POINT_DTYPE.itemsize
 
-    for i, (_lv, _p, c) in enumerate(chunks):
-        with open(work_dir / f"chunk_{i:05d}.bin", "wb") as fh:
-            fh.truncate(c * POINT_DTYPE.itemsize)
+    records = np.empty(n, POINT_DTYPE) if n <= keep_points else None
+    if records is not None:
+        # Chunk after chunk in one array: each chunk's byte offsets count from its start.
+        sizes = np.array([c for _lv, _p, c in chunks], np.int64) * POINT_DTYPE.itemsize
+        starts = starts + (np.cumsum(sizes) - sizes)
+    else:
+        for i, (_lv, _p, c) in enumerate(chunks):
+            with open(work_dir / f"chunk_{i:05d}.bin", "wb") as fh:
+                fh.truncate(c * POINT_DTYPE.itemsize)
+    memory = records.view(np.uint8) if records is not None else None
     _run_parts(
         pool,
         _distribute_part,
         [
-            (src, a, b, str(work_dir), chunks, offset, scale, qsize, starts[k])
+            (src, a, b, str(work_dir), chunks, offset, scale, qsize, starts[k], memory)
             for k, (a, b) in enumerate(parts)
         ],
     )
@@ -689,8 +716,9 @@ def plan_tiles(
     tmp = work_dir / f"{PLAN_FILE}.{os.getpid()}.tmp"
     tmp.write_text(json.dumps(asdict(plan)))
     os.replace(tmp, work_dir / PLAN_FILE)
-    log.info("planned %d points into %d chunks over %d parts", n, len(chunks), len(parts))
-    return plan
+    log.info("planned %d points into %d chunks over %d parts%s", n, len(chunks), len(parts),
+             " (in memory)" if records is not None else "")  # fmt: skip
+    return plan, records
 
 
 def load_plan(work_dir: Path) -> TilePlan:
@@ -701,7 +729,7 @@ def load_plan(work_dir: Path) -> TilePlan:
 # --------------------------------------------------------------------------- pass 2: chunks
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _pack_keys(codes: np.ndarray, base: int, drop: int, idx_bits: int) -> np.ndarray:
     out = np.empty(codes.shape[0], np.uint64)
     for i in range(codes.shape[0]):
@@ -709,7 +737,7 @@ def _pack_keys(codes: np.ndarray, base: int, drop: int, idx_bits: int) -> np.nda
     return out
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _unpack_keys(keys: np.ndarray, base: int, drop: int, idx_bits: int) -> tuple[np.ndarray, np.ndarray]:
     """Point index and Morton code (its dropped bits zero) of every sorted key."""
     mask = np.uint64((1 << idx_bits) - 1)
@@ -743,7 +771,7 @@ def _morton_order(codes: np.ndarray, level_c: int, prefix_c: int) -> tuple[np.nd
     return order, sorted_codes, max_depth
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _push(arr: np.ndarray, count: int, value: int) -> np.ndarray:
     if count == arr.shape[0]:
         grown = np.empty(2 * arr.shape[0], arr.dtype)
@@ -753,7 +781,7 @@ def _push(arr: np.ndarray, count: int, value: int) -> np.ndarray:
     return arr
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _sample_split(
     codes: np.ndarray, assigned: np.ndarray, lo: int, hi: int, shift: int, cshift: int, node: int,
     child_left: np.ndarray,
@@ -772,7 +800,7 @@ def _sample_split(
                 child_left[(codes[i] >> cshift) & 7] += 1
 
 
-@numba.njit(cache=True)
+@numba.njit(cache=True, nogil=True)
 def _build_nodes(
     codes: np.ndarray, level_c: int, prefix_c: int, max_leaf: int, max_depth: int
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -841,10 +869,10 @@ def _build_nodes(
     return assigned, levels[:nodes].copy(), prefixes[:nodes].copy(), own[:nodes].copy()
 
 
-def _derive(plan: TilePlan, rec: np.ndarray, work_dir: Path, index: int) -> None:
-    """Fill the derived attributes of one chunk's records in place and write the chunk back
-    (the in-process build re-reads it), with their ranges in ``chunk_*.range.json`` for the
-    metadata. Neighbours are looked up within the chunk: near a chunk's faces a point misses
+def _derive(plan: TilePlan, rec: np.ndarray, work_dir: Path, index: int, write_back: bool = True) -> None:
+    """Fill the derived attributes of one chunk's records in place and, with ``write_back``,
+    write the chunk back (the in-process build re-reads it), with their ranges in
+    ``chunk_*.range.json`` for the metadata. Neighbours are looked up within the chunk: near a chunk's faces a point misses
     those across it, which only widens its size a little there."""
     # Imported here: scipy.spatial takes about a second to import, and only clouds that lack
     # a size or normals need it (``graylight tiles`` of a scan starts without it).
@@ -860,7 +888,8 @@ def _derive(plan: TilePlan, rec: np.ndarray, work_dir: Path, index: int) -> None
         viewpoint = -np.asarray(plan.offset, np.float64)  # the world origin: where the scanner is
         rec["normal"] = _neighbours.pca_normals(xyz, viewpoint, tree=tree)
         ranges["normal"] = [rec["normal"].min(axis=0).tolist(), rec["normal"].max(axis=0).tolist()]
-    rec.tofile(work_dir / plan.chunks[index]["file"])
+    if write_back:
+        rec.tofile(work_dir / plan.chunks[index]["file"])
     (work_dir / f"chunk_{index:05d}.range.json").write_text(json.dumps(ranges))
 
 
@@ -890,14 +919,19 @@ def _as_output(rec: np.ndarray, dtype: np.dtype) -> np.ndarray:
     return out
 
 
-def _chunk_nodes(work_dir: Path, index: int) -> tuple[np.ndarray, np.ndarray, list[list]]:
-    """Sample chunk ``index``: its records as read, the order grouping them by node, and the
-    node table ``[name, numPoints, byteOffset, own]`` (offsets into the grouped records)."""
+def _chunk_nodes(
+    work_dir: Path, index: int, rec: np.ndarray | None = None
+) -> tuple[np.ndarray, np.ndarray, list[list]]:
+    """Sample chunk ``index``: its records as read (from its file, or ``rec`` when given: the
+    chunk's (N,) :data:`POINT_DTYPE` records held in memory), the order grouping them by node,
+    and the node table ``[name, numPoints, byteOffset, own]`` (offsets into the grouped records)."""
     plan = load_plan(work_dir)
     spec = plan.chunks[index]
-    rec = np.fromfile(work_dir / spec["file"], dtype=POINT_DTYPE)
+    in_file = rec is None
+    if in_file:
+        rec = np.fromfile(work_dir / spec["file"], dtype=POINT_DTYPE)
     if any(plan.derived.values()):
-        _derive(plan, rec, work_dir, index)
+        _derive(plan, rec, work_dir, index, write_back=in_file)
     level_c, prefix_c = spec["level"], spec["prefix"]
     order, codes, max_depth = _morton_order(morton_codes(rec["position"], plan.qsize), level_c, prefix_c)
     assigned, levels, prefixes, own = _build_nodes(codes, level_c, prefix_c, plan.max_leaf, max_depth)
@@ -1189,22 +1223,35 @@ def merge_tiles(work_dir: Path, out_dir: Path) -> dict:
 # --------------------------------------------------------------------------- in-process build
 
 
-def _chunk_table_job(work: str, index: int) -> list[list]:
-    """In-process pass 2, first half: sample chunk ``index``, keep the grouping order beside
-    it (``chunk_*.order``, 4 bytes a point) and return the node table."""
-    rec, by_node, table = _chunk_nodes(Path(work), index)
+def _chunk_table_job(work: str, index: int, kept: dict[int, Any] | None = None) -> list[list]:
+    """In-process pass 2, first half: sample chunk ``index`` and return the node table.
+
+    With ``kept`` (a cloud of at most :data:`KEEP_POINTS`, the pool's threads share it), the
+    chunk's records come from ``kept[index]`` (in memory since the distribution) and wait
+    there with the order grouping them by node for the second half. Otherwise they are read
+    from the chunk's file and the order goes to ``chunk_*.order`` (4 bytes a point)."""
+    rec, by_node, table = _chunk_nodes(Path(work), index, kept.pop(index) if kept is not None else None)
+    if kept is not None:
+        kept[index] = (rec, by_node)
+        return table
     dtype = np.uint32 if rec.shape[0] <= np.iinfo(np.uint32).max else np.int64
     by_node.astype(dtype).tofile(Path(work) / f"chunk_{index:05d}.order.{np.dtype(dtype).str[1:]}")
     return table
 
 
-def _chunk_write_job(work: str, index: int, octree_bin: str, copies: list[tuple[int, int, int]]) -> None:
+def _chunk_write_job(
+    work: str, index: int, octree_bin: str, copies: list[tuple[int, int, int]], kept: dict[int, Any] | None = None
+) -> None:  # fmt: skip
     """In-process pass 2, second half: write chunk ``index``'s node pieces straight to their
-    places in ``octree.bin`` (no intermediate pieces file, no serial concatenation)."""
+    places in ``octree.bin`` (no intermediate pieces file, no serial concatenation); the
+    records and their order from ``kept`` (then dropped) or the chunk's files (then removed)."""
     work_dir = Path(work)
-    rec = np.fromfile(work_dir / f"chunk_{index:05d}.bin", dtype=POINT_DTYPE)
-    (order_file,) = work_dir.glob(f"chunk_{index:05d}.order.*")
-    by_node = np.fromfile(order_file, dtype=order_file.suffix[1:])
+    if kept is not None:
+        rec, by_node = kept.pop(index)
+    else:
+        rec = np.fromfile(work_dir / f"chunk_{index:05d}.bin", dtype=POINT_DTYPE)
+        (order_file,) = work_dir.glob(f"chunk_{index:05d}.order.*")
+        by_node = np.fromfile(order_file, dtype=order_file.suffix[1:])
     data = memoryview(_as_output(_permute(rec, by_node), load_plan(work_dir).point_dtype())).cast("B")
     del rec, by_node
     fd = os.open(octree_bin, os.O_WRONLY)
@@ -1213,15 +1260,23 @@ def _chunk_write_job(work: str, index: int, octree_bin: str, copies: list[tuple[
             _pwrite_all(fd, data[src_off : src_off + n], dst_off)
     finally:
         os.close(fd)
-    # Done with this chunk's files: drop them now (in parallel) rather than at the end.
-    (work_dir / f"chunk_{index:05d}.bin").unlink()
-    order_file.unlink()
+    if kept is None:
+        # Done with this chunk's files: drop them now (in parallel) rather than at the end.
+        (work_dir / f"chunk_{index:05d}.bin").unlink()
+        order_file.unlink()
 
 
 def _warm_kernels() -> None:
-    """Load every kernel once (from numba's cache) so forked workers inherit them; the fields
+    """Load every kernel once (from numba's cache) before the pool's threads call them; the fields
     mimic a memory-mapped cloud PLY (read-only strided views of its records), so the kernels
-    loaded are the ones the passes call."""
+    loaded are the ones the passes call. The first of them initialises numba's target; it does
+    so without importing scipy.linalg (:mod:`shared.core.numba_start`, a quarter second)."""
+    with blas_check_without_scipy_linalg():
+        _load_kernels()
+
+
+def _load_kernels() -> None:
+    """Call every kernel of the passes once on two-point inputs of the passes' types."""
     cloud = np.frombuffer(bytes(2 * CLOUD_DTYPE.itemsize), CLOUD_DTYPE)
     f = _Fields(cloud["x"], cloud["y"], cloud["z"], (cloud["red"], cloud["green"], cloud["blue"]),
                 (cloud["nx"], cloud["ny"], cloud["nz"]), cloud["size"])  # fmt: skip
@@ -1253,10 +1308,11 @@ def build_tiles(
 ) -> dict:
     """Build Potree 2.0 tiles from ``cloud_ply`` into ``out_dir`` (all passes, in-process).
 
-    ``workers`` processes run the passes over the cloud and build chunks in parallel (default:
-    the CPU count; 1 runs in this process). Temporary chunk files live beside ``out_dir`` and
-    are removed. ``scale``, ``estimate_normals`` and ``node_codec`` as :func:`plan_tiles`. Returns a report
-    with points, nodes, depth, bytes, chunks, seconds and points_per_second.
+    ``workers`` threads run the passes over the cloud and build chunks in parallel (default:
+    the CPU count; 1 runs in the calling thread). Temporary chunk files (none for a cloud of at
+    most :data:`KEEP_POINTS` points) live beside ``out_dir`` and are removed. ``scale``,
+    ``estimate_normals`` and ``node_codec`` as :func:`plan_tiles`. Returns a report with points,
+    nodes, depth, bytes, chunks, seconds and points_per_second.
     """
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
@@ -1265,31 +1321,35 @@ def build_tiles(
     work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.work.", dir=out_dir.parent))
     try:
         _warm_kernels()
-        # One pool for every pass. Fork: the builder starts no threads, and forked workers
-        # inherit the loaded kernels (spawn would re-import and reload them in every process).
+        # One pool of threads for every pass: the kernels, numpy's sort and take and the file
+        # I/O release the GIL. A pool of forked processes cost a 2 M-point build 0.3 s more CPU
+        # (copying the page tables of a process holding numba, copy-on-write faults, exits).
         with contextlib.ExitStack() as stack:
-            pool = (
-                stack.enter_context(ProcessPoolExecutor(workers, mp_context=get_context("fork")))
-                if workers > 1
-                else None
-            )
-            plan = plan_tiles(
+            pool = stack.enter_context(ThreadPoolExecutor(workers)) if workers > 1 else None
+            # A cloud of at most KEEP_POINTS is distributed into memory, and every chunk's
+            # records and order stay there between the halves of pass 2: no chunk files.
+            plan, records = _plan(
                 Path(cloud_ply), work, max_chunk=max_chunk, max_leaf=max_leaf, pool=pool, workers=workers,
-                scale=scale, estimate_normals=estimate_normals, node_codec=node_codec,
+                scale=scale, estimate_normals=estimate_normals, node_codec=node_codec, keep_points=KEEP_POINTS,
             )
             nchunks = len(plan.chunks)
+            kept: dict[int, Any] | None = None
+            if records is not None:
+                ends = np.cumsum([c["points"] for c in plan.chunks])
+                kept = {i: records[e - c["points"] : e] for i, (c, e) in enumerate(zip(plan.chunks, ends, strict=True))}
+                del records  # the chunks' views hold it, and free it once written
             # Largest chunks first keeps the pool busy to the end.
             order = sorted(range(nchunks), key=lambda i: -plan.chunks[i]["points"])
             chunk_pool = pool if nchunks > 1 else None
             tables: list[list[list]] = [[] for _ in range(nchunks)]
-            done = _run_parts(chunk_pool, _chunk_table_job, [(str(work), i) for i in order])
+            done = _run_parts(chunk_pool, _chunk_table_job, [(str(work), i, kept) for i in order])
             for i, table in zip(order, done, strict=True):
                 tables[i] = table
             nodes, copies, nbytes = _layout(tables, plan.point_dtype().itemsize)
             _derived_ranges(plan, work)
 
             def fill(octree_bin: Path) -> None:
-                calls = [(str(work), i, str(octree_bin), copies[i]) for i in order]
+                calls = [(str(work), i, str(octree_bin), copies[i], kept) for i in order]
                 _run_parts(chunk_pool, _chunk_write_job, calls)
 
             report = _write_tiles(plan, nodes, nbytes, out_dir, fill, workers=workers)

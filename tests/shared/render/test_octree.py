@@ -144,9 +144,15 @@ def test_nodes_hold_their_points_and_sample_evenly(tiles: Path) -> None:
     assert np.all(np.abs(root.max(axis=0) - cloud_hi) < 0.02 * (cloud_hi - cloud_lo).max())
 
 
-def test_parallel_build_gives_the_same_bytes(scan: Path, tiles: Path, tmp_path: Path, monkeypatch) -> None:
-    """Two worker processes (each pass over the cloud split in two ranges read in several
-    slices), and chunk files reopened for every write, change no byte."""
+@pytest.mark.parametrize("chunks_in", ["memory", "files"])
+def test_parallel_build_gives_the_same_bytes(
+    scan: Path, tiles: Path, tmp_path: Path, monkeypatch, chunks_in: str
+) -> None:  # fmt: skip
+    """Two worker threads (each pass over the cloud split in two ranges read in several
+    slices), the chunks distributed into memory or into chunk files reopened for every write,
+    change no byte."""
+    if chunks_in == "files":
+        monkeypatch.setattr(octree, "KEEP_POINTS", 0)
     monkeypatch.setattr(octree, "MAX_OPEN_FILES", 2)
     monkeypatch.setattr(octree, "MIN_PART_POINTS", 1_000)
     monkeypatch.setattr(octree, "READ_CHUNK", 7_000)
