@@ -248,13 +248,13 @@ def _edge_differences(sg, q, nbits, qa, qb):  # pragma: no cover
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, out):  # pragma: no cover
+def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, pp, vp, out):  # pragma: no cover
     """Interpolate projector columns between stripe edges along one camera row.
 
     blk, lvl: (W,) code block and level; qa, qb: (W,) the differences of the flipping bit plane
     at each pair's two pixels (:func:`_edge_differences`), already scaled to int8 (streaming) or
-    raw, then scaled by ``kq`` (W,) float32 here (``quantise``); pos, val, frac: (W,) float64
-    and jx: (W,) int64 scratch; out: (W,) float32 holding the integer decode, overwritten where
+    raw, then scaled by ``kq`` (W,) float32 here (``quantise``); pos, val, frac, pp, vp: (W,)
+    float64 and jx: (W,) int64 scratch; out: (W,) float32 holding the integer decode, overwritten where
     interpolated. Returns the number of interpolated pixels. Divisions follow numpy's error
     model: two edges at one position give an infinite slope, clamped to the stripe, or NaN,
     left uninterpolated (Python's model raised ZeroDivisionError there).
@@ -272,18 +272,20 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ou
         fa = np.float64(_quantise(da, ka)) if quantise else np.float64(da)
         fb = np.float64(_quantise(db, kb)) if quantise else np.float64(db)
         den = fa - fb
-        t = fa / den if den != 0.0 else 0.5
-        frac[x] = min(max(t, 0.0), 1.0) if edge else -1.0
+        t = min(max(fa / den if den != 0.0 else 0.5, 0.0), 1.0)
+        frac[x] = t if edge else -1.0
+        # Every pair's edge position and value, made here where the loop vectorises: the
+        # compaction below, a chain through ne, then only copies them.
+        pp[x] = x + t
+        vp[x] = (np.int64(min(a, b)) + 1) * step - 0.5
     ne = 0
     for x in range(W - 1):
-        a = np.int64(blk[x])
-        b = np.int64(blk[x + 1])
         t = frac[x]
         # Edges keep fractions in [0, 1]; pos/val of a non-edge are overwritten by the next edge
         # or lie at index ne, which is never read.
         edge = t >= 0.0
-        pos[ne] = x + t
-        val[ne] = (min(a, b) + 1) * step - 0.5
+        pos[ne] = pp[x]
+        val[ne] = vp[x]
         # Edges at or left of pixel x: those of earlier pairs, and this one when t is 0.
         jx[x] = ne + (edge & (t == 0.0))
         ne += edge
@@ -321,11 +323,11 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ou
 @numba.njit(inline="always")
 def _row_scratch(W, q, levels):  # pragma: no cover
     """Row buffers of the code resolution and the sub-pixel step, once per band: blk, sel
-    (int32), qa, qb (q's dtype), pos, val (float64), jx (int64), frac (float64), all (W,), and
-    the level histogram (levels,) int64."""
+    (int32), qa, qb (q's dtype), pos, val (float64), jx (int64), frac, pp, vp (float64), all
+    (W,), and the level histogram (levels,) int64."""
     return (np.empty(W, np.int32), np.empty(W, np.int32), np.empty(W, q.dtype), np.empty(W, q.dtype),
             np.empty(W, np.float64), np.empty(W, np.float64), np.empty(W, np.int64), np.empty(W, np.float64),
-            np.zeros(levels, np.int64))  # fmt: skip
+            np.empty(W, np.float64), np.empty(W, np.float64), np.zeros(levels, np.int64))  # fmt: skip
 
 
 #: Camera rows per parallel work item: few enough items to keep launches cheap, enough to
@@ -375,7 +377,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
         q = np.empty((nq, W), diff.dtype)
         a1 = np.empty(W, diff.dtype)
         a2 = np.empty(W, diff.dtype)
-        blk, sel, qa, qb, pos, val, jx, frac, hist = _row_scratch(W, q, max_level - lowest + 1)
+        blk, sel, qa, qb, pos, val, jx, frac, pp, vp, hist = _row_scratch(W, q, max_level - lowest + 1)
         while True:
             band = next_item(counter)
             if band >= n_bands:
@@ -452,7 +454,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                         cr[x] = min(np.float32(qm) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0 else np.float32(0.0)
                     if subpixel:
                         _edge_differences(sg, q, nbits, qa, qb)
-                        n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, pos, val, jx, frac, value[y])
+                        n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, pos, val, jx, frac, pp, vp, value[y])
                 counts[y, 0] = n_lit
                 counts[y, 1] = n_sub
                 for L in range(hist.size):
@@ -471,7 +473,7 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
     n_bands = (H + _BAND - 1) // _BAND
     counter = np.zeros(1, np.int64)
     for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
-        blk, sel, qa, qb, pos, val, jx, frac, hist = _row_scratch(W, q, max_level - lowest + 1)
+        blk, sel, qa, qb, pos, val, jx, frac, pp, vp, hist = _row_scratch(W, q, max_level - lowest + 1)
         while True:
             band = next_item(counter)
             if band >= n_bands:
@@ -489,7 +491,7 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
                                  else np.float32(0.0))
                     if subpixel:
                         _edge_differences(signs[y], q[:, y, :], nbits, qa, qb)
-                        n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, pos, val, jx, frac, value[y])
+                        n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, pos, val, jx, frac, pp, vp, value[y])
                 counts[y, 1] = n_sub
                 for L in range(hist.size):
                     counts[y, 2 + L] = hist[L]
