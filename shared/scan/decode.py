@@ -499,17 +499,20 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
 def _grey_rgb(grey, shift, out):  # pragma: no cover
-    """(H, W) uint8/uint16 grey -> (H, W, 3) uint8 grey RGB in ``out`` (top 8 bits); several times
-    faster than ``np.repeat`` on a new axis, which was a tenth of a whole in-memory decode."""
+    """(H, W) uint8/uint16 grey -> (H, W, 3) uint8 grey RGB in ``out`` (C order; top 8 bits);
+    several times faster than ``np.repeat`` on a new axis, which was a tenth of a whole
+    in-memory decode. Each row is written as a flat (3 W,) array: LLVM vectorises the
+    interleaved stores there, not through the three-index form (0.54 -> 0.13 ms a 1.3 MP
+    frame on one thread)."""
     H, W = grey.shape
     for y in numba.prange(H):
         g = grey[y]
-        o = out[y]
+        o = out[y].reshape(3 * W)
         for x in range(W):
             v = np.uint8(g[x] >> shift)
-            o[x, 0] = v
-            o[x, 1] = v
-            o[x, 2] = v
+            o[3 * x] = v
+            o[3 * x + 1] = v
+            o[3 * x + 2] = v
 
 
 # --------------------------------------------------------------------------- threads
