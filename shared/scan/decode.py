@@ -371,7 +371,6 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
         sg = np.empty(W, np.uint16)
         wk = np.empty(W, np.uint16)
         ithr = np.empty(W, diff.dtype)
-        nthr = np.empty(W, diff.dtype)
         wb = np.empty(W, diff.dtype)
         kq = np.empty(W, np.float32)
         q = np.empty((nq, W), diff.dtype)
@@ -404,7 +403,6 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                     # d is an integer: |d| < thr exactly when |d| < ceil(thr).
                     t = min(np.ceil(thr if with_inverse else thr * np.float32(2.0)), np.float32(dmax // 2))
                     ithr[x] = t
-                    nthr[x] = -t
                     if want_q:  # the q scale: only the confidence and the sub-pixel step read it
                         g = np.float32(127.0) / s if s > 0 else np.float32(0.0)
                         kq[x] = g if with_inverse else g * np.float32(0.5)
@@ -434,7 +432,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                     for x in range(W):
                         di = dd[x]
                         sg[x] |= one if di > 0 else zero
-                        wk[x] |= one if (di < ithr[x]) & (di > nthr[x]) else zero
+                        wk[x] |= one if abs(di) < ithr[x] else zero
                     if want_q:
                         for x in range(W):
                             aq = abs(dd[x])
