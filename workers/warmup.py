@@ -290,7 +290,7 @@ def _warm_scan(work: Path, captures: list[Path]) -> list[Path]:
 
 def _warm_render(work: Path, clouds: list[Path]) -> None:
     """Tiles of the scanned clouds (several chunks, deep nodes) and of an xyz-only cloud, in
-    this process, with a forked pool and as the job service's per-chunk tasks; preview
+    this process, with a pool of two threads and as the job service's per-chunk tasks; preview
     frames of the tiles; octree-coded tiles of both kinds of cloud, read back."""
     import numpy as np
 

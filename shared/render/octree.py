@@ -1341,8 +1341,12 @@ def build_tiles(
             # Largest chunks first keeps the pool busy to the end.
             order = sorted(range(nchunks), key=lambda i: -plan.chunks[i]["points"])
             chunk_pool = pool if nchunks > 1 else None
+            # Chunks deriving attributes are sampled one at a time: their neighbour queries and
+            # normals kernel already use every core, and numba's workqueue layer (where neither
+            # TBB nor OpenMP loads) refuses launches from two threads at once.
+            table_pool = None if any(plan.derived.values()) else chunk_pool
             tables: list[list[list]] = [[] for _ in range(nchunks)]
-            done = _run_parts(chunk_pool, _chunk_table_job, [(str(work), i, kept) for i in order])
+            done = _run_parts(table_pool, _chunk_table_job, [(str(work), i, kept) for i in order])
             for i, table in zip(order, done, strict=True):
                 tables[i] = table
             nodes, copies, nbytes = _layout(tables, plan.point_dtype().itemsize)

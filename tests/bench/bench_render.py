@@ -94,7 +94,7 @@ def _tile_comparison(cloud: Path, work: Path, *, stage: bool = True) -> None:
     bin_dir = Path(sys.executable).parent
     rows: list[tuple[str, float, float]] = []
     if stage:
-        # As a job-service worker runs it: a warm process (kernels loaded), chunk processes forked.
+        # As a job-service worker runs it: a warm process (kernels loaded), chunks on threads.
         build_tiles(synthetic_scan(work / "warm.ply", 20_000), work / "warm_tiles")
         _settle()
         c0, t0 = _cpu_seconds(), time.perf_counter()
