@@ -200,14 +200,43 @@ def _resolve_row(sg, wk, lit, full, lowest, max_level, n_proj, blk, lvl, val, se
         w = np.int32(wk[x]) & full
         ok = ((w & (w - 1)) == 0) & ((w <= low_bit) | ((np.int32(sg[x]) & (w - 1)) == (w >> 1)))
         sel[x] = lowest if ok else -1
-    for L in range(lowest + 1, max_level + 1):
-        hi = np.int32(full & ~((1 << L) - 1))
-        bit = np.int32(1 << L)
+    if max_level - lowest <= 3:
+        # The (up to three) coarser levels in one pass: each pixel's bits are loaded once.
+        n_more = max_level - lowest
+        u1, u2, u3 = n_more >= 1, n_more >= 2, n_more >= 3
+        f = np.int32(full)
+        hi1 = f & ~np.int32((1 << (lowest + 1)) - 1)
+        hi2 = f & ~np.int32((1 << (lowest + 2)) - 1)
+        hi3 = f & ~np.int32((1 << (lowest + 3)) - 1)
+        bt1 = np.int32(1 << (lowest + 1))
+        bt2 = np.int32(1 << (lowest + 2))
+        bt3 = np.int32(1 << (lowest + 3))
+        L1 = np.int32(lowest + 1)
+        L2 = np.int32(lowest + 2)
+        L3 = np.int32(lowest + 3)
         for x in range(W):
-            wm = np.int32(wk[x]) & hi
-            ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bit) & ((np.int32(sg[x]) & (wm - 1) & hi) == (wm >> 1))))
+            w = np.int32(wk[x])
+            g = np.int32(sg[x])
             s = sel[x]
-            sel[x] = L if (s < 0) & ok else s
+            wm = w & hi1
+            ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bt1) & ((g & (wm - 1) & hi1) == (wm >> 1))))
+            s = L1 if (s < 0) & ok & u1 else s
+            wm = w & hi2
+            ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bt2) & ((g & (wm - 1) & hi2) == (wm >> 1))))
+            s = L2 if (s < 0) & ok & u2 else s
+            wm = w & hi3
+            ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bt3) & ((g & (wm - 1) & hi3) == (wm >> 1))))
+            s = L3 if (s < 0) & ok & u3 else s
+            sel[x] = s
+    else:
+        for L in range(lowest + 1, max_level + 1):
+            hi = np.int32(full & ~((1 << L) - 1))
+            bit = np.int32(1 << L)
+            for x in range(W):
+                wm = np.int32(wk[x]) & hi
+                ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bit) & ((np.int32(sg[x]) & (wm - 1) & hi) == (wm >> 1))))
+                s = sel[x]
+                sel[x] = L if (s < 0) & ok else s
     for x in range(W):
         L = max(sel[x], np.int32(0))
         b = _gray_to_binary((np.int32(sg[x]) & full) >> L)
