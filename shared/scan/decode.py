@@ -276,23 +276,44 @@ def _edge_differences(sg, q, nbits, qa, qb):  # pragma: no cover
             qb[x] = b if flip else ob
 
 
+#: Pairs searched each side of a pixel for its stripe's edges by the sub-pixel step's pass
+#: without branches (more cost every pixel; fewer leave pixels to the general pass).
+_NEAR = 3
+
+
 @numba.njit(cache=True, error_model="numpy")
-def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, pp, vp, out):  # pragma: no cover
+def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep, ev, slow, out):  # pragma: no cover
     """Interpolate projector columns between stripe edges along one camera row.
 
     blk, lvl: (W,) code block and level; qa, qb: (W,) the differences of the flipping bit plane
     at each pair's two pixels (:func:`_edge_differences`), already scaled to int8 (streaming) or
-    raw, then scaled by ``kq`` (W,) float32 here (``quantise``); pos, val, frac, pp, vp: (W,)
-    float64 and jx: (W,) int64 scratch; out: (W,) float32 holding the integer decode, overwritten where
-    interpolated. Returns the number of interpolated pixels. Divisions follow numpy's error
-    model: two edges at one position give an infinite slope, clamped to the stripe, or NaN,
-    left uninterpolated (Python's model raised ZeroDivisionError there).
+    raw, then scaled by ``kq`` (W,) float32 here (``quantise``); pos, val, frac: (W,) float64,
+    jx: (W,) int64, ep, ev: (W + 2 _NEAR,) float64 and slow: (W,) bool scratch; out: (W,)
+    float32 holding the integer decode, overwritten where interpolated. Returns the number of
+    interpolated pixels. Divisions follow numpy's error model: two edges at one position give
+    an infinite slope, clamped to the stripe, or NaN, left uninterpolated (Python's model
+    raised ZeroDivisionError there).
+
+    A pixel takes the column between the edges either side of it (the nearest edge at or left
+    of it and the next one) when both bound its stripe; otherwise one edge and the slope of the
+    neighbouring stripe. Most pixels lie within a few pairs of both edges: a pass without
+    branches (it vectorises) finds them among the ``_NEAR`` pairs each side and interpolates.
+    The other pixels (edges farther away, or a stripe bounded on one side only) are marked and,
+    if a row has any, decoded as before: the row's edges compacted into pos/val with each
+    pixel's edge count jx, then the three cases in order. Either way the same arithmetic on
+    the same values.
     """
     W = blk.size
     step = 1 << lowest
-    # Three passes: the edge fractions first (independent per pair and without branches, so it
-    # vectorises), then the compaction of edges into pos/val, which is a dependency chain
-    # through ne, then the interpolation. Pairs that are no edge get a fraction of -1.
+    K = _NEAR
+    nan = np.nan
+    # Pass 1: per pair, the edge fraction (frac, -1 for no edge), position (ep, NaN for no
+    # edge) and value (ev), at index pair + K of ep/ev, whose K entries each end are NaN.
+    for i in range(K):
+        ep[i] = nan
+        ev[i] = nan
+        ep[W - 1 + K + i] = nan
+        ev[W - 1 + K + i] = nan
     for x in range(W - 1):
         a = np.int32(blk[x])
         b = np.int32(blk[x + 1])
@@ -303,27 +324,67 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, pp
         den = fa - fb
         t = min(max(fa / den if den != 0.0 else 0.5, 0.0), 1.0)
         frac[x] = t if edge else -1.0
-        # Every pair's edge position and value, made here where the loop vectorises: the
-        # compaction below, a chain through ne, then only copies them.
-        pp[x] = x + t
-        vp[x] = (np.int64(min(a, b)) + 1) * step - 0.5
+        ep[x + K] = x + t if edge else nan
+        ev[x + K] = (np.int64(min(a, b)) + 1) * step - 0.5
+    frac[W - 1] = -1.0
+    # Pass 2: the nearest edge each side within K pairs. An edge at fraction 0 lies on pixel x
+    # and counts as left of it. Loads come before every choice (a load inside a conditional
+    # expression becomes a branch and keeps the loop scalar).
+    n_sub = 0
+    n_slow = 0
+    for x in range(W):
+        B = np.int64(blk[x])
+        c = x + K
+        lo = B * step - 0.5
+        hi = (B + 1) * step - 0.5
+        t0 = frac[x]
+        p0, pm1, pm2, pm3 = ep[c], ep[c - 1], ep[c - 2], ep[c - 3]
+        pp1, pp2, pp3 = ep[c + 1], ep[c + 2], ep[c + 3]
+        v0, vm1, vm2, vm3 = ev[c], ev[c - 1], ev[c - 2], ev[c - 3]
+        vp1, vp2, vp3 = ev[c + 1], ev[c + 2], ev[c + 3]
+        o = out[x]
+        at0 = t0 == 0.0
+        r0 = t0 > 0.0
+        e1 = pm1 == pm1
+        e2 = pm2 == pm2
+        e3 = pm3 == pm3
+        f1 = pp1 == pp1
+        f2 = pp2 == pp2
+        f3 = pp3 == pp3
+        pl = p0 if at0 else (pm1 if e1 else (pm2 if e2 else pm3))
+        vl = v0 if at0 else (vm1 if e1 else (vm2 if e2 else vm3))
+        fl = at0 | e1 | e2 | e3
+        pr = p0 if r0 else (pp1 if f1 else (pp2 if f2 else pp3))
+        vr = v0 if r0 else (vp1 if f1 else (vp2 if f2 else vp3))
+        fr = r0 | f1 | f2 | f3
+        c1 = fl & fr & ((vl == lo) | (vl == hi)) & ((vr == lo) | (vr == hi)) & (vl != vr)
+        v = vl + (x - pl) * (vr - vl) / (pr - pl)
+        want = (B >= 0) & (lvl[x] == lowest)
+        ok = want & c1 & (v == v)
+        v = min(max(v, lo), hi)
+        out[x] = np.float32(v) if ok else o
+        n_sub += ok
+        s = want & ~c1
+        slow[x] = s
+        n_slow += s
+    if n_slow == 0:
+        return n_sub
+    # Pass 3, for the marked pixels: every edge of the row in order (pos/val; those of a
+    # non-edge are overwritten by the next edge or lie at index ne, which is never read), and
+    # jx, the edges at or left of each pixel (earlier pairs, and its own pair at fraction 0).
     ne = 0
     for x in range(W - 1):
         t = frac[x]
-        # Edges keep fractions in [0, 1]; pos/val of a non-edge are overwritten by the next edge
-        # or lie at index ne, which is never read.
         edge = t >= 0.0
-        pos[ne] = pp[x]
-        val[ne] = vp[x]
-        # Edges at or left of pixel x: those of earlier pairs, and this one when t is 0.
+        pos[ne] = ep[x + K]
+        val[ne] = ev[x + K]
         jx[x] = ne + (edge & (t == 0.0))
         ne += edge
     jx[W - 1] = ne
-    n_sub = 0
     for x in range(W):
-        B = blk[x]
-        if B < 0 or lvl[x] != lowest:
+        if not slow[x]:
             continue
+        B = blk[x]
         j = jx[x]
         lo = B * step - 0.5
         hi = (B + 1) * step - 0.5
@@ -352,11 +413,12 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, pp
 @numba.njit(inline="always")
 def _row_scratch(W, q, levels):  # pragma: no cover
     """Row buffers of the code resolution and the sub-pixel step, once per band: blk, sel
-    (int32), qa, qb (q's dtype), pos, val (float64), jx (int64), frac, pp, vp (float64), all
-    (W,), and the level histogram (levels,) int64."""
+    (int32), qa, qb (q's dtype), pos, val (float64), jx (int64), frac (float64), slow (bool),
+    all (W,), ep, ev (W + 2 _NEAR,) float64, and the level histogram (levels,) int64."""
     return (np.empty(W, np.int32), np.empty(W, np.int32), np.empty(W, q.dtype), np.empty(W, q.dtype),
             np.empty(W, np.float64), np.empty(W, np.float64), np.empty(W, np.int64), np.empty(W, np.float64),
-            np.empty(W, np.float64), np.empty(W, np.float64), np.zeros(levels, np.int64))  # fmt: skip
+            np.empty(W + 2 * _NEAR, np.float64), np.empty(W + 2 * _NEAR, np.float64), np.empty(W, np.bool_),
+            np.zeros(levels, np.int64))  # fmt: skip
 
 
 #: Camera rows per parallel work item: few enough items to keep launches cheap, enough to
@@ -405,7 +467,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
         q = np.empty((nq, W), diff.dtype)
         a1 = np.empty(W, diff.dtype)
         a2 = np.empty(W, diff.dtype)
-        blk, sel, qa, qb, pos, val, jx, frac, pp, vp, hist = _row_scratch(W, q, max_level - lowest + 1)
+        blk, sel, qa, qb, pos, val, jx, frac, ep, ev, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
         while True:
             band = next_item(counter)
             if band >= n_bands:
@@ -481,7 +543,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                         cr[x] = min(np.float32(qm) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0 else np.float32(0.0)
                     if subpixel:
                         _edge_differences(sg, q, nbits, qa, qb)
-                        n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, pos, val, jx, frac, pp, vp, value[y])
+                        n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, pos, val, jx, frac, ep, ev, slow, value[y])
                 counts[y, 0] = n_lit
                 counts[y, 1] = n_sub
                 for L in range(hist.size):
@@ -500,7 +562,7 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
     n_bands = (H + _BAND - 1) // _BAND
     counter = np.zeros(1, np.int64)
     for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
-        blk, sel, qa, qb, pos, val, jx, frac, pp, vp, hist = _row_scratch(W, q, max_level - lowest + 1)
+        blk, sel, qa, qb, pos, val, jx, frac, ep, ev, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
         while True:
             band = next_item(counter)
             if band >= n_bands:
@@ -518,7 +580,8 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
                                  else np.float32(0.0))
                     if subpixel:
                         _edge_differences(signs[y], q[:, y, :], nbits, qa, qb)
-                        n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, pos, val, jx, frac, pp, vp, value[y])
+                        n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, pos, val, jx, frac, ep, ev, slow,
+                                               value[y])
                 counts[y, 1] = n_sub
                 for L in range(hist.size):
                     counts[y, 2 + L] = hist[L]
