@@ -872,8 +872,8 @@ def _build_nodes(
 def _derive(plan: TilePlan, rec: np.ndarray, work_dir: Path, index: int, write_back: bool = True) -> None:
     """Fill the derived attributes of one chunk's records in place and, with ``write_back``,
     write the chunk back (the in-process build re-reads it), with their ranges in
-    ``chunk_*.range.json`` for the metadata. Neighbours are looked up within the chunk: near a chunk's faces a point misses
-    those across it, which only widens its size a little there."""
+    ``chunk_*.range.json`` for the metadata. Neighbours are looked up within the chunk: near a
+    chunk's faces a point misses those across it, which only widens its size a little there."""
     # Imported here: scipy.spatial takes about a second to import, and only clouds that lack
     # a size or normals need it (``graylight tiles`` of a scan starts without it).
     from shared.render import _neighbours
