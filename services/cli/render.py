@@ -63,7 +63,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p = subparsers.add_parser("tiles", help="build Potree 2.0 level-of-detail tiles from a cloud PLY")
     p.add_argument("cloud", help="cloud PLY (x, y, z; colour, normal, size when present)")
     p.add_argument("--out", required=True, help="output folder (replaced atomically)")
-    p.add_argument("--workers", type=int, default=None, help="processes building chunks (default: CPU count)")
+    p.add_argument("--workers", type=int, default=None, help="threads building chunks (default: the CPUs this process may use)")
     p.add_argument(
         "--estimate-normals",
         action="store_true",

@@ -73,6 +73,7 @@ import numpy as np
 from shared.compress import tilenode
 from shared.core.errors import InputError
 from shared.core.numba_start import blas_check_without_scipy_linalg
+from shared.core.threads import cpu_budget
 from shared.formats.ply import CLOUD_DTYPE, iter_ply_chunks, read_header
 from shared.formats.potree import HIERARCHY_DTYPE, HIERARCHY_STEP
 
@@ -1217,7 +1218,7 @@ def merge_tiles(work_dir: Path, out_dir: Path) -> dict:
                     for src_off, dst_off, n in chunk_copies:
                         _copy_range(src, out, src_off, dst_off, n)
 
-    return _write_tiles(plan, nodes, nbytes, Path(out_dir), fill, workers=os.cpu_count() or 1)
+    return _write_tiles(plan, nodes, nbytes, Path(out_dir), fill, workers=cpu_budget())
 
 
 # --------------------------------------------------------------------------- in-process build
@@ -1309,7 +1310,7 @@ def build_tiles(
     """Build Potree 2.0 tiles from ``cloud_ply`` into ``out_dir`` (all passes, in-process).
 
     ``workers`` threads run the passes over the cloud and build chunks in parallel (default:
-    the CPU count; 1 runs in the calling thread). Temporary chunk files (none for a cloud of at
+    :func:`~shared.core.threads.cpu_budget`; 1 runs in the calling thread). Temporary chunk files (none for a cloud of at
     most :data:`KEEP_POINTS` points) live beside ``out_dir`` and are removed. ``scale``,
     ``estimate_normals`` and ``node_codec`` as :func:`plan_tiles`. Returns a report with points,
     nodes, depth, bytes, chunks, seconds and points_per_second.
@@ -1317,7 +1318,7 @@ def build_tiles(
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
-    workers = max(1, workers or os.cpu_count() or 1)
+    workers = max(1, workers or cpu_budget())
     work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.work.", dir=out_dir.parent))
     try:
         _warm_kernels()
