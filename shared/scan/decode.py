@@ -279,6 +279,9 @@ def _edge_differences(sg, q, nbits, qa, qb):  # pragma: no cover
 #: Pairs searched each side of a pixel for its stripe's edges by the sub-pixel step's pass
 #: without branches (more cost every pixel; fewer leave pixels to the general pass).
 _NEAR = 3
+#: A row's pass without branches runs only when its stripes are at most this many pixels wide
+#: on average (pixels decoded at the finest level per edge); wider ones go to pass 3 whole.
+_DENSE = 2.5
 
 
 @numba.njit(cache=True, error_model="numpy")
@@ -298,8 +301,9 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep
     of it and the next one) when both bound its stripe; otherwise one edge and the slope of the
     neighbouring stripe. Most pixels lie within a few pairs of both edges: a pass without
     branches (it vectorises) finds them among the ``_NEAR`` pairs each side and interpolates.
-    The other pixels (edges farther away, or a stripe bounded on one side only) are marked and,
-    if a row has any, decoded as before: the row's edges compacted into pos/val with each
+    The other pixels (edges farther away, or a stripe bounded on one side only), and every
+    pixel of a row whose stripes are wider than ``_DENSE`` pixels on average, are marked and
+    decoded as before: the row's edges compacted into pos/val with each
     pixel's edge count jx, then the three cases in order. Either way the same arithmetic on
     the same values.
     """
@@ -314,6 +318,8 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep
         ev[i] = nan
         ep[W - 1 + K + i] = nan
         ev[W - 1 + K + i] = nan
+    n_edges = 0
+    n_here = 0  # pixels of pairs 0..W-2 decoded at the finest level
     for x in range(W - 1):
         a = np.int32(blk[x])
         b = np.int32(blk[x + 1])
@@ -326,13 +332,22 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep
         frac[x] = t if edge else -1.0
         ep[x + K] = x + t if edge else nan
         ev[x + K] = (np.int64(min(a, b)) + 1) * step - 0.5
+        n_edges += edge
+        n_here += (a >= 0) & (lvl[x] == lowest)
     frac[W - 1] = -1.0
+    n_sub = 0
+    n_slow = 0
+    if n_here > _DENSE * n_edges:
+        # Stripes wider than _DENSE pixels on average: many pixels lie farther than K pairs from
+        # an edge, and the pass below would only add its cost to theirs. All go to pass 3.
+        for x in range(W):
+            s = (blk[x] >= 0) & (lvl[x] == lowest)
+            slow[x] = s
+            n_slow += s
     # Pass 2: the nearest edge each side within K pairs. An edge at fraction 0 lies on pixel x
     # and counts as left of it. Loads come before every choice (a load inside a conditional
     # expression becomes a branch and keeps the loop scalar).
-    n_sub = 0
-    n_slow = 0
-    for x in range(W):
+    for x in range(W if n_slow == 0 else 0):
         B = np.int64(blk[x])
         c = x + K
         lo = B * step - 0.5
