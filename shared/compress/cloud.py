@@ -33,6 +33,7 @@ import numpy as np
 
 from shared.compress import _octree as ot
 from shared.core.errors import InputError
+from shared.core.threads import cpu_budget
 from shared.formats.container import open_container, write_container, write_stream
 from shared.formats.ply import iter_ply_records, read_header, write_ply_records
 
@@ -56,7 +57,8 @@ _CHUNK_HEAD = struct.Struct("<qqqqqqI")  # points, voxels, depth, offset xyz, ra
 
 
 def _threads() -> int:
-    return max(1, min(2, os.cpu_count() or 1))
+    """Chunks coded at once: one a CPU of the budget (each holds about 200 MB while it encodes)."""
+    return cpu_budget()
 
 
 def _sign(a: np.ndarray) -> np.ndarray:
