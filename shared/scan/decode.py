@@ -56,6 +56,7 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
+from shared.core.threads import cpu_budget
 from shared.formats.capture import Capture, CodeImage, code_bits
 from shared.formats.images import prepare_png_reading, probe_image, read_grey, read_grey_and_colour
 from shared.scan._bands import next_item, prefetch
@@ -655,13 +656,6 @@ def _others_running() -> int | None:
     return max(running - own, 0)
 
 
-def _cores() -> int:
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):  # pragma: no cover - not Linux
-        return os.cpu_count() or 1
-
-
 def kernel_threads() -> int:
     """Threads for the numba kernels: as many as there are cores free right now (cores less
     the runnable threads of other processes at this moment), at least one, at most numba's.
@@ -680,7 +674,7 @@ def kernel_threads() -> int:
     others = _others_running()
     if others is None:
         return limit
-    return max(1, min(limit, _cores() - others))
+    return max(1, min(limit, cpu_budget() - others))
 
 
 @contextmanager
@@ -968,7 +962,7 @@ def decode_capture(
     progress: Callable[[float], None] | None = None,
     subpixel: bool = True,
     params: DecodeParams | None = None,
-    threads: int = 2,
+    threads: int | None = None,
 ) -> Decoded:
     """Decode a capture into per-pixel projector coordinates.
 
@@ -978,7 +972,8 @@ def decode_capture(
     progress : called with the fraction done in [0, 1] as images are consumed.
     subpixel : interpolate columns between stripe edges (True) or keep integer codes (False).
     params : decoder thresholds (:class:`DecodeParams`).
-    threads : image-reading threads (PNG decoding releases the GIL).
+    threads : image-reading threads (PNG decoding releases the GIL; default
+        :func:`~shared.core.threads.cpu_budget`).
 
     Returns
     -------
@@ -994,7 +989,7 @@ def decode_capture(
     # first dispatch in a process, up to about a second) and then waits for white and black.
     info = probe_image(capture.white)
     itemsize = 2 if info.bit_depth > 8 else 1
-    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, threads or cpu_budget())) as pool:
         fw = pool.submit(read_grey_and_colour, capture.white)
         fb = pool.submit(read_grey, capture.black)
         readers = (_reader(col_planes, info.size, itemsize, pool), _reader(row_planes, info.size, itemsize, pool))

@@ -229,7 +229,8 @@ def test_kernel_threads_count_free_cores_not_our_own_threads() -> None:
 
     import numba
 
-    from shared.scan.decode import _cores, _others_running, _own_running, kernel_threads
+    from shared.core.threads import cpu_budget
+    from shared.scan.decode import _others_running, _own_running, kernel_threads
 
     @numba.njit(nogil=True)
     def spin(n: int) -> int:  # pragma: no cover
@@ -257,7 +258,7 @@ def test_kernel_threads_count_free_cores_not_our_own_threads() -> None:
         time.sleep(0.5)
         others = _others_running()
         assert others is not None and others >= 2
-        assert kernel_threads() <= max(1, _cores() - 2)
+        assert kernel_threads() <= max(1, cpu_budget() - 2)
         assert 1 <= kernel_threads() <= numba.config.NUMBA_NUM_THREADS
     finally:
         for b in burners:
