@@ -74,6 +74,7 @@ from shared.compress._rans import (
     unzigzag,
     zigzag,
 )
+from shared.core.morton import compact21, spread21
 
 T_DUPF = 0  # any voxel holding more than one point?
 T_DUP = 1  # 4 tables: points per voxel - 1, by the previous voxel's count (1, 2, 3, 4+)
@@ -140,35 +141,13 @@ POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.int64)
 LOWEST = np.array([(i & -i).bit_length() - 1 for i in range(256)], np.int64)
 
 
-@njit(cache=True, nogil=True, inline="always")
-def _spread(v):
-    v &= 0x1FFFFF
-    v = (v | (v << 32)) & 0x1F00000000FFFF
-    v = (v | (v << 16)) & 0x1F0000FF0000FF
-    v = (v | (v << 8)) & 0x100F00F00F00F00F
-    v = (v | (v << 4)) & 0x10C30C30C30C30C3
-    v = (v | (v << 2)) & 0x1249249249249249
-    return v
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _compact(v):
-    v &= 0x1249249249249249
-    v = (v | (v >> 2)) & 0x10C30C30C30C30C3
-    v = (v | (v >> 4)) & 0x100F00F00F00F00F
-    v = (v | (v >> 8)) & 0x1F0000FF0000FF
-    v = (v | (v >> 16)) & 0x1F00000000FFFF
-    v = (v | (v >> 32)) & 0x1FFFFF
-    return v
-
-
 @njit(cache=True, nogil=True)
 def morton(q):
     """Morton codes (N,) int64 of non-negative integer coordinates (N, 3) below 2**21 (x lowest)."""
     n = q.shape[0]
     out = np.empty(n, np.int64)
     for i in range(n):
-        out[i] = _spread(q[i, 0]) | (_spread(q[i, 1]) << 1) | (_spread(q[i, 2]) << 2)
+        out[i] = spread21(q[i, 0]) | (spread21(q[i, 1]) << 1) | (spread21(q[i, 2]) << 2)
     return out
 
 
@@ -178,9 +157,9 @@ def unmorton(codes):
     out = np.empty((n, 3), np.int64)
     for i in range(n):
         c = codes[i]
-        out[i, 0] = _compact(c)
-        out[i, 1] = _compact(c >> 1)
-        out[i, 2] = _compact(c >> 2)
+        out[i, 0] = compact21(c)
+        out[i, 1] = compact21(c >> 1)
+        out[i, 2] = compact21(c >> 2)
     return out
 
 
@@ -188,7 +167,7 @@ def unmorton(codes):
 def _cell(key):
     """Index of a node in its region's map."""
     c = key & ((1 << REGION_SHIFT) - 1)
-    return ((_compact(c >> 2) + 1) * PAD + _compact(c >> 1) + 1) * PAD + _compact(c) + 1
+    return ((compact21(c >> 2) + 1) * PAD + compact21(c >> 1) + 1) * PAD + compact21(c) + 1
 
 
 @njit(cache=True, nogil=True, inline="always")

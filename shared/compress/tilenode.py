@@ -48,6 +48,7 @@ import numba
 import numpy as np
 
 from shared.core.errors import InputError
+from shared.core.morton import spread21
 
 #: The metadata.json ``encoding`` of tiles whose nodes this module codes.
 ENCODING = "GRAYLIGHT_OCTREE"
@@ -104,27 +105,16 @@ def _codec_dtype(dtype: np.dtype, where: str = "records") -> np.dtype:
 # --------------------------------------------------------------------------- kernels
 
 
-@numba.njit(cache=True, inline="always")
-def _spread21(v: np.uint64) -> np.uint64:
-    v &= np.uint64(0x1FFFFF)
-    v = (v | (v << np.uint64(32))) & np.uint64(0x1F00000000FFFF)
-    v = (v | (v << np.uint64(16))) & np.uint64(0x1F0000FF0000FF)
-    v = (v | (v << np.uint64(8))) & np.uint64(0x100F00F00F00F00F)
-    v = (v | (v << np.uint64(4))) & np.uint64(0x10C30C30C30C30C3)
-    v = (v | (v << np.uint64(2))) & np.uint64(0x1249249249249249)
-    return v
-
-
 @numba.njit(cache=True, nogil=True)
 def _keys(pos: np.ndarray, origin: np.ndarray, drop: int) -> np.ndarray:
     """(N,) uint64 Morton keys (x the high bit of a triple) of ``(pos - origin) >> drop``."""
     n = pos.shape[0]
     out = np.empty(n, np.uint64)
     for i in range(n):
-        x = np.uint64((np.int64(pos[i, 0]) - origin[0]) >> drop)
-        y = np.uint64((np.int64(pos[i, 1]) - origin[1]) >> drop)
-        z = np.uint64((np.int64(pos[i, 2]) - origin[2]) >> drop)
-        out[i] = (_spread21(x) << np.uint64(2)) | (_spread21(y) << np.uint64(1)) | _spread21(z)
+        x = (np.int64(pos[i, 0]) - origin[0]) >> drop
+        y = (np.int64(pos[i, 1]) - origin[1]) >> drop
+        z = (np.int64(pos[i, 2]) - origin[2]) >> drop
+        out[i] = np.uint64((spread21(x) << 2) | (spread21(y) << 1) | spread21(z))
     return out
 
 

@@ -72,6 +72,7 @@ import numpy as np
 
 from shared.compress import tilenode
 from shared.core.errors import InputError
+from shared.core.morton import spread21
 from shared.core.numba_start import blas_check_without_scipy_linalg
 from shared.core.threads import cpu_budget
 from shared.formats.ply import CLOUD_DTYPE, iter_ply_chunks, read_header
@@ -138,23 +139,12 @@ def tiles_dtype(present: dict[str, bool]) -> np.dtype:
 
 
 @numba.njit(cache=True, inline="always")
-def _spread(v: np.int64) -> np.int64:
-    v &= 0x1FFFFF
-    v = (v | (v << 32)) & 0x1F00000000FFFF
-    v = (v | (v << 16)) & 0x1F0000FF0000FF
-    v = (v | (v << 8)) & 0x100F00F00F00F00F
-    v = (v | (v << 4)) & 0x10C30C30C30C30C3
-    v = (v | (v << 2)) & 0x1249249249249249
-    return v
-
-
-@numba.njit(cache=True, inline="always")
 def _morton3(qx: np.int64, qy: np.int64, qz: np.int64, scale: float, top: np.int64) -> np.int64:
     """Morton code of one integer position; ``scale`` = 2**21 / qsize, ``top`` = 2**21 - 1."""
     mx = min(np.int64(qx * scale), top)
     my = min(np.int64(qy * scale), top)
     mz = min(np.int64(qz * scale), top)
-    return (_spread(mx) << 2) | (_spread(my) << 1) | _spread(mz)
+    return (spread21(mx) << 2) | (spread21(my) << 1) | spread21(mz)
 
 
 @numba.njit(cache=True, inline="always")
