@@ -52,9 +52,9 @@ from numba import njit
 from shared.compress._rans import (
     BIN,
     MODEL_INIT,
-    P_MIN,
     P_ONE,
     RANS_L,
+    adapt_state,
     count_symbols,
     dec_init,
     decode_tables,
@@ -348,16 +348,7 @@ def _sse_cell(models, axis, ca, cb, cc):
 def _sse_next(s, bit):
     """A cell's state ``s`` adapted to ``bit``: as :func:`shared.compress._rans.state_next`,
     the rate slowing further, to 1/128 (a cell sees many events)."""
-    s = np.int64(s)
-    p = s & 0xFFFF
-    n = s >> 16
-    rate = 2 + min(n >> 1, 5)
-    if bit:
-        p += (P_ONE - p) >> rate
-    else:
-        p -= p >> rate
-    p = min(max(p, P_MIN), P_ONE - P_MIN)
-    return np.uint32(p | (min(n + 1, 15) << 16))
+    return adapt_state(s, bit, 5)
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -293,10 +293,17 @@ def state_p(s):
 @njit(cache=True, nogil=True, inline="always")
 def state_next(s, bit):
     """A model's state ``s`` adapted to ``bit`` (integers only: encoder and decoder agree)."""
+    return adapt_state(s, bit, 4)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def adapt_state(s, bit, slowest):
+    """State ``s`` (16-bit probability of a one, event count above it) adapted to ``bit``: the
+    rate starts at 1/4 and halves every second event down to 1/2**(2 + slowest)."""
     s = np.int64(s)
     p = s & 0xFFFF
     n = s >> 16
-    rate = 2 + min(n >> 1, 4)
+    rate = 2 + min(n >> 1, slowest)
     if bit:
         p += (P_ONE - p) >> rate
     else:
