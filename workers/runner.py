@@ -227,7 +227,7 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
         reused = arts.exists(key)
         if reused:
             log.info("job %s stage %s: output %s exists, reusing", job.id, stage.name, key[:12])
-            summary = _stored_summary(arts, key)
+            summary = _stored_json(arts, key, SUMMARY_FILE)
         else:
             summary = _execute(job, stage, spec.inputs, upstream, arts, settings, beat, key)
             if summary is None:
@@ -292,11 +292,12 @@ def _user_facing(exc: InputError, job: Job, settings: Settings) -> str:
 SUMMARY_FILE = ".summary.json"
 
 
-def _stored_summary(arts: ArtifactStore, key: str) -> dict:
+def _stored_json(arts: ArtifactStore, key: str, name: str) -> dict:
+    """The JSON file ``name`` of stored object ``key`` ({} when the object has none)."""
     m = arts.manifest(key)
-    if m is None or SUMMARY_FILE not in m.files:
+    if m is None or name not in m.files:
         return {}
-    with arts.open(key, SUMMARY_FILE) as f:
+    with arts.open(key, name) as f:
         return json.loads(f.read().decode())
 
 
@@ -429,7 +430,7 @@ def _remake_detached(job: Job, producer: str, key: str, arts: ArtifactStore, set
     if row_key(job.kind, producer, job.capture_key, job.params, upstream) != key:
         raise ArtifactError(f"job {job.id}: the inputs of {producer} changed since its output {key[:12]} was stored")
     log.info("job %s: %s of %s was deleted; running %s again for it", job.id, ", ".join(spec.detach), producer, producer)
-    stored = _detached_sums(arts, key)
+    stored = _stored_json(arts, key, DETACHED_FILE)
     work = settings.cache_dir / "work"
     work.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f"{producer}-detached-", dir=work))
@@ -449,14 +450,6 @@ def _remake_detached(job: Job, producer: str, key: str, arts: ArtifactStore, set
             _store_detached(arts, key, name, src, tmp)
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
-
-
-def _detached_sums(arts: ArtifactStore, key: str) -> dict:
-    m = arts.manifest(key)
-    if m is None or DETACHED_FILE not in m.files:
-        return {}
-    with arts.open(key, DETACHED_FILE) as f:
-        return json.loads(f.read().decode())
 
 
 def _release_inputs(job: Job, stage: str, upstream: dict[str, str], arts: ArtifactStore) -> None:
