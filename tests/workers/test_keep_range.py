@@ -21,8 +21,8 @@ from shared.service.jobs import StageView, graph_for, row_key, rows_to_rerun
 from shared.service.jobstore import Job, JobStore, NewJob
 from shared.service.queue import publish_stages
 from shared.service.usage import ObjectSizes, key_usage
-from tests.support.inprocess import drive
-from tests.support.jobsvc import ServiceEnv, capture_zip, start_worker, wait_for
+from tests.support.inprocess import drive, submit_scan_job
+from tests.support.jobsvc import ServiceEnv, start_worker, wait_for
 
 DROP = {"render": False, "export": False, "compress": {"max_error": 0.5, "keep_range": False}}
 KEEP = {"render": False, "export": False}
@@ -30,17 +30,10 @@ KEEP = {"render": False, "export": False}
 
 def _submit(settings: Settings, capture: Path, tmp: Path, params: dict[str, Any],
             publish: bool = False) -> tuple[JobStore, ArtifactStore, int, Job]:  # fmt: skip
-    store = JobStore(settings.database_url)
-    owner, _ = store.create_key("t")
-    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
-    archive = capture_zip(capture, tmp / "c.zip")
-    key = sha256_file(archive)
-    arts.put_files(key, {"capture.zip": archive})
-    job, queued = store.create_job(owner.id, NewJob(kind="scan", capture_ref=f"object:{key}", capture_key=key,
-                                                   graph=graph_for("scan", params), name="c.zip", params=params))  # fmt: skip
+    store, arts, owner, job, queued = submit_scan_job(settings, capture, tmp, params)
     if publish:
         publish_stages(queued, settings)
-    return store, arts, owner.id, job
+    return store, arts, owner, job
 
 
 def _retry(store: JobStore, job: Job, params: dict[str, Any]) -> None:
