@@ -160,15 +160,15 @@ def _module_kernels(domains: Sequence[str]) -> dict[str, list[Any]]:
 
 
 def stale_kernel_modules(domains: Sequence[str] = DOMAINS) -> list[str]:
-    """Kernel modules whose imported ``shared`` modules changed since their last warm-up (or
-    were never recorded): numba's cache would load machine code built from the old sources."""
+    """Kernel modules whose cached machine code numba would load although the ``shared``
+    modules they import changed since their last warm-up (or were never recorded)."""
     stale = []
     for name, dispatchers in _module_kernels(domains).items():
         try:
             recorded = json.loads(_manifest(name, dispatchers).read_text(encoding="utf-8"))
         except (OSError, ValueError):
             recorded = None
-        if recorded != kernel_dependencies(name):
+        if recorded != kernel_dependencies(name) and any(cached_signatures(d) for d in dispatchers):
             stale.append(name)
     return stale
 
