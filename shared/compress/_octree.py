@@ -27,9 +27,13 @@ footprints of the columns one and two back along the axis, the past neighbours' 
 along z (B: a noisy surface scatters a scan's row over the z neighbours, which the face
 neighbours miss); the occupied nodes of the 26 around counted per slab (C: the side the
 surface goes on). The three probabilities, in buckets of log-odds, pick an adaptive cell that
-codes the bit. (Mixing every event of every level took the bench's scan at a 0.1 mm grid to
-6.46 bits a point, against 6.75 so, but 2.2 times as long to decode; the last level's x and
-y bits carry half of the gain at a sixth of that cost.)
+codes the bit. In the FLAG_MIX_LEVELS levels above it the single-child flag is mixed alike:
+its context (A), the footprints at x - 1 and y - 1 with the occupied face neighbours (B), the
+nodes of the 26 around counted per slab along z (C). (Mixing every event of every level took
+the bench's scan at a 0.1 mm grid to 6.46 bits a point, against 6.75 so, but 2.2 times as
+long to decode; the last level's x and y bits carry half of the gain at a sixth of that cost,
+the flags of the two levels above a quarter of the rest at a few per cent more; mixing the x
+and y bits of the level above too saves 0.05 bits more but decodes 1.27 times as slowly.)
 
 Neighbours are looked up in a dense map of the nodes of a 64^3-node region (the nodes
 sharing an ancestor six levels up, consecutive in Morton order); a neighbour outside the
@@ -107,11 +111,17 @@ B_X = N_OCC_CTX
 B_Y = B_X + 512
 C3_X = B_Y + 1024
 C3_Y = C3_X + 1000
-N_MODELS = C3_Y + 2000
+#: The single-child flag of the FLAG_MIX_LEVELS levels above the last is mixed too, its second
+#: model (B) the footprints at x - 1 and y - 1 and the occupied face neighbours, its third (C)
+#: the occupied nodes of the 26 around counted per slab along z.
+FLAG_MIX_LEVELS = 2
+B_SINGLE = C3_Y + 2000
+C3_SINGLE = B_SINGLE + 256 * 7
+N_MODELS = C3_SINGLE + 900
 #: Secondary estimation: each model's probability falls in one of SSE_N buckets (by its
 #: log-odds, uniform over [-7, 7]; SSE_EDGES[k] is the first 12-bit probability of bucket k),
-#: and the three buckets of an event pick an adaptive cell of its axis' SSE_N**3 table (x, y),
-#: whose probability codes the event.
+#: and the three buckets of an event pick an adaptive cell of its kind's SSE_N**3 table (x, y,
+#: single-child flag), whose probability codes the event.
 SSE_N = 16
 SSE_EDGES = (0, 9, 21, 51, 120, 277, 606, 1205, 2048, 2891, 3490, 3819, 3976, 4045, 4075, 4087)
 SSE_BUCKET = np.searchsorted(np.array(SSE_EDGES), np.arange(4096), side="right").astype(np.int64) - 1
@@ -130,9 +140,9 @@ SSE_INIT_M = np.array((
     65178, 65208, 65235, 65260, 65283, 65304, 65324, 65341, 65358, 65372, 65386, 65399, 65410, 65421, 65430, 65439,
     65447, 65454, 65461, 65467, 65473, 65478, 65483, 65488), np.uint32)
 _ka, _kb, _kc = np.meshgrid(np.arange(SSE_N), np.arange(SSE_N), np.arange(SSE_N), indexing="ij")
-#: Every cell's first state, (SSE_N**3,) uint32; the tables of x and y follow each other.
+#: Every cell's first state, (SSE_N**3,) uint32; the tables of x, y and the flag follow each other.
 SSE_INIT = SSE_INIT_M[(5 * _ka + 3 * _kb + 3 * _kc).ravel()]
-N_SSE = 2 * SSE_N**3
+N_SSE = 3 * SSE_N**3
 _OCCUPIED = 256
 _CODED = 512
 
@@ -278,14 +288,15 @@ def _lat(v):
 
 @njit(cache=True, nogil=True, inline="always")
 def _around(atlas, rows, ci):
-    """What the 26 nodes around a node tell a single child's x and y bits: the occupied ones
+    """What the 26 nodes around a node tell a single child's x and y bits and the single-child
+    flag: the occupied ones
     counted per slab (sx0, sx1, sx2: the slabs at x - 1, x and x + 1, the node itself left out;
-    then along y), from the occupancy bit rows of the region (``rows[ci // PAD]`` bit
+    then along y and z), from the occupancy bit rows of the region (``rows[ci // PAD]`` bit
     ``ci % PAD - 1``: one uint64 per row along x), and the footprints (:func:`_lat` of the
     nodes at z - 1, z and z + 1 together) of the columns at x - 1, y - 1, x - 2 and y - 2."""
     r0 = ci // PAD
     x = ci - r0 * PAD - 1
-    sx0 = sx1 = sx2 = sy0 = sy1 = sy2 = np.int64(0)
+    sx0 = sx1 = sx2 = sy0 = sy1 = sy2 = sz0 = sz1 = sz2 = np.int64(0)
     for dz in range(-1, 2):
         for dy in range(-1, 2):
             r = rows[r0 + dy + dz * PAD]
@@ -302,13 +313,19 @@ def _around(atlas, rows, ci):
                 sy2 += a + m + c
             else:
                 sy1 += a + m + c
+            if dz < 0:
+                sz0 += a + m + c
+            elif dz > 0:
+                sz2 += a + m + c
+            else:
+                sz1 += a + m + c
     zz = PAD * PAD
     fx1 = _lat(atlas[ci - 1 - zz]) | _lat(atlas[ci - 1]) | _lat(atlas[ci - 1 + zz])
     fy1 = _lat(atlas[ci - PAD - zz]) | _lat(atlas[ci - PAD]) | _lat(atlas[ci - PAD + zz])
     fx2 = _lat(atlas[ci - 2 - zz]) | _lat(atlas[ci - 2]) | _lat(atlas[ci - 2 + zz])
     fy2 = _lat(atlas[ci - 2 * PAD - zz]) | _lat(atlas[ci - 2 * PAD]) | _lat(atlas[ci - 2 * PAD + zz])
     # the node itself (occupied) was counted in the middle slabs
-    return sx0, sx1 - 1, sx2, sy0, sy1 - 1, sy2, fx1, fy1, fx2, fy2
+    return sx0, sx1 - 1, sx2, sy0, sy1 - 1, sy2, sz0, sz1 - 1, sz2, fx1, fy1, fx2, fy2
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -338,8 +355,18 @@ def _mixed_y(bx, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _mixed_single(atlas, rows, ci, xm, ym, zm, xp, yp, zp, xm2, ym2):
+    """The three models (A, B, C) of the single-child flag."""
+    _, _, _, _, _, _, sz0, sz1, sz2, fx1, fy1, _, _ = _around(atlas, rows, ci)
+    occ = ((xm >> 8) & 1) + ((ym >> 8) & 1) + ((zm >> 8) & 1) + ((xp >> 8) & 1) + ((yp >> 8) & 1) + ((zp >> 8) & 1)
+    return (_single_context(xm, ym, zm, xp, yp, zp, xm2, ym2), B_SINGLE + (fx1 * 16 + fy1) * 7 + occ,
+            C3_SINGLE + (sz0 * 9 + sz1) * 10 + sz2)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _sse_cell(models, axis, ca, cb, cc):
-    """The secondary-estimation cell (axis 0: x, 1: y) of an event whose models are ``ca``, ``cb``, ``cc``."""
+    """The secondary-estimation cell (axis 0: x, 1: y, 2: the single-child flag) of an event
+    whose models are ``ca``, ``cb``, ``cc``."""
     return (((axis * SSE_N + SSE_BUCKET[state_p(models[ca])]) * SSE_N + SSE_BUCKET[state_p(models[cb])]) * SSE_N
             + SSE_BUCKET[state_p(models[cc])])
 
@@ -373,15 +400,16 @@ def _learn(models, sse, ca, cb, cc, cell, bit):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _emit_mixed(tab, val, nb, n, models, sse, axis, ca, cb, cc, bit):
-    """Append a mixed binary event (x or y bit) coded with its cell's probability and adapt;
-    -1 when the buffers are full."""
+def _emit_mixed(tab, val, nb, n, models, sse, axis, ca, cb, cc, bit, kind):
+    """Append a mixed binary event (``axis`` 0 the x bit, 1 the y bit, 2 the single-child flag)
+    coded with its cell's probability and adapt; -1 when the buffers are full (``kind``: as
+    :func:`_emit`)."""
     if n < 0 or n >= tab.shape[0]:
         return -1
     cell = _sse_cell(models, axis, ca, cb, cc)
     tab[n] = BIN
     val[n] = (state_p(sse[cell]) << 1) | bit
-    nb[n] = 1 + axis
+    nb[n] = kind
     _learn(models, sse, ca, cb, cc, cell, bit)
     return n + 1
 
@@ -422,9 +450,10 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
     rows = np.zeros(PAD * PAD, np.uint64)
     for d in range(depth):
         models[:] = MODEL_INIT
-        for k in range(2):
+        for k in range(3):
             sse[k * SSE_N**3 : (k + 1) * SSE_N**3] = SSE_INIT
         mixed = d >= depth - MIX_LEVELS
+        mixed_flag = depth - 1 - FLAG_MIX_LEVELS <= d < depth - 1
         a0 = starts[d]
         a1 = starts[d + 1]
         c1 = starts[d + 2]
@@ -446,17 +475,21 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
                     j += 1
                 xm, ym, zm, xp, yp, zp, xm2, ym2, slope = _neighbours(atlas, ci)
                 single = POPCOUNT[byte] == 1
-                n = _emit(tab, val, nb, n, models, _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2), 1 if single else 0, 0)
+                if mixed_flag:
+                    ca, cb, cc = _mixed_single(atlas, rows, ci, xm, ym, zm, xp, yp, zp, xm2, ym2)
+                    n = _emit_mixed(tab, val, nb, n, models, sse, 2, ca, cb, cc, 1 if single else 0, 0)
+                else:
+                    n = _emit(tab, val, nb, n, models, _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2), 1 if single else 0, 0)
                 if single:
                     bx = 1 if byte & 0xAA else 0
                     by = 1 if byte & 0xCC else 0
                     bz = 1 if byte & 0xF0 else 0
                     if mixed:
-                        sx0, sx1, sx2, sy0, sy1, sy2, fx1, fy1, fx2, fy2 = _around(atlas, rows, ci)
+                        sx0, sx1, sx2, sy0, sy1, sy2, _, _, _, fx1, fy1, fx2, fy2 = _around(atlas, rows, ci)
                         ca, cb, cc = _mixed_x(xm, ym, zm, xp, xm2, sx0, sx1, sx2, fx1, fx2)
-                        n = _emit_mixed(tab, val, nb, n, models, sse, 0, ca, cb, cc, bx)
+                        n = _emit_mixed(tab, val, nb, n, models, sse, 0, ca, cb, cc, bx, 1)
                         ca, cb, cc = _mixed_y(bx, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
-                        n = _emit_mixed(tab, val, nb, n, models, sse, 1, ca, cb, cc, by)
+                        n = _emit_mixed(tab, val, nb, n, models, sse, 1, ca, cb, cc, by, 2)
                     else:
                         n = _emit(tab, val, nb, n, models, _x_context(xm, ym, zm, xp, xm2), bx, 1)
                         n = _emit(tab, val, nb, n, models, _y_context(bx, xm, ym, zm, yp, ym2), by, 2)
@@ -539,9 +572,10 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
     ncur = 1
     for d in range(depth):
         models[:] = MODEL_INIT
-        for k in range(2):
+        for k in range(3):
             sse[k * SSE_N**3 : (k + 1) * SSE_N**3] = SSE_INIT
         mixed = d >= depth - MIX_LEVELS
+        mixed_flag = depth - 1 - FLAG_MIX_LEVELS <= d < depth - 1
         last = d == depth - 1  # the children are voxels: no map cells needed
         m = 0
         r0 = 0
@@ -555,16 +589,20 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
                 key = cur[i]
                 ci = curc[i]
                 xm, ym, zm, xp, yp, zp, xm2, ym2, slope = _neighbours(atlas, ci)
-                # Every model this node may use next is loaded before the bit that picks it
-                # is known: the loads leave the decoding's dependency chain.
                 # Every model (and cell) this node may use next is loaded before the bit that
                 # picks it is known: the loads leave the decoding's dependency chain.
-                cs = _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2)
-                ss = models[cs]
+                if mixed_flag:
+                    cs, cbs, ccs = _mixed_single(atlas, rows, ci, xm, ym, zm, xp, yp, zp, xm2, ym2)
+                    cfs = _sse_cell(models, 2, cs, cbs, ccs)
+                    ss = sse[cfs]
+                else:
+                    cs = _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2)
+                    cbs = ccs = cfs = 0
+                    ss = models[cs]
                 if mixed:
                     # x and y: three models each and their cell (x and y have a table each: the x
                     # event changes no y cell)
-                    sx0, sx1, sx2, sy0, sy1, sy2, fx1, fy1, fx2, fy2 = _around(atlas, rows, ci)
+                    sx0, sx1, sx2, sy0, sy1, sy2, _, _, _, fx1, fy1, fx2, fy2 = _around(atlas, rows, ci)
                     cax, cbx, ccx = _mixed_x(xm, ym, zm, xp, xm2, sx0, sx1, sx2, fx1, fx2)
                     cay0, cby0, ccy0 = _mixed_y(0, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
                     cay1, cby1, ccy1 = _mixed_y(1, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
@@ -583,7 +621,11 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
                     sy0 = models[cy0]
                     sy1 = models[cy1]
                 single, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(ss))
-                models[cs] = state_next(ss, single)
+                if mixed_flag:
+                    # the flag's models and cell are none of the x and y bits' (loaded above)
+                    _learn(models, sse, cs, cbs, ccs, cfs, single)
+                else:
+                    models[cs] = state_next(ss, single)
                 if single:
                     czs = (_z_context(0, 0, xm, ym, zm, zp, xm2, ym2, np.int64(slope)), _z_context(1, 0, xm, ym, zm, zp, xm2, ym2, np.int64(slope)),
                            _z_context(0, 1, xm, ym, zm, zp, xm2, ym2, np.int64(slope)), _z_context(1, 1, xm, ym, zm, zp, xm2, ym2, np.int64(slope)))
