@@ -86,40 +86,52 @@ def _potree_converter() -> Path | None:
     return exe
 
 
-def _tile_comparison(cloud: Path, work: Path, *, stage: bool = True) -> None:
+def _tile_comparison(cloud: Path, work: Path, *, stage: bool = True, rounds: int = 1) -> None:
     """Tiles of ``cloud`` by our stage (warm process), our CLI (a new process, numba's cache
     warm), PotreeConverter (the same points as uncompressed LAS, its default Poisson sampling)
-    and py3dtiles, each in turn; prints wall and CPU seconds and the ratios."""
+    and py3dtiles; the three commands take turns for ``rounds`` rounds (a single run of a
+    one-second command swings by tens of % on a shared machine), and each one's median wall and
+    CPU seconds are printed with the ratios."""
     n = read_header(cloud).count
     bin_dir = Path(sys.executable).parent
     rows: list[tuple[str, float, float]] = []
     if stage:
-        # As a job-service worker runs it: a warm process (kernels loaded), chunks on threads.
+        # As a job-service worker runs it: a warm process, kernels loaded.
         build_tiles(synthetic_scan(work / "warm.ply", 20_000), work / "warm_tiles")
         _settle()
         c0, t0 = _cpu_seconds(), time.perf_counter()
         build_tiles(cloud, work / "ours_tiles")
         rows.append(("graylight build_tiles (stage, warm)", time.perf_counter() - t0, _cpu_seconds() - c0))
         shutil.rmtree(work / "ours_tiles", ignore_errors=True)
-    _settle()
-    cli = _run([str(bin_dir / "graylight"), "tiles", str(cloud), "--out", str(work / "cli_tiles")])
-    rows.append(("graylight tiles (CLI, new process)", *cli))
-    shutil.rmtree(work / "cli_tiles", ignore_errors=True)
     exe = _potree_converter()
-    potree = (float("nan"), float("nan"))
+    las = work / f"{cloud.stem}.las"
     if exe is not None:
-        las = work / f"{cloud.stem}.las"
         write_las(cloud, las, compressed=False, scale=0.001)  # PotreeConverter reads LAS/LAZ, not PLY
+    runs: dict[str, list[tuple[float, float]]] = {"cli": [], "potree": [], "py3dtiles": []}
+    for _ in range(rounds):
         _settle()
-        potree = _run([str(exe), str(las), "-o", str(work / "potree"), "--method", "poisson"])
-        las.unlink()
-        shutil.rmtree(work / "potree", ignore_errors=True)
-    rows.append(("PotreeConverter 2 (C++, LAS input)", *potree))
-    _settle()
-    p3 = _py3dtiles(cloud, work / "py3dtiles")
-    rows.append(("py3dtiles convert (CLI)", *p3))
-    shutil.rmtree(work / "py3dtiles", ignore_errors=True)
-    print(f"tile build, {n / 1e6:.1f} M points, {os.cpu_count()} cores (CPU = user + system of all processes; "
+        runs["cli"].append(_run([str(bin_dir / "graylight"), "tiles", str(cloud), "--out", str(work / "cli_tiles")]))
+        shutil.rmtree(work / "cli_tiles", ignore_errors=True)
+        if exe is not None:
+            _settle()
+            runs["potree"].append(_run([str(exe), str(las), "-o", str(work / "potree"), "--method", "poisson"]))
+            shutil.rmtree(work / "potree", ignore_errors=True)
+        _settle()
+        runs["py3dtiles"].append(_py3dtiles(cloud, work / "py3dtiles"))
+        shutil.rmtree(work / "py3dtiles", ignore_errors=True)
+    las.unlink(missing_ok=True)
+
+    def median(key: str) -> tuple[float, float]:
+        got = runs[key]
+        if not got:
+            return float("nan"), float("nan")
+        return float(np.median([w for w, _ in got])), float(np.median([c for _, c in got]))
+
+    cli, potree, p3 = median("cli"), median("potree"), median("py3dtiles")
+    each = f", median of {rounds} alternating runs" if rounds > 1 else ""
+    rows += [("graylight tiles (CLI, new process)", *cli), ("PotreeConverter 2 (C++, LAS input)", *potree),
+             ("py3dtiles convert (CLI)", *p3)]  # fmt: skip
+    print(f"tile build, {n / 1e6:.1f} M points, {os.cpu_count()} cores (CPU = user + system of all processes{each}; "
           f"load average {os.getloadavg()[0]:.1f}):")  # fmt: skip
     for name, wall, cpu in rows:
         print(f"  {name:37s} {wall:6.2f} s wall {n / wall / 1e6:5.2f} M pts/s  {cpu:6.2f} s CPU")
@@ -134,7 +146,7 @@ def _tile_comparison(cloud: Path, work: Path, *, stage: bool = True) -> None:
 
 
 def bench_tiles(work: Path) -> None:
-    _tile_comparison(synthetic_scan(work / "tiles_cloud.ply", TILE_POINTS, seed=11), work)
+    _tile_comparison(synthetic_scan(work / "tiles_cloud.ply", TILE_POINTS, seed=11), work, rounds=5)
 
 
 def bench_tile_nodes(work: Path) -> None:
