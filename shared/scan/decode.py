@@ -292,11 +292,11 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep
     blk, lvl: (W,) code block and level; qa, qb: (W,) the differences of the flipping bit plane
     at each pair's two pixels (:func:`_edge_differences`), already scaled to int8 (streaming) or
     raw, then scaled by ``kq`` (W,) float32 here (``quantise``); pos, val, frac: (W,) float64,
-    jx: (W,) int64, ep, ev: (W + 2 _NEAR,) float64 and slow: (W,) bool scratch; out: (W,)
-    float32 holding the integer decode, overwritten where interpolated. Returns the number of
-    interpolated pixels. Divisions follow numpy's error model: two edges at one position give
-    an infinite slope, clamped to the stripe, or NaN, left uninterpolated (Python's model
-    raised ZeroDivisionError there).
+    jx: (W,) int64 (marked pixels with their edge counts), ep, ev: (W + 2 _NEAR,) float64 and
+    slow: (W,) bool scratch; out: (W,) float32 holding the integer decode, overwritten where
+    interpolated. Returns the number of interpolated pixels. Divisions follow numpy's error
+    model: two edges at one position give an infinite slope, clamped to the stripe, or NaN,
+    left uninterpolated (Python's model raised ZeroDivisionError there).
 
     A pixel takes the column between the edges either side of it (the nearest edge at or left
     of it and the next one) when both bound its stripe; otherwise one edge and the slope of the
@@ -304,9 +304,9 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep
     branches (it vectorises) finds them among the ``_NEAR`` pairs each side and interpolates.
     The other pixels (edges farther away, or a stripe bounded on one side only), and every
     pixel of a row whose stripes are wider than ``_DENSE`` pixels on average, are marked and
-    decoded as before: the row's edges compacted into pos/val with each
-    pixel's edge count jx, then the three cases in order. Either way the same arithmetic on
-    the same values.
+    decoded as before: the row's edges compacted into pos/val with each marked pixel's edge
+    count in jx, then the three cases in order. Either way the same arithmetic on the same
+    values.
     """
     W = blk.size
     step = 1 << lowest
@@ -387,21 +387,25 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep
         return n_sub
     # Pass 3, for the marked pixels: every edge of the row in order (pos/val; those of a
     # non-edge are overwritten by the next edge or lie at index ne, which is never read), and
-    # jx, the edges at or left of each pixel (earlier pairs, and its own pair at fraction 0).
+    # in jx[:ns] the marked pixels in order, each as x << 32 | its count of edges at or left of
+    # it (earlier pairs, and its own pair at fraction 0): written at every pixel, kept (ns
+    # advanced) at marked ones only, so the loop over them has no branch per pixel to skip.
     ne = 0
+    ns = 0
     for x in range(W - 1):
         t = frac[x]
         edge = t >= 0.0
         pos[ne] = ep[x + K]
         val[ne] = ev[x + K]
-        jx[x] = ne + (edge & (t == 0.0))
+        jx[ns] = (np.int64(x) << 32) | (ne + (edge & (t == 0.0)))
+        ns += slow[x]
         ne += edge
-    jx[W - 1] = ne
-    for x in range(W):
-        if not slow[x]:
-            continue
+    jx[ns] = (np.int64(W - 1) << 32) | ne
+    ns += slow[W - 1]
+    for i in range(ns):
+        x = jx[i] >> 32
+        j = jx[i] & 0xFFFFFFFF
         B = blk[x]
-        j = jx[x]
         lo = B * step - 0.5
         hi = (B + 1) * step - 0.5
         v = np.nan
