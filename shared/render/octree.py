@@ -1300,10 +1300,10 @@ def build_tiles(
     """Build Potree 2.0 tiles from ``cloud_ply`` into ``out_dir`` (all passes, in-process).
 
     ``workers`` threads run the passes over the cloud and build chunks in parallel (default:
-    :func:`~shared.core.threads.cpu_budget`; 1 runs in the calling thread). Temporary chunk files (none for a cloud of at
-    most :data:`KEEP_POINTS` points) live beside ``out_dir`` and are removed. ``scale``,
-    ``estimate_normals`` and ``node_codec`` as :func:`plan_tiles`. Returns a report with points,
-    nodes, depth, bytes, chunks, seconds and points_per_second.
+    :func:`~shared.core.threads.cpu_budget`; 1 runs in the calling thread). Temporary chunk
+    files (none for a cloud of at most :data:`KEEP_POINTS` points) live beside ``out_dir`` and
+    are removed. ``scale``, ``estimate_normals`` and ``node_codec`` as :func:`plan_tiles`.
+    Returns a report with points, nodes, depth, bytes, chunks, seconds and points_per_second.
     """
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
