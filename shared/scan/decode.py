@@ -441,6 +441,21 @@ def _row_scratch(W, q, levels):  # pragma: no cover
             np.zeros(levels, np.int64))  # fmt: skip
 
 
+@numba.njit(inline="always", error_model="numpy")
+def _classify(di, x, one, ithr, sg, wk, a1, a2, with_q=True):  # pragma: no cover
+    """Pixel ``x``'s difference ``di`` of one bit plane: its sign bit ``one`` into ``sg``, its
+    weakness (``|di| < ithr[x]``) into ``wk``, and, ``with_q``, ``|di|`` into the smallest and
+    second-smallest so far (``a1``, ``a2``: the confidence)."""
+    zero = np.uint16(0)
+    sg[x] |= one if di > 0 else zero
+    wk[x] |= one if abs(di) < ithr[x] else zero
+    if with_q:
+        aq = abs(di)
+        b1 = a1[x]
+        a2[x] = min(a2[x], max(b1, aq))
+        a1[x] = min(b1, aq)
+
+
 #: Camera rows per parallel work item: few enough items to keep launches cheap, enough to
 #: balance two threads; row buffers are allocated once per item.
 _BAND = 16
@@ -472,7 +487,6 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
     H, W = white.shape
     k = bits.size  # planes of this axis; the tuples are padded to _MAX_PLANES (one signature)
     full = (1 << nbits) - 1
-    zero = np.uint16(0)
     nq = k if want_q else 1
     dmax = np.iinfo(diff.dtype).max
     n_bands = (H + _BAND - 1) // _BAND
@@ -533,23 +547,26 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                         if with_inverse:
                             prefetch(rn, x)
                     dd = q[j] if want_q else q[0]
+                    # One pass a plane: the difference, stored for the sub-pixel step, is read
+                    # back at once (a register, not memory) for the sign, weakness and confidence.
                     if with_inverse:
                         r = refs[j][y]
+                        if want_q:
+                            for x in range(W):
+                                dd[x] = np.int32(p[x]) - np.int32(r[x])
+                                _classify(dd[x], x, one, ithr, sg, wk, a1, a2)
+                        else:
+                            for x in range(W):
+                                dd[x] = np.int32(p[x]) - np.int32(r[x])
+                                _classify(dd[x], x, one, ithr, sg, wk, a1, a2, False)
+                    elif want_q:
                         for x in range(W):
-                            dd[x] = np.int32(p[x]) - np.int32(r[x])
+                            dd[x] = 2 * np.int32(p[x]) - wb[x]
+                            _classify(dd[x], x, one, ithr, sg, wk, a1, a2)
                     else:
                         for x in range(W):
                             dd[x] = 2 * np.int32(p[x]) - wb[x]
-                    for x in range(W):
-                        di = dd[x]
-                        sg[x] |= one if di > 0 else zero
-                        wk[x] |= one if abs(di) < ithr[x] else zero
-                    if want_q:
-                        for x in range(W):
-                            aq = abs(dd[x])
-                            b1 = a1[x]
-                            a2[x] = min(a2[x], max(b1, aq))
-                            a1[x] = min(b1, aq)
+                            _classify(dd[x], x, one, ithr, sg, wk, a1, a2, False)
                 hist[:] = 0
                 lv = level[y]
                 _resolve_row(sg, wk, lr, full, lowest, max_level, n_proj, blk, lv, value[y], sel, hist)
