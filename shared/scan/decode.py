@@ -60,6 +60,7 @@ from shared.core.threads import cpu_budget
 from shared.formats.capture import Capture, CodeImage, code_bits
 from shared.formats.images import prepare_png_reading, probe_image, read_grey, read_grey_and_colour
 from shared.scan._bands import next_item, prefetch
+from shared.scan._i32 import add32, and32, eq32, ge32, gt32, le32, lt32, ne32, shl32, shr32, sub32, xor32
 
 log = logging.getLogger(__name__)
 
@@ -197,12 +198,10 @@ def _resolve_row(sg, wk, lit, full, lowest, max_level, n_proj, blk, lvl, val, se
     top = np.float32(n_proj - 1)
     nan = np.float32(np.nan)
     low_bit = np.int32(1 << lowest)
-    for x in range(W):
-        w = np.int32(wk[x]) & full
-        ok = ((w & (w - 1)) == 0) & ((w <= low_bit) | ((np.int32(sg[x]) & (w - 1)) == (w >> 1)))
-        sel[x] = lowest if ok else -1
     if max_level - lowest <= 3:
-        # The (up to three) coarser levels in one pass: each pixel's bits are loaded once.
+        # Every level (up to three coarser ones), the code and the level counts in one loop:
+        # each pixel's bits are loaded once and nothing goes through memory between the steps
+        # (four passes over the row, and four more to count the levels, took twice as long).
         n_more = max_level - lowest
         u1, u2, u3 = n_more >= 1, n_more >= 2, n_more >= 3
         f = np.int32(full)
@@ -212,32 +211,78 @@ def _resolve_row(sg, wk, lit, full, lowest, max_level, n_proj, blk, lvl, val, se
         bt1 = np.int32(1 << (lowest + 1))
         bt2 = np.int32(1 << (lowest + 2))
         bt3 = np.int32(1 << (lowest + 3))
+        L0 = np.int32(lowest)
         L1 = np.int32(lowest + 1)
         L2 = np.int32(lowest + 2)
         L3 = np.int32(lowest + 3)
+        np_32 = np.int32(min(n_proj, 1 << 30))
+        one = np.int32(1)
+        zero = np.int32(0)
+        neg = np.int32(-1)
+        n0 = zero
+        n1 = zero
+        n2 = zero
+        n3 = zero
+        # In int32 throughout (see _i32: numba's int64 kept this loop at 8 pixels a vector);
+        # exact, codes have at most 16 bits.
         for x in range(W):
             w = np.int32(wk[x])
             g = np.int32(sg[x])
+            lx = lit[x]
+            wf = and32(w, f)
+            wf1 = sub32(wf, one)
+            ok = eq32(and32(wf, wf1), zero) & (le32(wf, low_bit) | eq32(and32(g, wf1), shr32(wf, one)))
+            s = L0 if ok else neg
+            wm = and32(w, hi1)
+            wm1 = sub32(wm, one)
+            ok = eq32(and32(wm, wm1), zero) & (eq32(wm, zero) | (ne32(wm, bt1) & eq32(and32(and32(g, wm1), hi1), shr32(wm, one))))
+            s = L1 if lt32(s, zero) & ok & u1 else s
+            wm = and32(w, hi2)
+            wm1 = sub32(wm, one)
+            ok = eq32(and32(wm, wm1), zero) & (eq32(wm, zero) | (ne32(wm, bt2) & eq32(and32(and32(g, wm1), hi2), shr32(wm, one))))
+            s = L2 if lt32(s, zero) & ok & u2 else s
+            wm = and32(w, hi3)
+            wm1 = sub32(wm, one)
+            ok = eq32(and32(wm, wm1), zero) & (eq32(wm, zero) | (ne32(wm, bt3) & eq32(and32(and32(g, wm1), hi3), shr32(wm, one))))
+            s = L3 if lt32(s, zero) & ok & u3 else s
+            L = s if gt32(s, zero) else zero
+            # Gray to binary commutes with dropping the finest bits: convert, then shift.
+            gb = and32(g, f)
+            gb = xor32(gb, shr32(gb, np.int32(1)))
+            gb = xor32(gb, shr32(gb, np.int32(2)))
+            gb = xor32(gb, shr32(gb, np.int32(4)))
+            gb = xor32(gb, shr32(gb, np.int32(8)))
+            b = shr32(gb, L)
+            bl = shl32(b, L)
+            good = lx & ge32(s, zero) & lt32(bl, np_32)
+            blk[x] = b if good else neg
+            lvl[x] = L if good else neg
+            c = np.float32(bl) + np.float32(sub32(shl32(one, L), one)) * np.float32(0.5)
+            val[x] = min(c, top) if good else nan
+            n0 = add32(n0, np.int32(good & eq32(L, L0)))
+            n1 = add32(n1, np.int32(good & eq32(L, L1)))
+            n2 = add32(n2, np.int32(good & eq32(L, L2)))
+            n3 = add32(n3, np.int32(good & eq32(L, L3)))
+        hist[0] += n0
+        if u1:
+            hist[1] += n1
+        if u2:
+            hist[2] += n2
+        if u3:
+            hist[3] += n3
+        return
+    for x in range(W):
+        w = np.int32(wk[x]) & full
+        ok = ((w & (w - 1)) == 0) & ((w <= low_bit) | ((np.int32(sg[x]) & (w - 1)) == (w >> 1)))
+        sel[x] = lowest if ok else -1
+    for L in range(lowest + 1, max_level + 1):
+        hi = np.int32(full & ~((1 << L) - 1))
+        bit = np.int32(1 << L)
+        for x in range(W):
+            wm = np.int32(wk[x]) & hi
+            ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bit) & ((np.int32(sg[x]) & (wm - 1) & hi) == (wm >> 1))))
             s = sel[x]
-            wm = w & hi1
-            ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bt1) & ((g & (wm - 1) & hi1) == (wm >> 1))))
-            s = L1 if (s < 0) & ok & u1 else s
-            wm = w & hi2
-            ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bt2) & ((g & (wm - 1) & hi2) == (wm >> 1))))
-            s = L2 if (s < 0) & ok & u2 else s
-            wm = w & hi3
-            ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bt3) & ((g & (wm - 1) & hi3) == (wm >> 1))))
-            s = L3 if (s < 0) & ok & u3 else s
-            sel[x] = s
-    else:
-        for L in range(lowest + 1, max_level + 1):
-            hi = np.int32(full & ~((1 << L) - 1))
-            bit = np.int32(1 << L)
-            for x in range(W):
-                wm = np.int32(wk[x]) & hi
-                ok = ((wm & (wm - 1)) == 0) & ((wm == 0) | ((wm != bit) & ((np.int32(sg[x]) & (wm - 1) & hi) == (wm >> 1))))
-                s = sel[x]
-                sel[x] = L if (s < 0) & ok else s
+            sel[x] = L if (s < 0) & ok else s
     for x in range(W):
         L = max(sel[x], np.int32(0))
         b = _gray_to_binary((np.int32(sg[x]) & full) >> L)
