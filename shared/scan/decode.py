@@ -310,11 +310,13 @@ def _edge_differences(sg, q, nbits, qa, qb):  # pragma: no cover
     A pass per plane over the row, without branches: it vectorises.
     """
     W = sg.size
+    one = np.int32(1)
     for j in range(q.shape[0]):
-        shift = nbits - 1 - j
+        shift = np.int32(nbits - 1 - j)
         row = q[j]
         for x in range(W - 1):
-            flip = (((np.int32(sg[x]) ^ np.int32(sg[x + 1])) >> shift) & 1) != 0
+            # int32 lanes (see _i32), twice as many a vector as numba's int64.
+            flip = and32(shr32(xor32(sg[x], sg[x + 1]), shift), one) != 0
             # Loads before the choice: a load inside a conditional expression becomes a
             # branch that keeps the loop from vectorising.
             a, b, oa, ob = row[x], row[x + 1], qa[x], qb[x]
