@@ -60,7 +60,23 @@ from shared.core.threads import cpu_budget
 from shared.formats.capture import Capture, CodeImage, code_bits
 from shared.formats.images import prepare_png_reading, probe_image, read_grey, read_grey_and_colour
 from shared.scan._bands import next_item, prefetch
-from shared.scan._i32 import add32, and32, eq32, ge32, gt32, le32, lt32, ne32, shl32, shr32, sub32, xor32
+from shared.scan._i32 import (
+    LANES,
+    add32,
+    and32,
+    compress_index,
+    eq32,
+    ge32,
+    gt32,
+    le32,
+    lt32,
+    ne32,
+    popcount,
+    shl32,
+    shr32,
+    sub32,
+    xor32,
+)
 
 log = logging.getLogger(__name__)
 
@@ -333,14 +349,14 @@ _DENSE = 2.5
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep, ev, slow, out):  # pragma: no cover
+def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac, ep, ev, slow, out):  # pragma: no cover
     """Interpolate projector columns between stripe edges along one camera row.
 
     blk, lvl: (W,) code block and level; qa, qb: (W,) the differences of the flipping bit plane
     at each pair's two pixels (:func:`_edge_differences`), already scaled to int8 (streaming) or
-    raw, then scaled by ``kq`` (W,) float32 here (``quantise``); pos, val, frac: (W,) float64,
-    jx: (W,) int64 (marked pixels with their edge counts), ep, ev: (W + 2 _NEAR,) float64 and
-    slow: (W,) bool scratch; out: (W,) float32 holding the integer decode, overwritten where
+    raw, then scaled by ``kq`` (W,) float32 here (``quantise``); eidx, mk: (W,) int32 (the
+    row's edges, its marked pixels), blocks: (2, W // LANES + 1) int64 (edge masks and counts
+    by block), frac: (W,) float64, ep, ev: (W + 2 _NEAR,) float64 and slow: (W,) bool scratch; out: (W,) float32 holding the integer decode, overwritten where
     interpolated. Returns the number of interpolated pixels. Divisions follow numpy's error
     model: two edges at one position give an infinite slope, clamped to the stripe, or NaN,
     left uninterpolated (Python's model raised ZeroDivisionError there).
@@ -351,8 +367,8 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep
     branches (it vectorises) finds them among the ``_NEAR`` pairs each side and interpolates.
     The other pixels (edges farther away, or a stripe bounded on one side only), and every
     pixel of a row whose stripes are wider than ``_DENSE`` pixels on average, are marked and
-    decoded as before: the row's edges compacted into pos/val with each marked pixel's edge
-    count in jx, then the three cases in order. Either way the same arithmetic on the same
+    decoded as before: the row's edges and marked pixels compacted (eidx, mk), each marked
+    pixel's edge count from the blocks' counts, then the three cases in order. Either way the same arithmetic on the same
     values.
     """
     W = blk.size
@@ -432,41 +448,60 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep
         n_slow += s
     if n_slow == 0:
         return n_sub
-    # Pass 3, for the marked pixels: every edge of the row in order (pos/val; those of a
-    # non-edge are overwritten by the next edge or lie at index ne, which is never read), and
-    # in jx[:ns] the marked pixels in order, each as x << 32 | its count of edges at or left of
-    # it (earlier pairs, and its own pair at fraction 0): written at every pixel, kept (ns
-    # advanced) at marked ones only, so the loop over them has no branch per pixel to skip.
+    # Pass 3, for the marked pixels: the row's edges in order, as their pairs' indices in eidx
+    # (their positions and values are read from ep/ev through them), and the marked pixels in
+    # order in mk, both compacted LANES pairs at a time (compress_index: the scalar loop that
+    # did this over every pair of the row cost more than the rest of the pass). A marked
+    # pixel's count of edges at or left of it (earlier pairs, and its own pair at fraction 0)
+    # comes from its block's count before it (eb) and the edge mask of the block (em).
+    em = blocks[0]
+    eb = blocks[1]
+    nb = W // LANES
     ne = 0
     ns = 0
-    for x in range(W - 1):
-        t = frac[x]
-        edge = t >= 0.0
-        pos[ne] = ep[x + K]
-        val[ne] = ev[x + K]
-        jx[ns] = (np.int64(x) << 32) | (ne + (edge & (t == 0.0)))
-        ns += slow[x]
+    for bi in range(nb):
+        m = compress_index(frac, bi * LANES, eidx, ne)
+        em[bi] = m
+        eb[bi] = ne
+        ne += popcount(m)
+        ns += popcount(compress_index(slow, bi * LANES, mk, ns))
+    # The last W % LANES pixels one at a time (frac[W - 1] is -1: no pair, no edge); a pair
+    # that is not an edge is overwritten by the next edge or lies at index ne, never read.
+    eb[nb] = ne
+    tail = np.int64(0)
+    for x in range(nb * LANES, W):
+        edge = frac[x] >= 0.0
+        eidx[ne] = x
+        tail |= np.int64(edge) << (x - nb * LANES)
         ne += edge
-    jx[ns] = (np.int64(W - 1) << 32) | ne
-    ns += slow[W - 1]
+        mk[ns] = x
+        ns += slow[x]
+    em[nb] = tail
+    eidx[ne] = 0  # read (not used) when j == ne: any pair, but one of this row
     for i in range(ns):
-        x = jx[i] >> 32
-        j = jx[i] & 0xFFFFFFFF
+        x = np.int64(mk[i])
+        bi = x // LANES
+        j = eb[bi] + popcount(em[bi] & ((np.int64(1) << (x - bi * LANES)) - 1)) + (frac[x] == 0.0)
         B = blk[x]
         lo = B * step - 0.5
         hi = (B + 1) * step - 0.5
         v = np.nan
-        left_ok = j > 0 and (val[j - 1] == lo or val[j - 1] == hi)
-        right_ok = j < ne and (val[j] == lo or val[j] == hi)
-        if left_ok and right_ok and val[j - 1] != val[j]:
-            v = val[j - 1] + (x - pos[j - 1]) * (val[j] - val[j - 1]) / (pos[j] - pos[j - 1])
-        elif left_ok and j > 1 and abs(val[j - 1] - val[j - 2]) == step:
+        # Edge k of the row sits at ep/ev[eidx[k] + K]; indices clamped where there is none.
+        im2 = eidx[max(j - 2, 0)] + K
+        im1 = eidx[max(j - 1, 0)] + K
+        i0 = eidx[min(j, ne)] + K
+        ip1 = eidx[min(j + 1, ne)] + K
+        left_ok = j > 0 and (ev[im1] == lo or ev[im1] == hi)
+        right_ok = j < ne and (ev[i0] == lo or ev[i0] == hi)
+        if left_ok and right_ok and ev[im1] != ev[i0]:
+            v = ev[im1] + (x - ep[im1]) * (ev[i0] - ev[im1]) / (ep[i0] - ep[im1])
+        elif left_ok and j > 1 and abs(ev[im1] - ev[im2]) == step:
             # Only the left edge bounds this stripe: carry on the slope of the stripe before.
-            s = (val[j - 1] - val[j - 2]) / (pos[j - 1] - pos[j - 2])
-            v = val[j - 1] + (x - pos[j - 1]) * s
-        elif right_ok and j + 1 < ne and abs(val[j + 1] - val[j]) == step:
-            s = (val[j + 1] - val[j]) / (pos[j + 1] - pos[j])
-            v = val[j] + (x - pos[j]) * s
+            s = (ev[im1] - ev[im2]) / (ep[im1] - ep[im2])
+            v = ev[im1] + (x - ep[im1]) * s
+        elif right_ok and j + 1 < ne and abs(ev[ip1] - ev[i0]) == step:
+            s = (ev[ip1] - ev[i0]) / (ep[ip1] - ep[i0])
+            v = ev[i0] + (x - ep[i0]) * s
         if v == v:
             if v < lo:
                 v = lo
@@ -480,10 +515,11 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, pos, val, jx, frac, ep
 @numba.njit(inline="always")
 def _row_scratch(W, q, levels):  # pragma: no cover
     """Row buffers of the code resolution and the sub-pixel step, once per band: blk, sel
-    (int32), qa, qb (q's dtype), pos, val (float64), jx (int64), frac (float64), slow (bool),
-    all (W,), ep, ev (W + 2 _NEAR,) float64, and the level histogram (levels,) int64."""
+    (int32; sel is also the sub-pixel step's eidx), qa, qb (q's dtype), mk (int32), frac
+    (float64), slow (bool), all (W,), blocks (2, W // LANES + 1) int64, ep, ev (W + 2 _NEAR,)
+    float64, and the level histogram (levels,) int64."""
     return (np.empty(W, np.int32), np.empty(W, np.int32), np.empty(W, q.dtype), np.empty(W, q.dtype),
-            np.empty(W, np.float64), np.empty(W, np.float64), np.empty(W, np.int64), np.empty(W, np.float64),
+            np.empty(W, np.int32), np.empty((2, W // LANES + 1), np.int64), np.empty(W, np.float64),
             np.empty(W + 2 * _NEAR, np.float64), np.empty(W + 2 * _NEAR, np.float64), np.empty(W, np.bool_),
             np.zeros(levels, np.int64))  # fmt: skip
 
@@ -548,7 +584,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
         q = np.empty((nq, W), diff.dtype)
         a1 = np.empty(W, diff.dtype)
         a2 = np.empty(W, diff.dtype)
-        blk, sel, qa, qb, pos, val, jx, frac, ep, ev, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
+        blk, sel, qa, qb, mk, blocks, frac, ep, ev, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
         while True:
             band = next_item(counter)
             if band >= n_bands:
@@ -627,7 +663,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                         cr[x] = min(np.float32(qm) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0 else np.float32(0.0)
                     if subpixel:
                         _edge_differences(sg, q, nbits, qa, qb)
-                        n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, pos, val, jx, frac, ep, ev, slow, value[y])
+                        n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, sel, mk, blocks, frac, ep, ev, slow, value[y])
                 counts[y, 0] = n_lit
                 counts[y, 1] = n_sub
                 for L in range(hist.size):
@@ -646,7 +682,7 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
     n_bands = (H + _BAND - 1) // _BAND
     counter = np.zeros(1, np.int64)
     for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
-        blk, sel, qa, qb, pos, val, jx, frac, ep, ev, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
+        blk, sel, qa, qb, mk, blocks, frac, ep, ev, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
         while True:
             band = next_item(counter)
             if band >= n_bands:
@@ -664,7 +700,7 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
                                  else np.float32(0.0))
                     if subpixel:
                         _edge_differences(signs[y], q[:, y, :], nbits, qa, qb)
-                        n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, pos, val, jx, frac, ep, ev, slow,
+                        n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, sel, mk, blocks, frac, ep, ev, slow,
                                                value[y])
                 counts[y, 1] = n_sub
                 for L in range(hist.size):
