@@ -481,20 +481,22 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
     # Without branches: the three cases computed, one kept (they were mispredicted often
     # enough to cost ~40 cycles a marked pixel); loads before every choice.
     for i in range(ns):
+        # Indices as unsigned (they are never negative): numba then adds no wraparound.
         x = np.int64(mk[i])
-        bi = x // LANES
-        j = eb[bi] + popcount(em[bi] & ((np.int64(1) << (x - bi * LANES)) - 1)) + (frac[x] == 0.0)
-        B = blk[x]
+        ux = np.uint64(x)
+        bi = np.uint64(x // LANES)
+        j = eb[bi] + popcount(em[bi] & ((np.int64(1) << (x & (LANES - 1))) - 1)) + (frac[ux] == 0.0)
+        B = blk[ux]
         lo = B * step - 0.5
         hi = (B + 1) * step - 0.5
         # Edge k of the row sits at ep/ev[eidx[k] + K]; indices clamped where there is none.
-        im2 = eidx[max(j - 2, 0)] + K
-        im1 = eidx[max(j - 1, 0)] + K
-        i0 = eidx[min(j, ne)] + K
-        ip1 = eidx[min(j + 1, ne)] + K
+        im2 = np.uint64(eidx[np.uint64(max(j - 2, 0))] + K)
+        im1 = np.uint64(eidx[np.uint64(max(j - 1, 0))] + K)
+        i0 = np.uint64(eidx[np.uint64(min(j, ne))] + K)
+        ip1 = np.uint64(eidx[np.uint64(min(j + 1, ne))] + K)
         vm2, vm1, v0, vp1 = ev[im2], ev[im1], ev[i0], ev[ip1]
         pm2, pm1, p0, pp1 = ep[im2], ep[im1], ep[i0], ep[ip1]
-        o = out[x]
+        o = out[ux]
         left_ok = (j > 0) & ((vm1 == lo) | (vm1 == hi))
         right_ok = (j < ne) & ((v0 == lo) | (v0 == hi))
         c1 = left_ok & right_ok & (vm1 != v0)
@@ -510,7 +512,7 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
         v = v1 if c1 else (v2 if c2 else (v3 if c3 else nan))
         ok = v == v
         v = min(max(v, lo), hi)
-        out[x] = np.float32(v) if ok else o
+        out[ux] = np.float32(v) if ok else o
         n_sub += ok
     return n_sub
 
