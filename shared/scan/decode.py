@@ -505,11 +505,17 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
         c2 = ~c1 & left_ok & (j > 1) & (abs(vm1 - vm2) == step)
         c3 = ~c1 & ~c2 & right_ok & (j + 1 < ne) & (abs(vp1 - v0) == step)
         v1 = vm1 + (x - pm1) * (v0 - vm1) / (p0 - pm1)
-        s2 = (vm1 - vm2) / (pm1 - pm2)
-        v2 = vm1 + (x - pm1) * s2
-        s3 = (vp1 - v0) / (pp1 - p0)
-        v3 = v0 + (x - p0) * s3
-        v = v1 if c1 else (v2 if c2 else (v3 if c3 else nan))
+        # Cases 2 and 3 share one form, base + (x - at) * (a - b) / (c - d): operands chosen,
+        # then one division.
+        a = vm1 if c2 else vp1
+        b = vm2 if c2 else v0
+        c = pm1 if c2 else pp1
+        d = pm2 if c2 else p0
+        base = vm1 if c2 else v0
+        at = pm1 if c2 else p0
+        sl = (a - b) / (c - d)
+        v23 = base + (x - at) * sl
+        v = v1 if c1 else (v23 if c2 | c3 else nan)
         ok = v == v
         v = min(max(v, lo), hi)
         out[ux] = np.float32(v) if ok else o
