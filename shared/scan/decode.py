@@ -583,6 +583,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
     full = (1 << nbits) - 1
     nq = k if want_q else 1
     dmax = np.iinfo(diff.dtype).max
+    half = np.float32(dmax // 2)  # weak bounds are capped here (they fit diff's dtype)
     n_bands = (H + _BAND - 1) // _BAND
     line = 64 // white.itemsize  # image elements per cache line
     counter = np.zeros(1, np.int64)
@@ -610,22 +611,41 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                 wr = white[y]
                 br = black[y]
                 lr = lit[y]
-                n_lit = 0
-                for x in range(W):
-                    c = np.float32(wr[x]) - np.float32(br[x])
-                    lr[x] = c > lit_thr
-                    n_lit += c > lit_thr
-                    # The swing of a bit's difference: the contrast against an inverse, half of it
-                    # against the white/black midpoint (the stored difference is then doubled).
-                    s = c if with_inverse else c * np.float32(0.5)
-                    thr = max(noise, ratio * s)
-                    # d is an integer: |d| < thr exactly when |d| < ceil(thr).
-                    t = min(np.ceil(thr if with_inverse else thr * np.float32(2.0)), np.float32(dmax // 2))
-                    ithr[x] = t
+                # One loop per case, the choices hoisted and the lit count in int32 (a loop
+                # with them inside, and an int64 sum, ran 8 pixels a vector, spilling).
+                n_lit = np.int32(0)
+                if with_inverse:
+                    for x in range(W):
+                        c = np.float32(wr[x]) - np.float32(br[x])
+                        lx = c > lit_thr
+                        lr[x] = lx
+                        n_lit = add32(n_lit, np.int32(lx))
+                        # The swing of a bit's difference: the contrast against an inverse.
+                        thr = max(noise, ratio * c)
+                        # d is an integer: |d| < thr exactly when |d| < ceil(thr).
+                        ithr[x] = min(np.ceil(thr), half)
+                        wb[x] = np.int32(wr[x]) + np.int32(br[x])
                     if want_q:  # the q scale: only the confidence and the sub-pixel step read it
-                        g = np.float32(127.0) / s if s > 0 else np.float32(0.0)
-                        kq[x] = g if with_inverse else g * np.float32(0.5)
-                    wb[x] = np.int32(wr[x]) + np.int32(br[x])
+                        for x in range(W):
+                            c = np.float32(wr[x]) - np.float32(br[x])
+                            kq[x] = np.float32(127.0) / c if c > 0 else np.float32(0.0)
+                else:
+                    for x in range(W):
+                        c = np.float32(wr[x]) - np.float32(br[x])
+                        lx = c > lit_thr
+                        lr[x] = lx
+                        n_lit = add32(n_lit, np.int32(lx))
+                        # Against the white/black midpoint the swing is half the contrast (the
+                        # stored difference is then doubled).
+                        thr = max(noise, ratio * (c * np.float32(0.5)))
+                        ithr[x] = min(np.ceil(thr * np.float32(2.0)), half)
+                        wb[x] = np.int32(wr[x]) + np.int32(br[x])
+                    if want_q:
+                        for x in range(W):
+                            sw = (np.float32(wr[x]) - np.float32(br[x])) * np.float32(0.5)
+                            g = np.float32(127.0) / sw if sw > 0 else np.float32(0.0)
+                            kq[x] = g * np.float32(0.5)
+                for x in range(W):
                     sg[x] = 0
                     wk[x] = 0
                     a1[x] = dmax
