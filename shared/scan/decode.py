@@ -368,18 +368,24 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
     The other pixels (edges farther away, or a stripe bounded on one side only), and every
     pixel of a row whose stripes are wider than ``_DENSE`` pixels on average, are marked and
     decoded as before: the row's edges and marked pixels compacted (eidx, mk), each marked
-    pixel's edge count from the blocks' counts, then the three cases in order. Either way the same arithmetic on the same
-    values.
+    pixel's edge count from the blocks' counts, then the three cases in order. Either way the
+    same arithmetic on the same values.
     """
     W = blk.size
     step = 1 << lowest
     K = _NEAR
     nan = np.nan
     # Pass 1: per pair, the edge fraction (frac, -1 for no edge), position (ep, NaN for no
-    # edge) and value (ev), at index pair + K of ep/ev, whose K entries each end are NaN.
+    # edge) and value (ev), at index pair + K of ep/ev, whose first K and last K + 1 entries
+    # are NaN.
     for i in range(K):
         ep[i] = nan
         ev[i] = nan
+    # The last pixel's own (absent) pair and the K after it: pass 2 reads up to ep[W - 1 + 2 K]
+    # there. (Only K were written: the buffer's last entry, left over from earlier use, could
+    # make up an edge beyond the row for the last pixel, whose decode then depended on memory
+    # contents: 88 pixels of a real capture's last column with lit_threshold 40.)
+    for i in range(K + 1):
         ep[W - 1 + K + i] = nan
         ev[W - 1 + K + i] = nan
     n_edges = 0
