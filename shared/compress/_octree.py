@@ -143,6 +143,8 @@ _ka, _kb, _kc = np.meshgrid(np.arange(SSE_N), np.arange(SSE_N), np.arange(SSE_N)
 #: Every cell's first state, (SSE_N**3,) uint32; the tables of x, y and the flag follow each other.
 SSE_INIT = SSE_INIT_M[(5 * _ka + 3 * _kb + 3 * _kc).ravel()]
 N_SSE = 3 * SSE_N**3
+#: A cell's slowest update, as a count (:func:`shared.compress._rans.adapt_state`): rate 1/128.
+SSE_LIMIT = 128
 _OCCUPIED = 256
 _CODED = 512
 
@@ -375,7 +377,7 @@ def _sse_cell(models, axis, ca, cb, cc):
 def _sse_next(s, bit):
     """A cell's state ``s`` adapted to ``bit``: as :func:`shared.compress._rans.state_next`,
     the rate slowing further, to 1/128 (a cell sees many events)."""
-    return adapt_state(s, bit, 5)
+    return adapt_state(s, bit, SSE_LIMIT)
 
 
 @njit(cache=True, nogil=True, inline="always")

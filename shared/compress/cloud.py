@@ -39,7 +39,7 @@ from shared.formats.ply import iter_ply_records, read_header, write_ply_records
 
 log = logging.getLogger(__name__)
 
-CODEC = "octree-rans-3"
+CODEC = "octree-rans-4"
 #: Most points per chunk: about 200 MB of working memory per chunk in flight while encoding
 #: (the adaptive models learn more from larger chunks: 2 M points cost 0.7 % fewer bits than 1 M
 #: on a scan). A cloud of more than :data:`SPLIT_POINTS` points is cut into an even number of

@@ -139,10 +139,10 @@ def test_other_codec_versions_fail_clearly(monkeypatch: pytest.MonkeyPatch) -> N
     import shared.compress.cloud as cloud
 
     rec = surface_cloud(20, dtype=CLOUD_DTYPE)
-    monkeypatch.setattr(cloud, "CODEC", "octree-rans-2")  # what the previous version wrote
+    monkeypatch.setattr(cloud, "CODEC", "octree-rans-3")  # what the previous version wrote
     old = encode_cloud(rec, 0.5)
     monkeypatch.undo()
-    with pytest.raises(InputError, match=r"cloud codec 'octree-rans-2' is not supported \(this build reads 'octree-rans-3'"):
+    with pytest.raises(InputError, match=r"cloud codec 'octree-rans-3' is not supported \(this build reads 'octree-rans-4'"):
         decode_cloud(old)
 
 
@@ -167,3 +167,18 @@ def test_secondary_estimation_tables_match_their_definition() -> None:
     want = 65536 / (1 + np.exp(-(0.0875 * m - 7.21875)))
     assert np.abs(ot.SSE_INIT_M - want).max() <= 1
     assert ot.SSE_INIT.shape == (ot.SSE_N**3,) and ot.SSE_INIT_M.max() == ot.SSE_INIT_M[-1]
+
+
+def test_model_update_rates_match_their_definition() -> None:
+    # The shifts are integers computed without floating point (encoder and decoder agree on
+    # every machine); they are log2(n + 2) rounded, at least 1, and a fresh model learns its
+    # first events at about their running frequency.
+    from shared.compress._rans import MODEL_INIT, MODEL_LIMIT, RATE_SHIFT, state_next, state_p
+
+    n = np.arange(len(RATE_SHIFT))
+    np.testing.assert_array_equal(RATE_SHIFT, np.maximum(1, np.floor(np.log2(n + 2) + 0.5)).astype(np.int64))
+    assert RATE_SHIFT[MODEL_LIMIT] == 5
+    s = np.uint32(MODEL_INIT)
+    for _ in range(3):
+        s = state_next.py_func(s, 1)
+    assert state_p(s) > 0.85 * 4096  # three ones: 1 - 1/2 * 1/2 * 3/4 (the rate of 1/4 rounds 1/3 down)
