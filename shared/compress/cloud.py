@@ -270,12 +270,15 @@ def encode_cloud(rec: np.ndarray, precision: float, units: str = "mm", comments:
 
 
 def _decode_chunk(payload: bytes, i: int, dtype: np.dtype, plan: list[tuple[str, str]], precision: float,
-                  log2d: np.ndarray, where: str) -> np.ndarray:
+                  log2d: np.ndarray, where: str, out: np.ndarray | None = None) -> np.ndarray:
+    """Chunk ``i``'s points as records of ``dtype``, into ``out`` when given (a slice of the
+    whole cloud: (points of the chunk,), or the chunk is corrupt) or a new array."""
     if len(payload) < _CHUNK_HEAD.size + 4:
         raise InputError(where, f"corrupt chunk {i} (too short)")
     npts, nvox, depth, ox, oy, oz, nraw = _CHUNK_HEAD.unpack_from(payload)
     pos = _CHUNK_HEAD.size
-    if not (0 < nvox <= npts <= MAX_CHUNK_POINTS and 1 <= depth <= ot.MAX_DEPTH) or pos + nraw + 4 > len(payload):
+    if (not (0 < nvox <= npts <= MAX_CHUNK_POINTS and 1 <= depth <= ot.MAX_DEPTH) or pos + nraw + 4 > len(payload)
+            or (out is not None and len(out) != npts)):
         raise InputError(where, f"corrupt chunk {i} (bad chunk header)")
     raw = payload[pos : pos + nraw]
     pos += nraw
@@ -289,10 +292,9 @@ def _decode_chunk(payload: bytes, i: int, dtype: np.dtype, plan: list[tuple[str,
     chan = np.empty((npts, len(log2d)), np.int64)
     if ot.decode_chunk(tables, words, nvox, npts, depth, log2d, codes, chan) != 0:
         raise InputError(where, f"corrupt chunk {i} (the coded stream does not decode)")
-    q = ot.unmorton(codes)
-    out = np.empty(npts, dtype)
-    for k, (axis, o) in enumerate(zip("xyz", (ox, oy, oz), strict=True)):
-        out[axis] = (q[:, k] + o + 0.5) * precision
+    if out is None:
+        out = np.empty(npts, dtype)
+    ot.voxel_centres(codes, ox, oy, oz, precision, out["x"], out["y"], out["z"])
     c = 0
     kinds = dict(plan)
     if kinds.get("red") == "rgb":
@@ -369,10 +371,26 @@ def iter_cloud(source: str | os.PathLike[str] | bytes) -> Iterator[np.ndarray]:
 
 
 def decode_cloud(source: str | os.PathLike[str] | bytes) -> np.ndarray:
-    """The whole decoded cloud as one structured array."""
-    parts = list(iter_cloud(source))
-    _, _, dtype, _ = _open(source)
-    return np.concatenate(parts) if parts else np.empty(0, dtype)
+    """The whole decoded cloud as one structured array (every chunk decoded into its slice)."""
+    meta, chunks, dtype, where = _open(source)
+    plan = _plan_fields(dtype, where)
+    log2d = _chunk_log2d(plan)
+    precision = float(meta["precision"])
+    points = int(meta["points"])
+    per = int(meta["chunk_points"])
+    out = np.empty(points, dtype)
+    with ThreadPoolExecutor(_threads()) as pool:
+        pending = []
+        # The container yields meta["chunks"] chunks, ceil(points / per) (checked by _open), and
+        # each must fill its slice exactly (checked by _decode_chunk).
+        for i, payload in enumerate(chunks):
+            pending.append(pool.submit(_decode_chunk, payload, i, dtype, plan, precision, log2d, where,
+                                       out[i * per : (i + 1) * per]))
+            if len(pending) > _threads():
+                pending.pop(0).result()
+        for f in pending:
+            f.result()
+    return out
 
 
 def read_cloud_to_ply(source: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:

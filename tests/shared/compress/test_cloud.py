@@ -148,8 +148,9 @@ def test_other_codec_versions_fail_clearly(monkeypatch: pytest.MonkeyPatch) -> N
 
 def test_models_adapt_to_a_scan_like_surface() -> None:
     # The neighbour contexts must pay: a range-scan-like sheet at a grid a third of its point
-    # spacing costs 6.73 bits a point (octree-rans-2, without the mixed single-child events of
-    # the last levels: 7.3; octree-rans-1's parent and sibling byte contexts: 9.0).
+    # spacing costs 6.53 bits a point (octree-rans-3: 6.73; octree-rans-2, without the mixed
+    # single-child events of the last levels: 7.3; octree-rans-1's parent and sibling byte
+    # contexts: 9.0).
     rec = surface_cloud(300, dtype=np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4")]))
     bits = len(encode_cloud(rec, 0.1)) * 8 / len(rec)
     assert bits < 7.0, bits
