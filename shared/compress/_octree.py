@@ -29,15 +29,17 @@ footprints of the columns one and two back along the axis, the past neighbours' 
 along z (B: a noisy surface scatters a scan's row over the z neighbours, which the face
 neighbours miss); the occupied nodes of the 26 around counted per slab (C: the side the
 surface goes on). The three probabilities, in buckets of log-odds, pick an adaptive cell that
-codes the bit. In the FLAG_MIX_LEVELS levels above it the single-child flag is mixed alike:
+codes the bit. In the FLAG_MIX_LEVELS levels above the last the single-child flag is mixed alike:
 its context (A), the footprints at x - 1 and y - 1 with the occupied face neighbours (B), the
 nodes of the 26 around counted per slab along z (C). (Mixing every event of every level took
 the bench's scan at a 0.1 mm grid to 6.46 bits a point, against 6.75 so, but 2.2 times as
 long to decode; the last level's x and y bits carry half of the gain at a sixth of that cost,
-the flags of the two levels above a quarter of the rest at a few per cent more; the x and y
-bits of the level above the last another 0.05 bits (6.594 -> 6.543 on that scan, 6.761 -> 6.520
+the flags of the two levels above a quarter of the rest at a few per cent more (those of a third
+level, now mixed too, 0.001 bits more: their nodes are few); the x and y bits of the level above
+the last another 0.05 bits (6.594 -> 6.543 on that scan, 6.761 -> 6.520
 on the bunny's) at 3 % more decoding time, once the slab counts are computed once a node and
-the buckets are a byte table. A third level of mixed x, y and flags saves 0.002 more.)
+the buckets are a byte table. A third level of mixed x and y bits saves 0.0015 more, a fourth of
+flags 0.0004.)
 
 Neighbours are looked up in a dense map of the nodes of a 64^3-node region (the nodes
 sharing an ancestor six levels up, consecutive in Morton order); a neighbour outside the
@@ -120,7 +122,7 @@ C3_Y = C3_X + 1000
 #: The single-child flag of the FLAG_MIX_LEVELS levels above the last is mixed too, its second
 #: model (B) the footprints at x - 1 and y - 1 and the occupied face neighbours, its third (C)
 #: the occupied nodes of the 26 around counted per slab along z.
-FLAG_MIX_LEVELS = 2
+FLAG_MIX_LEVELS = 3
 B_SINGLE = C3_Y + 2000
 C3_SINGLE = B_SINGLE + 256 * 7
 N_MODELS = C3_SINGLE + 900
@@ -146,8 +148,12 @@ SSE_INIT_M = np.array((
     65178, 65208, 65235, 65260, 65283, 65304, 65324, 65341, 65358, 65372, 65386, 65399, 65410, 65421, 65430, 65439,
     65447, 65454, 65461, 65467, 65473, 65478, 65483, 65488), np.uint32)
 _ka, _kb, _kc = np.meshgrid(np.arange(SSE_N), np.arange(SSE_N), np.arange(SSE_N), indexing="ij")
+#: A cell starts as if it had seen SSE_INIT_COUNT events (its first updates at rate 1/10, not
+#: 1/2: the initial probability is a fair guess, not worth discarding at the first event; 0.004
+#: bits a point fewer on the bench scan and the bunny's at 0.1 mm, counts of 6 to 14 alike).
+SSE_INIT_COUNT = 8
 #: Every cell's first state, (SSE_N**3,) uint32; the tables of x, y and the flag follow each other.
-SSE_INIT = SSE_INIT_M[(5 * _ka + 3 * _kb + 3 * _kc).ravel()]
+SSE_INIT = SSE_INIT_M[(5 * _ka + 3 * _kb + 3 * _kc).ravel()] | np.uint32(SSE_INIT_COUNT << 16)
 N_SSE = 3 * SSE_N**3
 #: A cell's slowest update, as a count (:func:`shared.compress._rans.adapt_state`): rate 1/128.
 SSE_LIMIT = 128
@@ -236,12 +242,13 @@ def _bit_context(b, cur, ncur, xm, ym, zm, xp, yp, zp, slabs):
 
 @njit(cache=True, nogil=True, inline="always")
 def _slab_z(sz0, sz2):
-    """Whether more than two of the nine nodes of the slab below a node are occupied (bit 0;
+    """Whether more than one of the nine nodes of the slab below a node are occupied (bit 0;
     ``sz0`` of :func:`_around`) and of the slab above (bit 1, ``sz2``): the side of the node the
     surface lies on, for its child bits (a noisy scan's surface crosses neighbours that the face
     and past-neighbour contexts do not see). (0, 1-2, 3-4, 5+ each: 0.0025 bits a point more on
-    the bench scan at 0.1 mm, 0.008 fewer on the bunny's, for twice the contexts.)"""
-    return (1 if sz0 > 2 else 0) | ((1 if sz2 > 2 else 0) << 1)
+    the bench scan at 0.1 mm, 0.008 fewer on the bunny's, for twice the contexts; more than two
+    or three rather than one: 0.0007 and 0.004 more.)"""
+    return (1 if sz0 > 1 else 0) | ((1 if sz2 > 1 else 0) << 1)
 
 
 @njit(cache=True, nogil=True, inline="always")
