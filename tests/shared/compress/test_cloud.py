@@ -183,3 +183,26 @@ def test_model_update_rates_match_their_definition() -> None:
     for _ in range(3):
         s = state_next.py_func(s, 1)
     assert state_p(s) > 0.85 * 4096  # three ones: 1 - 1/2 * 1/2 * 3/4 (the rate of 1/4 rounds 1/3 down)
+
+
+def test_model_priors_match_their_definition() -> None:
+    # The priors are literal integers trained offline (tests/bench/train_cloud_prior.py); their
+    # regions must be the models' regions of the kernels (or a prior would land on another
+    # context's model), their groups cover every model, and every model starts from its group's
+    # probability with a count of zero.
+    import shared.compress._octree as ot
+    from shared.compress._octree_prior import PRIOR_BOUNDS, PRIOR_P12, PRIOR_SHIFTS
+
+    starts = (ot.C_BIT, ot.C_SINGLE, ot.C_X, ot.C_Y, ot.C_Z, ot.B_X, ot.B_Y, ot.C3_X, ot.C3_Y, ot.B_SINGLE, ot.C3_SINGLE, ot.N_MODELS)
+    np.testing.assert_array_equal(PRIOR_BOUNDS, starts)
+    assert ot.N_OCC_CTX == ot.B_X and len(PRIOR_SHIFTS) == len(PRIOR_BOUNDS) - 1
+    sizes = np.diff(PRIOR_BOUNDS)
+    groups = (sizes + (1 << PRIOR_SHIFTS) - 1) >> PRIOR_SHIFTS
+    assert groups.sum() == len(PRIOR_P12)
+    # half-way between 1/2 and a frequency: within [1/4, 3/4]
+    assert PRIOR_P12.min() >= 1024 and PRIOR_P12.max() <= 3072
+    first = np.concatenate(([0], np.cumsum(groups)[:-1]))
+    want = np.concatenate([PRIOR_P12[g + (np.arange(n) >> s)] for g, n, s in zip(first, sizes, PRIOR_SHIFTS, strict=True)])
+    got = ot._prior_states()
+    assert got.dtype == np.uint32 and got.shape == (ot.N_MODELS,)
+    np.testing.assert_array_equal(got, want.astype(np.uint32) << 4)
