@@ -1,8 +1,10 @@
 """Train the octree cloud codec's model priors (writes ``shared/compress/_octree_prior.py``).
 
-Usage: ``python -m tests.bench.train_cloud_prior CLOUD.npy`` with a record array of ``x``, ``y``,
-``z`` (millimetres) of a cloud that is not the bench's (the table in the tree was trained on
-the bunny scan cloud). The cloud is cut into chunks as :func:`shared.compress.cloud.encode_cloud`
+Usage: ``python -m tests.bench.train_cloud_prior [CLOUD.ply]``. Without an argument it trains on
+the cloud the table in the tree was trained on: the virtual rig's bunny scene at 1024x768, seed 0
+(``graylight simulate --scene bunny --size 1024x768``), scanned in-process (737,863 points; not
+the bench's cloud, which is a synthetic range image); a run from a clean tree rewrites the same
+table. With a PLY it trains on that cloud's ``x``, ``y``, ``z`` (millimetres). The cloud is cut into chunks as :func:`shared.compress.cloud.encode_cloud`
 does and coded at 0.1 and 0.5 mm grids by the kernel's event pass with every model starting
 from 1/2 (:func:`shared.compress._octree._events`, run from its source with each binary
 event's models recorded in the kind array); the ones and events of every model, pooled over
@@ -13,12 +15,16 @@ group's prior is ``round(2048 + 0.5 * ((n1 + 0.4) / (n + 0.8) * 4096 - 2048))``.
 from __future__ import annotations
 
 import sys
+import tempfile
 from pathlib import Path
 
 import numpy as np
 
 from shared.compress import _octree, _rans
 from shared.compress.cloud import chunk_points
+from shared.formats.ply import iter_ply_records
+from shared.scan.pipeline import scan
+from shared.sim.simulate import simulate_named
 
 SHIFTS = (6, 0, 0, 0, 9, 0, 0, 0, 0, 0, 0)
 
@@ -81,9 +87,19 @@ def counts(rec: np.ndarray, ns: dict) -> tuple[np.ndarray, np.ndarray]:
     return ones, tot
 
 
+def training_cloud(ply: Path | None = None) -> np.ndarray:
+    """The records of ``ply``, or of the bunny scene scanned by the virtual rig (see above)."""
+    if ply is not None:
+        return np.concatenate(list(iter_ply_records(ply, 1 << 22)))
+    with tempfile.TemporaryDirectory() as tmp:
+        simulate_named("bunny", Path(tmp) / "capture", size=(1024, 768), seed=0)
+        scan(Path(tmp) / "capture", Path(tmp) / "scan")
+        return training_cloud(Path(tmp) / "scan" / "cloud.ply")
+
+
 def main() -> None:
     ns = _kernels()
-    ones, tot = counts(np.load(sys.argv[1]), ns)
+    ones, tot = counts(training_cloud(Path(sys.argv[1]) if len(sys.argv) > 1 else None), ns)
     bounds = [ns[k] for k in ("C_BIT", "C_SINGLE", "C_X", "C_Y", "C_Z", "B_X", "B_Y", "C3_X", "C3_Y", "B_SINGLE", "C3_SINGLE", "N_MODELS")]
     p12 = []
     for a, b, s in zip(bounds[:-1], bounds[1:], SHIFTS, strict=True):
