@@ -19,56 +19,48 @@ from numba.core import cgutils
 from numba.extending import intrinsic
 
 
-def _binary(name: str, doc: str) -> Any:
+def _int32_op(name: str, doc: str, result: Any, emit: Any) -> Any:
+    """An intrinsic ``name(a, b)`` of two integers: both cast to int32, then ``emit(builder, x, y)``
+    builds the operation, typed ``result`` (int32 or boolean)."""
+
     def typer(typingctx: Any, a: Any, b: Any) -> Any:
         if not (isinstance(a, types.Integer) and isinstance(b, types.Integer)):
             return None
-        sig = types.int32(a, b)
+        sig = result(a, b)
 
         def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
             x = context.cast(builder, args[0], signature.args[0], types.int32)
             y = context.cast(builder, args[1], signature.args[1], types.int32)
-            return getattr(builder, name)(x, y)
+            return emit(builder, x, y)
 
         return sig, codegen
 
-    typer.__name__ = typer.__qualname__ = f"{name.rstrip('_')}32"
+    typer.__name__ = typer.__qualname__ = name
     typer.__doc__ = doc
     return intrinsic(typer)
 
 
-def _compare(op: str, doc: str) -> Any:
-    def typer(typingctx: Any, a: Any, b: Any) -> Any:
-        if not (isinstance(a, types.Integer) and isinstance(b, types.Integer)):
-            return None
-        sig = types.boolean(a, b)
-
-        def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-            x = context.cast(builder, args[0], signature.args[0], types.int32)
-            y = context.cast(builder, args[1], signature.args[1], types.int32)
-            return builder.icmp_signed(op, x, y)
-
-        return sig, codegen
-
-    typer.__name__ = typer.__qualname__ = {"==": "eq32", "!=": "ne32", "<": "lt32", "<=": "le32", ">": "gt32",
-                                           ">=": "ge32"}[op]  # fmt: skip
-    typer.__doc__ = doc
-    return intrinsic(typer)
+def _binary(name: str, method: str, doc: str) -> Any:
+    return _int32_op(name, doc, types.int32, lambda builder, x, y: getattr(builder, method)(x, y))
 
 
-and32 = _binary("and_", "``a & b`` in int32.")
-or32 = _binary("or_", "``a | b`` in int32.")
-xor32 = _binary("xor", "``a ^ b`` in int32.")
-add32 = _binary("add", "``a + b`` in int32 (wraps; callers keep sums in range).")
-sub32 = _binary("sub", "``a - b`` in int32 (wraps; callers keep differences in range).")
-shl32 = _binary("shl", "``a << b`` in int32 (``0 <= b < 32``).")
-shr32 = _binary("lshr", "``a >> b`` in int32, logical (``0 <= b < 32``; numba's ``>>`` for ``a >= 0``).")
-eq32 = _compare("==", "``a == b`` in int32.")
-ne32 = _compare("!=", "``a != b`` in int32.")
-lt32 = _compare("<", "``a < b`` in int32, signed.")
-le32 = _compare("<=", "``a <= b`` in int32, signed.")
-gt32 = _compare(">", "``a > b`` in int32, signed.")
-ge32 = _compare(">=", "``a >= b`` in int32, signed.")
+def _compare(name: str, op: str, doc: str) -> Any:
+    return _int32_op(name, doc, types.boolean, lambda builder, x, y: builder.icmp_signed(op, x, y))
+
+
+and32 = _binary("and32", "and_", "``a & b`` in int32.")
+or32 = _binary("or32", "or_", "``a | b`` in int32.")
+xor32 = _binary("xor32", "xor", "``a ^ b`` in int32.")
+add32 = _binary("add32", "add", "``a + b`` in int32 (wraps; callers keep sums in range).")
+sub32 = _binary("sub32", "sub", "``a - b`` in int32 (wraps; callers keep differences in range).")
+shl32 = _binary("shl32", "shl", "``a << b`` in int32 (``0 <= b < 32``).")
+shr32 = _binary("shr32", "lshr", "``a >> b`` in int32, logical (``0 <= b < 32``; numba's ``>>`` for ``a >= 0``).")
+eq32 = _compare("eq32", "==", "``a == b`` in int32.")
+ne32 = _compare("ne32", "!=", "``a != b`` in int32.")
+lt32 = _compare("lt32", "<", "``a < b`` in int32, signed.")
+le32 = _compare("le32", "<=", "``a <= b`` in int32, signed.")
+gt32 = _compare("gt32", ">", "``a > b`` in int32, signed.")
+ge32 = _compare("ge32", ">=", "``a >= b`` in int32, signed.")
 
 
 #: Lanes of :func:`compress_index` (one 512-bit vector of int32 indices).
