@@ -20,7 +20,7 @@ chosen by what the decoder already knows around the node. Per occupied node:
   neighbours at the child's level (a sibling already coded, or a child of the past
   neighbour), the cells two steps back, the future face neighbours at the node's level and
   the side of the node the child lies on, the siblings occupied so far, the bit's position and
-  whether more than two nodes of the slab on the child's side along z are occupied.
+  whether more than one node of the slab on the child's side along z is occupied.
 
 In the last two levels (:data:`MIX_LEVELS`), where a scan's points are one per node or two and
 about two thirds of the bits go, a single child's x and y bits, the least random there, are each coded
@@ -251,6 +251,14 @@ def _slab_z(sz0, sz2):
     the bench scan at 0.1 mm, 0.008 fewer on the bunny's, for twice the contexts; more than two
     or three rather than one: 0.0007 and 0.004 more.)"""
     return (1 if sz0 > 1 else 0) | ((1 if sz2 > 1 else 0) << 1)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _lean(sz0, sz2):
+    """Which slab holds more of the 26 nodes around a node: 1 the one above (``sz2`` of
+    :func:`_around`), 2 the one below (``sz0``), 0 neither; for the single child's z bit
+    (:func:`_z_context`)."""
+    return (1 if sz2 > sz0 else 0) | ((1 if sz0 > sz2 else 0) << 1)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -528,7 +536,7 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
                 single = POPCOUNT[byte] == 1
                 sx0, sx1, sx2, sy0, sy1, sy2, sz0, sz1, sz2, fx1, fy1, fx2, fy2 = _around(atlas, rows, ci)
                 slabs = _slab_z(sz0, sz2)
-                lean = (1 if sz2 > sz0 else 0) | ((1 if sz0 > sz2 else 0) << 1)
+                lean = _lean(sz0, sz2)
                 if mixed_flag:
                     ca, cb, cc = _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1)
                     n = _emit_mixed(tab, val, nb, n, models, sse, 2, ca, cb, cc, 1 if single else 0, 0)
@@ -647,7 +655,7 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
                 # picks it is known: the loads leave the decoding's dependency chain.
                 sx0, sx1, sx2, sy0, sy1, sy2, sz0, sz1, sz2, fx1, fy1, fx2, fy2 = _around(atlas, rows, ci)
                 slabs = _slab_z(sz0, sz2)
-                lean = (1 if sz2 > sz0 else 0) | ((1 if sz0 > sz2 else 0) << 1)
+                lean = _lean(sz0, sz2)
                 if mixed_flag:
                     cs, cbs, ccs = _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1)
                     cfs = _sse_cell(models, 2, cs, cbs, ccs)
