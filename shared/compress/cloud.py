@@ -354,42 +354,40 @@ def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Itera
     return meta, chunks, dtype, where
 
 
-def iter_cloud(source: str | os.PathLike[str] | bytes) -> Iterator[np.ndarray]:
-    """Decode a cloud container chunk by chunk: structured records of the input's PLY dtype."""
-    meta, chunks, dtype, where = _open(source)
+def _decode_chunks(opened: tuple[dict[str, Any], Iterator[bytes], np.dtype, str],
+                   whole: np.ndarray | None = None) -> Iterator[np.ndarray]:
+    """Decode the chunks of a container (``opened``: what :func:`_open` returns) on the thread
+    pool, yielding each in order; into its slice of ``whole`` (``(points,)`` of the cloud's
+    dtype) when given, else into a new array."""
+    meta, chunks, dtype, where = opened
     plan = _plan_fields(dtype, where)
     log2d = _chunk_log2d(plan)
     precision = float(meta["precision"])
+    per = int(meta["chunk_points"])
     with ThreadPoolExecutor(_threads()) as pool:
         pending = []
+        # The container yields meta["chunks"] chunks, ceil(points / per) (checked by _open), and
+        # each must fill its slice of ``whole`` exactly (checked by _decode_chunk).
         for i, payload in enumerate(chunks):
-            pending.append(pool.submit(_decode_chunk, payload, i, dtype, plan, precision, log2d, where))
+            into = None if whole is None else whole[i * per : (i + 1) * per]
+            pending.append(pool.submit(_decode_chunk, payload, i, dtype, plan, precision, log2d, where, into))
             if len(pending) > _threads():
                 yield pending.pop(0).result()
         for f in pending:
             yield f.result()
 
 
+def iter_cloud(source: str | os.PathLike[str] | bytes) -> Iterator[np.ndarray]:
+    """Decode a cloud container chunk by chunk: structured records of the input's PLY dtype."""
+    yield from _decode_chunks(_open(source))
+
+
 def decode_cloud(source: str | os.PathLike[str] | bytes) -> np.ndarray:
     """The whole decoded cloud as one structured array (every chunk decoded into its slice)."""
-    meta, chunks, dtype, where = _open(source)
-    plan = _plan_fields(dtype, where)
-    log2d = _chunk_log2d(plan)
-    precision = float(meta["precision"])
-    points = int(meta["points"])
-    per = int(meta["chunk_points"])
-    out = np.empty(points, dtype)
-    with ThreadPoolExecutor(_threads()) as pool:
-        pending = []
-        # The container yields meta["chunks"] chunks, ceil(points / per) (checked by _open), and
-        # each must fill its slice exactly (checked by _decode_chunk).
-        for i, payload in enumerate(chunks):
-            pending.append(pool.submit(_decode_chunk, payload, i, dtype, plan, precision, log2d, where,
-                                       out[i * per : (i + 1) * per]))
-            if len(pending) > _threads():
-                pending.pop(0).result()
-        for f in pending:
-            f.result()
+    opened = _open(source)
+    out = np.empty(int(opened[0]["points"]), opened[2])
+    for _ in _decode_chunks(opened, out):
+        pass
     return out
 
 
