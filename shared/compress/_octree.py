@@ -59,7 +59,9 @@ channel in its own table.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+from llvmlite import ir
+from numba import njit, types
+from numba.extending import intrinsic
 
 from shared.compress._octree_prior import PRIOR_BOUNDS, PRIOR_P12, PRIOR_SHIFTS
 from shared.compress._rans import (
@@ -67,6 +69,7 @@ from shared.compress._rans import (
     P_ONE,
     RANS_L,
     adapt_state,
+    at,
     count_symbols,
     dec_init,
     decode_tables,
@@ -80,6 +83,7 @@ from shared.compress._rans import (
     pack_tables,
     put,
     put_value,
+    set_at,
     state_next,
     state_p,
     unpack_tables,
@@ -95,12 +99,17 @@ MAX_CHANNELS = 16
 NTABLES = T_ATTR + MAX_CHANNELS
 L_DUP = 2
 MAX_DEPTH = 21
-#: Neighbour regions: 2**REGION_LOG nodes a side, mapped with a one-cell empty border (no
-#: bounds checks): the map of (x, y, z) is at ((z + 1) * PAD + y + 1) * PAD + x + 1.
+#: Neighbour regions: 2**REGION_LOG nodes a side, mapped with an empty border (no bounds
+#: checks): the map of (x, y, z) is at ORIGIN + (z * PAD + y) * PAD + x, in an array of PAD**3
+#: (a border of one cell, and of a row more before the first slab, where the look-ups two back
+#: along y one slab down land: the indices are unsigned, :func:`shared.compress._rans.at`); the
+#: bit row of (y, z) is at ``map index // PAD`` (MAP_ROWS of them).
 REGION_LOG = 6
 REGION = 1 << REGION_LOG
 REGION_SHIFT = 3 * REGION_LOG
 PAD = REGION + 2
+ORIGIN = PAD * PAD + 2 * PAD + 1
+MAP_ROWS = PAD * PAD + 1
 #: Occupancy contexts: child bits of nodes with two children or more, occupied nodes of the
 #: slab on the child's side along z (2: :func:`_slab_z`) x bit (8) x occupied siblings (4) x past
 #: faces (8) x two back (8) x future faces (64); then the single-child flag (64) and the single
@@ -162,9 +171,20 @@ SSE_LIMIT = 128
 _OCCUPIED = 256
 _CODED = 512
 
-POPCOUNT = np.array([bin(i).count("1") for i in range(256)], np.int64)
 #: LOWEST[byte]: the index of the lowest set bit (byte > 0).
 LOWEST = np.array([(i & -i).bit_length() - 1 for i in range(256)], np.int64)
+
+
+@intrinsic
+def popcount(typingctx, v):
+    """The set bits of an int64, in one instruction (LLVM's ctpop; numba has no popcount)."""
+    if v != types.int64:
+        return None
+
+    def codegen(context, builder, sig, args):
+        return builder.call(builder.module.declare_intrinsic("llvm.ctpop", [ir.IntType(64)]), args)
+
+    return types.int64(types.int64), codegen
 
 
 @njit(cache=True, nogil=True)
@@ -194,13 +214,13 @@ def voxel_centres(codes, ox, oy, oz, precision, x, y, z):
 def _cell(key):
     """Index of a node in its region's map."""
     c = key & ((1 << REGION_SHIFT) - 1)
-    return ((compact21(c >> 2) + 1) * PAD + compact21(c >> 1) + 1) * PAD + compact21(c) + 1
+    return ORIGIN + (compact21(c >> 2) * PAD + compact21(c >> 1)) * PAD + compact21(c)
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _child_cell(ci, b):
     """Map index of child ``b`` of the node at map index ``ci`` (in the child level's region)."""
-    r = ci - (PAD * PAD + PAD + 1)
+    r = ci - ORIGIN
     z = r // (PAD * PAD)
     r -= z * (PAD * PAD)
     y = r // PAD
@@ -208,7 +228,7 @@ def _child_cell(ci, b):
     x = ((x << 1) | (b & 1)) & (REGION - 1)
     y = ((y << 1) | ((b >> 1) & 1)) & (REGION - 1)
     z = ((z << 1) | (b >> 2)) & (REGION - 1)
-    return ((z + 1) * PAD + y + 1) * PAD + x + 1
+    return ORIGIN + (z * PAD + y) * PAD + x
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -216,11 +236,11 @@ def _neighbours(atlas, ci):
     """The region map's values of the node's face neighbours (0 outside the region) -x, -y,
     -z, +x, +y, +z, of the nodes two back along x and y, and the occupancy of the past x and y
     neighbours' neighbours above and below (4 bits: where the surface climbs or falls)."""
-    return (np.int64(atlas[ci - 1]), np.int64(atlas[ci - PAD]), np.int64(atlas[ci - PAD * PAD]),
-            np.int64(atlas[ci + 1]), np.int64(atlas[ci + PAD]), np.int64(atlas[ci + PAD * PAD]),
-            np.int64(atlas[ci - 2]), np.int64(atlas[ci - 2 * PAD]),
-            ((atlas[ci - 1 + PAD * PAD] >> 8) & 1) | (((atlas[ci - 1 - PAD * PAD] >> 8) & 1) << 1)
-            | (((atlas[ci - PAD + PAD * PAD] >> 8) & 1) << 2) | (((atlas[ci - PAD - PAD * PAD] >> 8) & 1) << 3))
+    return (np.int64(at(atlas, ci - 1)), np.int64(at(atlas, ci - PAD)), np.int64(at(atlas, ci - PAD * PAD)),
+            np.int64(at(atlas, ci + 1)), np.int64(at(atlas, ci + PAD)), np.int64(at(atlas, ci + PAD * PAD)),
+            np.int64(at(atlas, ci - 2)), np.int64(at(atlas, ci - 2 * PAD)),
+            ((at(atlas, ci - 1 + PAD * PAD) >> 8) & 1) | (((at(atlas, ci - 1 - PAD * PAD) >> 8) & 1) << 1)
+            | (((at(atlas, ci - PAD + PAD * PAD) >> 8) & 1) << 2) | (((at(atlas, ci - PAD - PAD * PAD) >> 8) & 1) << 3))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -271,7 +291,7 @@ def _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2):
     """Context of "the node has exactly one child": occupied face neighbours (0-6) x the
     children of the past neighbours (0-7+) x whether the nodes two back along x and y are occupied."""
     occ = ((xm >> 8) & 1) + ((ym >> 8) & 1) + ((zm >> 8) & 1) + ((xp >> 8) & 1) + ((yp >> 8) & 1) + ((zp >> 8) & 1)
-    kids = min(POPCOUNT[xm & 255] + POPCOUNT[ym & 255] + POPCOUNT[zm & 255], 7)
+    kids = min(popcount((xm & 255) | ((ym & 255) << 8) | ((zm & 255) << 16)), 7)
     return C_SINGLE + ((occ * 8 + kids) * 2 + ((xm2 >> 8) & 1)) * 2 + ((ym2 >> 8) & 1)
 
 
@@ -298,11 +318,14 @@ def _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, slope, lean):
     occupied (two of the four bits of ``slope``) and ``lean``: 1 when more of the 26 around are
     occupied above the node than below, 2 when fewer (in place of the past y neighbour's half of
     ``slope``: no more contexts; at 0.1 mm 0.008 bits a point fewer on the bench scan, about 0.03
-    on the bunny's)."""
+    on the bunny's). The column (x and y bits) and the past z neighbour's two children in it are
+    the lowest four bits: the decoder loads the four columns' models before it knows the column,
+    and they lie within 2 kB, within 64 bytes when the past x and y neighbours' children do not
+    tell the columns apart."""
     col = bx | (by << 1)
-    return C_Z + (((zm >> (col | 4)) & 1) | (((zm >> col) & 1) << 1) | (((zp >> 8) & 1) << 2)
-                  | (((xm >> (1 | (by << 1))) & 1) << 3) | (((xm >> (5 | (by << 1))) & 1) << 4)
-                  | (((ym >> (bx | 2)) & 1) << 5) | (((ym >> (bx | 6)) & 1) << 6) | (col << 7)
+    return C_Z + (col | (((zm >> (col | 4)) & 1) << 2) | (((zm >> col) & 1) << 3) | (((zp >> 8) & 1) << 4)
+                  | (((xm >> (1 | (by << 1))) & 1) << 5) | (((xm >> (5 | (by << 1))) & 1) << 6)
+                  | (((ym >> (bx | 2)) & 1) << 7) | (((ym >> (bx | 6)) & 1) << 8)
                   | (_any(xm2, 0xF0) << 9) | (_any(xm2, 0x0F) << 10) | (_any(ym2, 0xF0) << 11) | (_any(ym2, 0x0F) << 12)
                   | ((slope & 3) << 13) | (lean << 15))
 
@@ -337,37 +360,22 @@ def _around(atlas, rows, ci):
     ``ci % PAD - 1``: one uint64 per row along x), and the footprints (:func:`_lat` of the
     nodes at z - 1, z and z + 1 together) of the columns at x - 1, y - 1, x - 2 and y - 2."""
     r0 = ci // PAD
-    x = ci - r0 * PAD - 1
-    sx0 = sx1 = sx2 = sy0 = sy1 = sy2 = sz0 = sz1 = sz2 = np.int64(0)
-    for dz in range(-1, 2):
-        for dy in range(-1, 2):
-            r = rows[r0 + dy + dz * PAD]
-            t = np.int64((r >> np.uint64(x - 1)) & np.uint64(7)) if x > 0 else np.int64((r << np.uint64(1)) & np.uint64(6))
-            a = t & 1
-            m = (t >> 1) & 1
-            c = t >> 2
-            sx0 += a
-            sx1 += m
-            sx2 += c
-            if dy < 0:
-                sy0 += a + m + c
-            elif dy > 0:
-                sy2 += a + m + c
-            else:
-                sy1 += a + m + c
-            if dz < 0:
-                sz0 += a + m + c
-            elif dz > 0:
-                sz2 += a + m + c
-            else:
-                sz1 += a + m + c
+    x = np.uint64(ci - r0 * PAD - 1)
+    # The 27 nodes as 9 windows of 3 bits (x - 1, x, x + 1; bit x - 1 empty at x = 0), window
+    # 3 (dz + 1) + dy + 1; each slab's count is then one popcount of a mask.
+    w = np.int64(0)
+    for k in range(9):
+        r = at(rows, r0 + (k % 3 - 1) + (k // 3 - 1) * PAD)
+        w |= np.int64((((r >> x) << np.uint64(1)) | ((r << np.uint64(1)) >> x)) & np.uint64(7)) << (3 * k)
     zz = PAD * PAD
-    fx1 = _lat(atlas[ci - 1 - zz]) | _lat(atlas[ci - 1]) | _lat(atlas[ci - 1 + zz])
-    fy1 = _lat(atlas[ci - PAD - zz]) | _lat(atlas[ci - PAD]) | _lat(atlas[ci - PAD + zz])
-    fx2 = _lat(atlas[ci - 2 - zz]) | _lat(atlas[ci - 2]) | _lat(atlas[ci - 2 + zz])
-    fy2 = _lat(atlas[ci - 2 * PAD - zz]) | _lat(atlas[ci - 2 * PAD]) | _lat(atlas[ci - 2 * PAD + zz])
-    # the node itself (occupied) was counted in the middle slabs
-    return sx0, sx1 - 1, sx2, sy0, sy1 - 1, sy2, sz0, sz1 - 1, sz2, fx1, fy1, fx2, fy2
+    fx1 = _lat(at(atlas, ci - 1 - zz)) | _lat(at(atlas, ci - 1)) | _lat(at(atlas, ci - 1 + zz))
+    fy1 = _lat(at(atlas, ci - PAD - zz)) | _lat(at(atlas, ci - PAD)) | _lat(at(atlas, ci - PAD + zz))
+    fx2 = _lat(at(atlas, ci - 2 - zz)) | _lat(at(atlas, ci - 2)) | _lat(at(atlas, ci - 2 + zz))
+    fy2 = _lat(at(atlas, ci - 2 * PAD - zz)) | _lat(at(atlas, ci - 2 * PAD)) | _lat(at(atlas, ci - 2 * PAD + zz))
+    # the node itself (occupied) is counted in the middle slabs
+    return (popcount(w & 0o111111111), popcount(w & 0o222222222) - 1, popcount(w & 0o444444444),
+            popcount(w & 0o007007007), popcount(w & 0o070070070) - 1, popcount(w & 0o700700700),
+            popcount(w & 0o777), popcount(w & 0o777000) - 1, popcount(w >> 18), fx1, fy1, fx2, fy2)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -375,11 +383,11 @@ def _mark(atlas, rows, ci, on):
     """Mark the node at map index ``ci`` occupied (``on``) or empty, in the map and its bit rows."""
     r = ci // PAD
     if on:
-        atlas[ci] = _OCCUPIED
-        rows[r] |= np.uint64(1) << np.uint64(ci - r * PAD - 1)
+        set_at(atlas, ci, _OCCUPIED)
+        set_at(rows, r, at(rows, r) | (np.uint64(1) << np.uint64(ci - r * PAD - 1)))
     else:
-        atlas[ci] = 0
-        rows[r] = 0
+        set_at(atlas, ci, 0)
+        set_at(rows, r, 0)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -408,8 +416,8 @@ def _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1):
 def _sse_cell(models, axis, ca, cb, cc):
     """The secondary-estimation cell (axis 0: x, 1: y, 2: the single-child flag) of an event
     whose models are ``ca``, ``cb``, ``cc``."""
-    return (((axis * SSE_N + np.int64(SSE_BUCKET[state_p(models[ca])])) * SSE_N + np.int64(SSE_BUCKET[state_p(models[cb])])) * SSE_N
-            + np.int64(SSE_BUCKET[state_p(models[cc])]))
+    return (((axis * SSE_N + np.int64(at(SSE_BUCKET, state_p(at(models, ca))))) * SSE_N
+             + np.int64(at(SSE_BUCKET, state_p(at(models, cb))))) * SSE_N + np.int64(at(SSE_BUCKET, state_p(at(models, cc)))))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -435,10 +443,10 @@ def _fixed_next(s, bit):
 @njit(cache=True, nogil=True, inline="always")
 def _learn(models, sse, ca, cb, cc, cell, bit):
     """Adapt a mixed event's three models and its cell to ``bit``."""
-    models[ca] = state_next(models[ca], bit)
-    models[cb] = _fixed_next(models[cb], bit)
-    models[cc] = _fixed_next(models[cc], bit)
-    sse[cell] = _sse_next(sse[cell], bit)
+    set_at(models, ca, state_next(at(models, ca), bit))
+    set_at(models, cb, _fixed_next(at(models, cb), bit))
+    set_at(models, cc, _fixed_next(at(models, cc), bit))
+    set_at(sse, cell, _sse_next(at(sse, cell), bit))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -450,7 +458,7 @@ def _emit_mixed(tab, val, nb, n, models, sse, axis, ca, cb, cc, bit, kind):
         return -1
     cell = _sse_cell(models, axis, ca, cb, cc)
     tab[n] = BIN
-    val[n] = (state_p(sse[cell]) << 1) | bit
+    val[n] = (state_p(at(sse, cell)) << 1) | bit
     nb[n] = kind
     _learn(models, sse, ca, cb, cc, cell, bit)
     return n + 1
@@ -505,7 +513,7 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
     models = np.empty(N_MODELS, np.uint32)
     sse = np.empty(N_SSE, np.uint32)
     atlas = np.zeros(PAD * PAD * PAD, np.int16)
-    rows = np.zeros(PAD * PAD, np.uint64)
+    rows = np.zeros(MAP_ROWS, np.uint64)
     prior = _prior_states()
     for d in range(depth):
         models[:] = prior  # a copy, as cheap as the fill of 1/2 it replaces
@@ -533,7 +541,7 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
                     byte |= 1 << (levels[j] & 7)
                     j += 1
                 xm, ym, zm, xp, yp, zp, xm2, ym2, slope = _neighbours(atlas, ci)
-                single = POPCOUNT[byte] == 1
+                single = popcount(byte) == 1
                 sx0, sx1, sx2, sy0, sy1, sy2, sz0, sz1, sz2, fx1, fy1, fx2, fy2 = _around(atlas, rows, ci)
                 slabs = _slab_z(sz0, sz2)
                 lean = _lean(sz0, sz2)
@@ -569,7 +577,7 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
                     if ncur >= 2:  # else implied: bits 6 and 7, or bit 7 (two children at least)
                         ctx = _bit_context(7, cur, ncur, xm, ym, zm, xp, yp, zp, slabs)
                         n = _emit(tab, val, nb, n, models, ctx, (byte >> 7) & 1, 4)
-                atlas[ci] = _OCCUPIED | _CODED | byte
+                set_at(atlas, ci, _OCCUPIED | _CODED | byte)
             for i in range(r0, r1):
                 _mark(atlas, rows, cells[i - a0], False)
             r0 = r1
@@ -624,12 +632,12 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
     xa, xb, pos = dec_init(words)
     cur = np.zeros(max(nvox, 1), np.int64)
     nxt = np.empty(max(nvox, 1), np.int64)
-    curc = np.full(max(nvox, 1), PAD * PAD + PAD + 1, np.int64)  # map indices of the nodes
+    curc = np.full(max(nvox, 1), ORIGIN, np.int64)  # map indices of the nodes
     nxtc = np.empty(max(nvox, 1), np.int64)
     models = np.empty(N_MODELS, np.uint32)
     sse = np.empty(N_SSE, np.uint32)
     atlas = np.zeros(PAD * PAD * PAD, np.int16)
-    rows = np.zeros(PAD * PAD, np.uint64)
+    rows = np.zeros(MAP_ROWS, np.uint64)
     ncur = 1
     prior = _prior_states()
     for d in range(depth):
@@ -659,11 +667,11 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
                 if mixed_flag:
                     cs, cbs, ccs = _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1)
                     cfs = _sse_cell(models, 2, cs, cbs, ccs)
-                    ss = sse[cfs]
+                    ss = at(sse, cfs)
                 else:
                     cs = _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2)
                     cbs = ccs = cfs = 0
-                    ss = models[cs]
+                    ss = at(models, cs)
                 if mixed:
                     # x and y: three models each and their cell (x and y have a table each: the x
                     # event changes no y cell)
@@ -673,29 +681,29 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
                     cx = _sse_cell(models, 0, cax, cbx, ccx)
                     cy0 = _sse_cell(models, 1, cay0, cby0, ccy0)
                     cy1 = _sse_cell(models, 1, cay1, cby1, ccy1)
-                    sx = sse[cx]
-                    sy0 = sse[cy0]
-                    sy1 = sse[cy1]
+                    sx = at(sse, cx)
+                    sy0 = at(sse, cy0)
+                    sy1 = at(sse, cy1)
                 else:
                     cax = cbx = ccx = cay0 = cby0 = ccy0 = cay1 = cby1 = ccy1 = 0
                     cx = _x_context(xm, ym, zm, xp, xm2)
                     cy0 = _y_context(0, xm, ym, zm, yp, ym2)
                     cy1 = _y_context(1, xm, ym, zm, yp, ym2)
-                    sx = models[cx]
-                    sy0 = models[cy0]
-                    sy1 = models[cy1]
+                    sx = at(models, cx)
+                    sy0 = at(models, cy0)
+                    sy1 = at(models, cy1)
                 single, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(ss))
                 if mixed_flag:
                     # the flag's models and cell are none of the x and y bits' (loaded above)
                     _learn(models, sse, cs, cbs, ccs, cfs, single)
                 else:
-                    models[cs] = state_next(ss, single)
+                    set_at(models, cs, state_next(ss, single))
                 if single:
                     czs = (_z_context(0, 0, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
                            _z_context(1, 0, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
                            _z_context(0, 1, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
                            _z_context(1, 1, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean))
-                    sz = (models[czs[0]], models[czs[1]], models[czs[2]], models[czs[3]])
+                    sz = (at(models, czs[0]), at(models, czs[1]), at(models, czs[2]), at(models, czs[3]))
                     bx, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(sx))
                     by, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(sy1 if bx else sy0))
                     if mixed:
@@ -705,23 +713,23 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
                         else:
                             _learn(models, sse, cay0, cby0, ccy0, cy0, by)
                     else:
-                        models[cx] = state_next(sx, bx)
+                        set_at(models, cx, state_next(sx, bx))
                         if bx:
-                            models[cy1] = state_next(sy1, by)
+                            set_at(models, cy1, state_next(sy1, by))
                         else:
-                            models[cy0] = state_next(sy0, by)
+                            set_at(models, cy0, state_next(sy0, by))
                     col = bx | (by << 1)
                     cz = czs[col]
                     s_z = sz[col]
                     bz, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(s_z))
-                    models[cz] = state_next(s_z, bz)
+                    set_at(models, cz, state_next(s_z, bz))
                     byte = 1 << (col | (bz << 2))
                     nset = 1
                 else:
                     byte = 0
                     nset = 0
                     c_next = _bit_context(0, 0, 0, xm, ym, zm, xp, yp, zp, slabs)
-                    s_next = models[c_next]
+                    s_next = at(models, c_next)
                     for b in range(7):
                         if nset == 0 and b == 6:
                             break
@@ -730,17 +738,17 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
                         # the next bit's two possible contexts (this bit 0 or 1), loaded now
                         c0 = _bit_context(b + 1, byte, nset, xm, ym, zm, xp, yp, zp, slabs)
                         c1 = _bit_context(b + 1, byte | (1 << b), nset + 1, xm, ym, zm, xp, yp, zp, slabs)
-                        s0 = models[c0]
-                        s1 = models[c1]
+                        s0 = at(models, c0)
+                        s1 = at(models, c1)
                         bit, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(st))
-                        models[ctx] = state_next(st, bit)
+                        set_at(models, ctx, state_next(st, bit))
                         byte |= bit << b
                         nset += bit
                         c_next = c1 if bit else c0
                         s_next = s1 if bit else s0
                     if nset >= 2:
                         bit, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(s_next))
-                        models[c_next] = state_next(s_next, bit)
+                        set_at(models, c_next, state_next(s_next, bit))
                         byte |= bit << 7
                         nset += bit
                     elif nset == 1:
@@ -753,13 +761,13 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
                     return -1
                 rest = byte
                 while rest:
-                    b = LOWEST[rest]
+                    b = at(LOWEST, rest)
                     rest &= rest - 1
                     nxt[m] = (key << 3) | b
                     if not last:
                         nxtc[m] = _child_cell(ci, b)
                     m += 1
-                atlas[ci] = _OCCUPIED | _CODED | byte
+                set_at(atlas, ci, _OCCUPIED | _CODED | byte)
             for i in range(r0, r1):
                 _mark(atlas, rows, curc[i], False)
             r0 = r1

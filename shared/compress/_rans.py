@@ -43,6 +43,20 @@ BIN = -2
 
 
 @njit(cache=True, nogil=True, inline="always")
+def at(a, i):
+    """``a[i]`` for an index ``i`` known not to be negative: with an unsigned index numba adds no
+    negative-index wraparound (a compare and a select per load), and constant offsets fold into
+    the address."""
+    return a[np.uint64(i)]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def set_at(a, i, v):
+    """``a[i] = v`` for an index ``i`` known not to be negative (see :func:`at`)."""
+    a[np.uint64(i)] = v
+
+
+@njit(cache=True, nogil=True, inline="always")
 def bitlen(u: np.uint64) -> int:
     n = 0
     while u > 0:
@@ -237,7 +251,7 @@ def _next(xa, pos, words, nw):
     # symbols). A corrupt stream may run past its end: the read is clamped to the last word
     # (callers check nw >= 4) and the final position check reports it.
     need = np.int64(xa < RANS_L)
-    w = np.int64(words[min(pos, nw - 1)])
+    w = np.int64(at(words, min(pos, nw - 1)))
     xa = (xa << (need << 4)) | (w & -need)
     return xa, pos + need
 
@@ -316,7 +330,7 @@ def adapt_state(s, bit, limit):
     s = np.int64(s)
     p = s & 0xFFFF
     n = s >> 16
-    r = RATE_SHIFT[min(n, limit)]
+    r = at(RATE_SHIFT, min(n, limit))
     if bit:
         p += (P_ONE - p) >> r
     else:
@@ -328,13 +342,13 @@ def adapt_state(s, bit, limit):
 @njit(cache=True, nogil=True, inline="always")
 def model_p(models, ctx):
     """The :data:`BIN` event probability (PROB_BITS) of context ``ctx``'s model."""
-    return state_p(models[ctx])
+    return state_p(at(models, ctx))
 
 
 @njit(cache=True, nogil=True, inline="always")
 def model_update(models, ctx, bit):
     """Adapt context ``ctx``'s model to ``bit``."""
-    models[ctx] = state_next(models[ctx], bit)
+    set_at(models, ctx, state_next(at(models, ctx), bit))
 
 
 @njit(cache=True, nogil=True)
