@@ -371,6 +371,10 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
     """
     W = blk.size
     step = 1 << lowest
+    # Column values from int32 through float64 (exact: they stay below 2**31): the vector
+    # loops below then convert with AVX2's int32 instructions; an int64 conversion has none
+    # before AVX-512 and was done lane by lane.
+    fstep = np.float64(step)
     K = _NEAR
     nan = np.nan
     # Pass 1: per pair, the edge fraction (frac, -1 for no edge), position (ep, NaN for no
@@ -398,8 +402,8 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
         den = fa - fb
         t = min(max(fa / den if den != 0.0 else 0.5, 0.0), 1.0)
         frac[x] = t if edge else -1.0
-        ep[x + K] = x + t if edge else nan
-        ev[x + K] = (np.int64(min(a, b)) + 1) * step - 0.5
+        ep[x + K] = np.float64(np.int32(x)) + t if edge else nan
+        ev[x + K] = (np.float64(min(a, b)) + 1.0) * fstep - 0.5
         n_edges += edge
         n_here += (a >= 0) & (lvl[x] == lowest)
     frac[W - 1] = -1.0
@@ -416,10 +420,10 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
     # and counts as left of it. Loads come before every choice (a load inside a conditional
     # expression becomes a branch and keeps the loop scalar).
     for x in range(W if n_slow == 0 else 0):
-        B = np.int64(blk[x])
+        B = np.float64(np.int32(blk[x]))
         c = x + K
-        lo = B * step - 0.5
-        hi = (B + 1) * step - 0.5
+        lo = B * fstep - 0.5
+        hi = (B + 1.0) * fstep - 0.5
         t0 = frac[x]
         p0, pm1, pm2, pm3 = ep[c], ep[c - 1], ep[c - 2], ep[c - 3]
         pp1, pp2, pp3 = ep[c + 1], ep[c + 2], ep[c + 3]
@@ -441,8 +445,8 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
         vr = v0 if r0 else (vp1 if f1 else (vp2 if f2 else vp3))
         fr = r0 | f1 | f2 | f3
         c1 = fl & fr & ((vl == lo) | (vl == hi)) & ((vr == lo) | (vr == hi)) & (vl != vr)
-        v = vl + (x - pl) * (vr - vl) / (pr - pl)
-        want = (B >= 0) & (lvl[x] == lowest)
+        v = vl + (np.float64(np.int32(x)) - pl) * (vr - vl) / (pr - pl)
+        want = (B >= 0.0) & (lvl[x] == lowest)
         ok = want & c1 & (v == v)
         v = min(max(v, lo), hi)
         out[x] = np.float32(v) if ok else o
