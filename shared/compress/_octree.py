@@ -59,9 +59,7 @@ channel in its own table.
 from __future__ import annotations
 
 import numpy as np
-from llvmlite import ir
-from numba import njit, types
-from numba.extending import intrinsic
+from numba import njit
 
 from shared.compress._octree_prior import PRIOR_BOUNDS, PRIOR_P12, PRIOR_SHIFTS
 from shared.compress._rans import (
@@ -90,6 +88,7 @@ from shared.compress._rans import (
     unzigzag,
     zigzag,
 )
+from shared.core.bits import popcount
 from shared.core.morton import compact21, spread21
 
 T_DUPF = 0  # any voxel holding more than one point?
@@ -173,18 +172,6 @@ _CODED = 512
 
 #: LOWEST[byte]: the index of the lowest set bit (byte > 0).
 LOWEST = np.array([(i & -i).bit_length() - 1 for i in range(256)], np.int64)
-
-
-@intrinsic
-def popcount(typingctx, v):
-    """The set bits of an int64, in one instruction (LLVM's ctpop; numba has no popcount)."""
-    if v != types.int64:
-        return None
-
-    def codegen(context, builder, sig, args):
-        return builder.call(builder.module.declare_intrinsic("llvm.ctpop", [ir.IntType(64)]), args)
-
-    return types.int64(types.int64), codegen
 
 
 @njit(cache=True, nogil=True)

@@ -110,19 +110,3 @@ def compress_index(typingctx: Any, src: Any, x0: Any, dst: Any, n: Any) -> Any: 
         return builder.zext(builder.bitcast(mask, ir.IntType(LANES)), ir.IntType(64))
 
     return sig, codegen
-
-
-@intrinsic
-def popcount(typingctx: Any, x: Any) -> Any:  # pragma: no cover - compiled
-    """Set bits of an integer (int64; ``llvm.ctpop``)."""
-    if not isinstance(x, types.Integer):
-        return None
-    sig = types.int64(x)
-
-    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
-        v = context.cast(builder, args[0], signature.args[0], types.int64)
-        fn = cgutils.get_or_insert_function(builder.module, ir.FunctionType(ir.IntType(64), [ir.IntType(64)]),
-                                            "llvm.ctpop.i64")  # fmt: skip
-        return builder.call(fn, [v])
-
-    return sig, codegen

@@ -54,6 +54,7 @@ from typing import Any
 import numba
 import numpy as np
 
+from shared.core.bits import popcount
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
 from shared.core.threads import cpu_budget
@@ -71,7 +72,6 @@ from shared.scan._i32 import (
     le32,
     lt32,
     ne32,
-    popcount,
     shl32,
     shr32,
     sub32,

@@ -12,6 +12,7 @@ import numba
 import numpy as np
 import pytest
 
+from shared.core.bits import popcount
 from shared.scan._i32 import (
     LANES,
     add32,
@@ -24,7 +25,6 @@ from shared.scan._i32 import (
     lt32,
     ne32,
     or32,
-    popcount,
     shl32,
     shr32,
     sub32,
@@ -107,15 +107,3 @@ def test_int32_helpers_equal_the_64_bit_operations_in_range() -> None:
     want = np.stack([a & b, a | b, a ^ b, a + b, a - b, (a & 0xFFFF) << s, (a & 0x7FFFFFFF) >> s,
                      a == b, a != b, a < b, a <= b, a > b, a >= b], 1).astype(np.int64)  # fmt: skip
     np.testing.assert_array_equal(got, want)
-
-
-def test_popcount_counts_set_bits() -> None:
-    @numba.njit
-    def pc(v):  # pragma: no cover - compiled
-        out = np.empty(len(v), np.int64)
-        for i in range(len(v)):
-            out[i] = popcount(v[i])
-        return out
-
-    v = np.array([0, 1, 0xFFFF, 2**62, -1, 0x5555], np.int64)
-    np.testing.assert_array_equal(pc(v), [0, 1, 16, 1, 64, 8])
