@@ -260,12 +260,33 @@ def _captures(work: Path) -> list[Path]:
     ]
     if mesh_path("stanford-bunny").is_file():  # the demo's scene, when the shared meshes exist
         kinds.append(("bunny", {}))
+    else:
+        _warm_mesh_raster()
     out = []
     for i, (scene, kw) in enumerate(kinds):
         folder = work / f"capture_{i}"
         simulate_named(scene, folder, size=_CAMERA, projector=_PROJECTOR, seed=i, imaging=ImagingParams(**kw))
         out.append(folder)
     return out
+
+
+def _warm_mesh_raster() -> None:
+    """The mesh scenes' ray caster on one triangle, for a machine without the shared meshes
+    (the bunny capture calls it otherwise): with the same argument types, so the signature
+    cached is the one a mesh scene later uses, and ``make setup`` still finds every sim
+    kernel compiled."""
+    import numpy as np
+
+    from shared.sim.raycast import raster_mesh, undistort_grid
+
+    w, h = _CAMERA
+    K = np.array([[100.0, 0.0, w / 2], [0.0, 100.0, h / 2], [0.0, 0.0, 1.0]])
+    dist = np.zeros(5)
+    rx, ry = undistort_grid(K, dist, w, h)
+    zbuf = np.full((h, w), np.inf)
+    tid = np.full((h, w), -1, np.int32)
+    raster_mesh(np.array([[-50.0, -50.0, 500.0], [50.0, -50.0, 500.0], [0.0, 50.0, 500.0]]),
+                np.array([[0, 1, 2]], np.int32), rx, ry, K, dist, zbuf, tid)  # fmt: skip
 
 
 def _warm_scan(work: Path, captures: list[Path]) -> list[Path]:
