@@ -295,6 +295,9 @@ def hash_key(key: str) -> str:
 
 _ENGINES: dict[str, Engine] = {}
 _ENGINES_LOCK = threading.Lock()
+#: Databases whose tables this process has created or found: a worker opens the store once a
+#: stage, and checking every table again cost about a quarter of the CPU a trivial stage adds.
+_TABLES_READY: set[str] = set()
 
 
 def _engine(url: str) -> Engine:
@@ -341,6 +344,7 @@ def dispose_engines() -> None:
         for eng in _ENGINES.values():
             eng.dispose()
         _ENGINES.clear()
+        _TABLES_READY.clear()
 
 
 class JobStore:
@@ -354,10 +358,14 @@ class JobStore:
             self.create_tables()
 
     def create_tables(self) -> None:
-        """Create missing tables. Several processes may start at once: a loser of the race retries."""
+        """Create missing tables (once a process for each database). Several processes may start
+        at once: a loser of the race retries."""
+        if self.url in _TABLES_READY:
+            return
         for attempt in range(5):
             try:
                 Base.metadata.create_all(self.engine)
+                _TABLES_READY.add(self.url)
                 return
             except (IntegrityError, ProgrammingError, OperationalError):
                 if attempt == 4:

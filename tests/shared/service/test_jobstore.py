@@ -286,3 +286,19 @@ def test_transition_tables_and_graph_keys() -> None:
     assert k1 != stage_key(spec, "c2", {}, {"ingest": "x"})
     assert k1 != stage_key(spec, "c1", {}, {"ingest": "y"})
     assert k1 == stage_key(spec, "c1", {"unrelated": 1}, {"ingest": "x"})
+
+
+def test_tables_checked_once_a_process_until_engines_are_disposed(tmp_path: Path) -> None:
+    # A worker opens the store once a stage: the tables are created once, and a database that
+    # lost them (dropped, restored from elsewhere) gets them back after dispose_engines(),
+    # which a worker calls when it starts.
+    from shared.service.jobstore import Base, dispose_engines
+
+    url = f"sqlite:///{tmp_path / 'once.db'}"
+    first = JobStore(url)
+    Base.metadata.drop_all(first.engine)
+    with pytest.raises(Exception, match="no such table"):
+        JobStore(url).create_key("after the drop")  # not checked again in this process
+    dispose_engines()
+    owner, _ = JobStore(url).create_key("after dispose")
+    assert owner.id
