@@ -111,9 +111,11 @@ ORIGIN = PAD * PAD + 2 * PAD + 1
 MAP_ROWS = PAD * PAD + 1
 #: Occupancy contexts: child bits of nodes with two children or more, occupied nodes of the
 #: slab on the child's side along z (2: :func:`_slab_z`) x bit (8) x occupied siblings (4) x past
-#: faces (8) x two back (8) x future faces (64); then the single-child flag (64) and the single
-#: child's x, y and z bits.
-C_BIT_SPAN = 8 * 4 * 8 * 8 * 64
+#: faces (8) x two back (8) x occupied future faces (8); then the single-child flag (64) and the
+#: single child's x, y and z bits. (The side of the node a child lies on along each axis, which
+#: the future faces' contexts once also held, is the bit's position: those contexts were 8 of 64
+#: used, in two cache lines of four, and the table 1 MB, larger than the L2 cache.)
+C_BIT_SPAN = 8 * 4 * 8 * 8 * 8
 C_BIT = 0
 C_SINGLE = C_BIT + 2 * C_BIT_SPAN
 C_X = C_SINGLE + 256
@@ -242,11 +244,9 @@ def _bit_context(b, cur, ncur, xm, ym, zm, xp, yp, zp, slabs):
     py = ((cur >> (b - 2)) & 1) if by else ((ym >> (b | 2)) & 1)
     pz = ((cur >> (b - 4)) & 1) if bz else ((zm >> (b | 4)) & 1)
     back = ((xm >> b) & 1) | (((ym >> b) & 1) << 1) | (((zm >> b) & 1) << 2)
-    fx = ((xp >> 8) & 1) + 2 * (1 - bx)
-    fy = ((yp >> 8) & 1) + 2 * (1 - by)
-    fz = ((zp >> 8) & 1) + 2 * (1 - bz)
-    return (((((((slabs >> bz) & 1) * 8 + b) * 4 + min(ncur, 3)) * 8 + (px | (py << 1) | (pz << 2))) * 8 + back) * 64
-            + fx * 16 + fy * 4 + fz)
+    future = (((xp >> 8) & 1) << 2) | (((yp >> 8) & 1) << 1) | ((zp >> 8) & 1)
+    return (((((((slabs >> bz) & 1) * 8 + b) * 4 + min(ncur, 3)) * 8 + (px | (py << 1) | (pz << 2))) * 8 + back) * 8
+            + future)
 
 
 @njit(cache=True, nogil=True, inline="always")

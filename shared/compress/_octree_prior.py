@@ -20,9 +20,9 @@ import numpy as np
 
 #: Model index regions of :mod:`shared.compress._octree` (C_BIT, C_SINGLE, C_X, C_Y, C_Z, B_X,
 #: B_Y, C3_X, C3_Y, B_SINGLE, C3_SINGLE, N_MODELS), as in the module that defines them.
-PRIOR_BOUNDS = np.array((0, 262144, 262400, 262912, 263936, 395008, 395520, 396544, 397544, 399544, 401336, 402236), np.int64)
+PRIOR_BOUNDS = np.array((0, 32768, 33024, 33536, 34560, 165632, 166144, 167168, 168168, 170168, 171960, 172860), np.int64)
 #: Per region, how many low bits of a context's offset its group ignores.
-PRIOR_SHIFTS = np.array((6, 0, 0, 0, 9, 0, 0, 0, 0, 0, 0), np.int64)
+PRIOR_SHIFTS = np.array((3, 0, 0, 0, 9, 0, 0, 0, 0, 0, 0), np.int64)
 #: Per group, region after region, the 12-bit probability of a one.
 PRIOR_P12 = np.array((
     1134, 2073, 1150, 2222, 1338, 2361, 1195, 1479, 2408, 2331, 2507, 2247, 2349, 3045, 2048, 2617, 1453, 2472, 1268, 1801, 1479, 2048, 1240, 2048,

@@ -26,7 +26,7 @@ from shared.formats.ply import iter_ply_records
 from shared.scan.pipeline import scan
 from shared.sim.simulate import simulate_named
 
-SHIFTS = (6, 0, 0, 0, 9, 0, 0, 0, 0, 0, 0)
+SHIFTS = (3, 0, 0, 0, 9, 0, 0, 0, 0, 0, 0)
 
 
 def _kernels() -> dict:
