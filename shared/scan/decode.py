@@ -365,14 +365,15 @@ _DENSE = 2.5
 
 
 @numba.njit(cache=True, error_model="numpy")
-def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac, ep, ev, slow, out):  # pragma: no cover
+def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac, ep, ek, slow, out):  # pragma: no cover
     """Interpolate projector columns between stripe edges along one camera row.
 
     blk, lvl: (W,) code block and level; qa, qb: (W,) the differences of the flipping bit plane
     at each pair's two pixels (:func:`_edge_differences`), already scaled to int8 (streaming) or
     raw, then scaled by ``kq`` (W,) float32 here (``quantise``); eidx, mk: (W,) int32 (the
     row's edges, its marked pixels), blocks: (2, W // LANES + 1) int64 (edge masks and counts
-    by block), frac: (W,) float64, ep, ev: (W + 2 _NEAR,) float64 and slow: (W,) bool scratch; out: (W,) float32 holding the integer decode, overwritten where
+    by block), frac: (W,) float64, ep: (W + 2 _NEAR,) float64, ek: (W + 2 _NEAR,) int32 and slow:
+    (W,) bool scratch; out: (W,) float32 holding the integer decode, overwritten where
     interpolated. Returns the number of interpolated pixels. Divisions follow numpy's error
     model: two edges at one position give an infinite slope, clamped to the stripe, or NaN,
     left uninterpolated (Python's model raised ZeroDivisionError there).
@@ -396,18 +397,21 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
     K = _NEAR
     nan = np.nan
     # Pass 1: per pair, the edge fraction (frac, -1 for no edge), position (ep, NaN for no
-    # edge) and value (ev), at index pair + K of ep/ev, whose first K and last K + 1 entries
-    # are NaN.
+    # edge) and the lower of its two code blocks (ek, -2 for no edge: never a pixel's block
+    # or the one below it), at index pair + K of ep/ek, whose first K and last K + 1 entries
+    # are NaN and -2. An edge's projector column (its value) is (ek + 1) step - 0.5: the passes
+    # below compare blocks in int32 lanes and compute the value only where they use it.
+    nek = np.int32(-2)
     for i in range(K):
         ep[i] = nan
-        ev[i] = nan
+        ek[i] = nek
     # The last pixel's own (absent) pair and the K after it: pass 2 reads up to ep[W - 1 + 2 K]
     # there. (Only K were written: the buffer's last entry, left over from earlier use, could
     # make up an edge beyond the row for the last pixel, whose decode then depended on memory
     # contents: 88 pixels of a real capture's last column with lit_threshold 40.)
     for i in range(K + 1):
         ep[W - 1 + K + i] = nan
-        ev[W - 1 + K + i] = nan
+        ek[W - 1 + K + i] = nek
     n_edges = 0
     n_here = 0  # pixels of pairs 0..W-2 decoded at the finest level
     for x in range(W - 1):
@@ -421,7 +425,7 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
         t = min(max(fa / den if den != 0.0 else 0.5, 0.0), 1.0)
         frac[x] = t if edge else -1.0
         ep[x + K] = np.float64(np.int32(x)) + t if edge else nan
-        ev[x + K] = (np.float64(min(a, b)) + 1.0) * fstep - 0.5
+        ek[x + K] = min(a, b) if edge else nek
         n_edges += edge
         n_here += (a >= 0) & (lvl[x] == lowest)
     frac[W - 1] = -1.0
@@ -437,34 +441,40 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
     # Pass 2: the nearest edge each side within K pairs. An edge at fraction 0 lies on pixel x
     # and counts as left of it. Loads come before every choice (a load inside a conditional
     # expression becomes a branch and keeps the loop scalar).
+    # The two edges bound the pixel's stripe (block Bi) when each lies between Bi - 1 and Bi
+    # (value lo) or between Bi and Bi + 1 (value hi), and they differ: their blocks tell, in
+    # int32 lanes (a missing edge's -2 matches neither for a decoded pixel), and the values
+    # are then lo and hi themselves (equal as doubles: the same integers times step).
+    one = np.int32(1)
+    zero = np.int32(0)
     for x in range(W if n_slow == 0 else 0):
-        B = np.float64(np.int32(blk[x]))
+        Bi = np.int32(blk[x])
+        B = np.float64(Bi)
         c = x + K
         lo = B * fstep - 0.5
         hi = (B + 1.0) * fstep - 0.5
         t0 = frac[x]
         p0, pm1, pm2, pm3 = ep[c], ep[c - 1], ep[c - 2], ep[c - 3]
         pp1, pp2, pp3 = ep[c + 1], ep[c + 2], ep[c + 3]
-        v0, vm1, vm2, vm3 = ev[c], ev[c - 1], ev[c - 2], ev[c - 3]
-        vp1, vp2, vp3 = ev[c + 1], ev[c + 2], ev[c + 3]
+        k0, km1, km2, km3 = ek[c], ek[c - 1], ek[c - 2], ek[c - 3]
+        kp1, kp2, kp3 = ek[c + 1], ek[c + 2], ek[c + 3]
         o = out[x]
         at0 = t0 == 0.0
         r0 = t0 > 0.0
-        e1 = pm1 == pm1
-        e2 = pm2 == pm2
-        e3 = pm3 == pm3
-        f1 = pp1 == pp1
-        f2 = pp2 == pp2
-        f3 = pp3 == pp3
+        e1 = ge32(km1, zero)
+        e2 = ge32(km2, zero)
+        f1 = ge32(kp1, zero)
+        f2 = ge32(kp2, zero)
         pl = p0 if at0 else (pm1 if e1 else (pm2 if e2 else pm3))
-        vl = v0 if at0 else (vm1 if e1 else (vm2 if e2 else vm3))
-        fl = at0 | e1 | e2 | e3
+        kl = k0 if at0 else (km1 if e1 else (km2 if e2 else km3))
         pr = p0 if r0 else (pp1 if f1 else (pp2 if f2 else pp3))
-        vr = v0 if r0 else (vp1 if f1 else (vp2 if f2 else vp3))
-        fr = r0 | f1 | f2 | f3
-        c1 = fl & fr & ((vl == lo) | (vl == hi)) & ((vr == lo) | (vr == hi)) & (vl != vr)
+        kr = k0 if r0 else (kp1 if f1 else (kp2 if f2 else kp3))
+        Bm = sub32(Bi, one)
+        c1 = (eq32(kl, Bm) | eq32(kl, Bi)) & (eq32(kr, Bm) | eq32(kr, Bi)) & ne32(kl, kr)
+        vl = hi if eq32(kl, Bi) else lo
+        vr = hi if eq32(kr, Bi) else lo
         v = vl + (np.float64(np.int32(x)) - pl) * (vr - vl) / (pr - pl)
-        want = (B >= 0.0) & (lvl[x] == lowest)
+        want = ge32(Bi, zero) & (lvl[x] == lowest)
         ok = want & c1 & (v == v)
         v = min(max(v, lo), hi)
         out[x] = np.float32(v) if ok else o
@@ -475,7 +485,7 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
     if n_slow == 0:
         return n_sub
     # Pass 3, for the marked pixels: the row's edges in order, as their pairs' indices in eidx
-    # (their positions and values are read from ep/ev through them), and the marked pixels in
+    # (their positions and blocks are read from ep/ek through them), and the marked pixels in
     # order in mk, both compacted LANES pairs at a time (compress_index: the scalar loop that
     # did this over every pair of the row cost more than the rest of the pass). A marked
     # pixel's count of edges at or left of it (earlier pairs, and its own pair at fraction 0)
@@ -515,14 +525,19 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
         B = blk[ux]
         lo = B * step - 0.5
         hi = (B + 1) * step - 0.5
-        # Edge k of the row sits at ep/ev[eidx[k] + K]; indices clamped where there is none.
+        # Edge k of the row sits at ep/ek[eidx[k] + K]; indices clamped where there is none.
         im2 = np.uint64(eidx[np.uint64(max(j - 2, 0))] + K)
         im1 = np.uint64(eidx[np.uint64(max(j - 1, 0))] + K)
         i0 = np.uint64(eidx[np.uint64(min(j, ne))] + K)
         ip1 = np.uint64(eidx[np.uint64(min(j + 1, ne))] + K)
-        vm2, vm1, v0, vp1 = ev[im2], ev[im1], ev[i0], ev[ip1]
+        km2, km1, k0, kp1 = ek[im2], ek[im1], ek[i0], ek[ip1]
         pm2, pm1, p0, pp1 = ep[im2], ep[im1], ep[i0], ep[ip1]
         o = out[ux]
+        # The edges' values, (ek + 1) step - 0.5 (unused where an index was clamped).
+        vm2 = (np.float64(km2) + 1.0) * fstep - 0.5
+        vm1 = (np.float64(km1) + 1.0) * fstep - 0.5
+        v0 = (np.float64(k0) + 1.0) * fstep - 0.5
+        vp1 = (np.float64(kp1) + 1.0) * fstep - 0.5
         left_ok = (j > 0) & ((vm1 == lo) | (vm1 == hi))
         right_ok = (j < ne) & ((v0 == lo) | (v0 == hi))
         c1 = left_ok & right_ok & (vm1 != v0)
@@ -553,11 +568,11 @@ def _subpixel_row(blk, lvl, qa, qb, kq, quantise, lowest, eidx, mk, blocks, frac
 def _row_scratch(W, q, levels):  # pragma: no cover
     """Row buffers of the code resolution and the sub-pixel step, once per band: blk, sel
     (int32; sel is also the sub-pixel step's eidx), qa, qb (q's dtype), mk (int32), frac
-    (float64), slow (bool), all (W,), blocks (2, W // LANES + 1) int64, ep, ev (W + 2 _NEAR,)
-    float64, and the level histogram (levels,) int64."""
+    (float64), slow (bool), all (W,), blocks (2, W // LANES + 1) int64, ep (W + 2 _NEAR,)
+    float64, ek (W + 2 _NEAR,) int32, and the level histogram (levels,) int64."""
     return (np.empty(W, np.int32), np.empty(W, np.int32), np.empty(W, q.dtype), np.empty(W, q.dtype),
             np.empty(W, np.int32), np.empty((2, W // LANES + 1), np.int64), np.empty(W, np.float64),
-            np.empty(W + 2 * _NEAR, np.float64), np.empty(W + 2 * _NEAR, np.float64), np.empty(W, np.bool_),
+            np.empty(W + 2 * _NEAR, np.float64), np.empty(W + 2 * _NEAR, np.int32), np.empty(W, np.bool_),
             np.zeros(levels, np.int64))  # fmt: skip
 
 
@@ -621,7 +636,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
         q = np.empty((1, W), diff.dtype)  # one plane's differences at a time
         a1 = np.empty(W, diff.dtype)
         a2 = np.empty(W, diff.dtype)
-        blk, sel, qa, qb, mk, blocks, frac, ep, ev, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
+        blk, sel, qa, qb, mk, blocks, frac, ep, ek, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
         while True:
             band = next_item(counter)
             if band >= n_bands:
@@ -721,7 +736,7 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                         qm = np.int32(127) if m == dmax else _quantise(m, kq[x])
                         cr[x] = min(np.float32(qm) / np.float32(127.0), np.float32(1.0)) if blk[x] >= 0 else np.float32(0.0)
                     if subpixel:
-                        n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, sel, mk, blocks, frac, ep, ev, slow, value[y])
+                        n_sub = _subpixel_row(blk, lv, qa, qb, kq, True, lowest, sel, mk, blocks, frac, ep, ek, slow, value[y])
                 counts[y, 0] = n_lit
                 counts[y, 1] = n_sub
                 for L in range(hist.size):
@@ -740,7 +755,7 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
     n_bands = (H + _BAND - 1) // _BAND
     counter = np.zeros(1, np.int64)
     for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
-        blk, sel, qa, qb, mk, blocks, frac, ep, ev, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
+        blk, sel, qa, qb, mk, blocks, frac, ep, ek, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
         while True:
             band = next_item(counter)
             if band >= n_bands:
@@ -758,7 +773,7 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
                                  else np.float32(0.0))
                     if subpixel:
                         _edge_differences(signs[y], q[:, y, :], nbits, qa, qb)
-                        n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, sel, mk, blocks, frac, ep, ev, slow,
+                        n_sub = _subpixel_row(blk, level[y], qa, qb, kq, False, lowest, sel, mk, blocks, frac, ep, ek, slow,
                                                value[y])
                 counts[y, 1] = n_sub
                 for L in range(hist.size):
