@@ -611,9 +611,12 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
     """Decode one level of the octree (see :func:`decode_chunk`): the children of the ``ncur``
     nodes ``cur`` (Morton codes; map indices ``curc``) into ``nxt`` (and ``nxtc`` unless the
     level is the ``last``). Returns (children, xa, xb, pos); -1 children for a corrupt stream.
-    Inlined with constant ``mixed_flag``, ``mixed`` and ``last`` at each call: each kind of level
-    gets its own loop, without the others' branches and live values (the one loop for every kind
-    spent a fifth of its time on them: 0.1 mm bench cloud)."""
+    Inlined into :func:`_decode_last_level` and :func:`_decode_next_to_last`, each with constant
+    flags: the two levels that take most of the decode get loops of their own, without the other
+    kinds' branches and live values (one loop for every kind spent a fifth of its time on them:
+    0.1 mm bench cloud); the levels above share :func:`_decode_upper_level`, flags at run time.
+    Each copy is a function of its own: five copies inlined into the one decoder took numba's
+    type inference 98 s to compile (129 s in all, against 12 s for a single loop)."""
     m = 0
     r0 = 0
     while r0 < ncur:
@@ -742,6 +745,29 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
 
 
 @njit(cache=True, nogil=True)
+def _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, models, sse, atlas, rows):
+    """:func:`_decode_level` for the last level (its children are voxels: no map cells; the
+    single child's x and y bits mixed when ``MIX_LEVELS >= 1``, the flag never)."""
+    return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxt, nvox, models, sse, atlas, rows,
+                         False, MIX_LEVELS >= 1, True)  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def _decode_next_to_last(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows):
+    """:func:`_decode_level` for the level above the last."""
+    return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
+                         FLAG_MIX_LEVELS >= 1, MIX_LEVELS >= 2, False)  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
+def _decode_upper_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
+                        mixed_flag, mixed):  # fmt: skip
+    """:func:`_decode_level` for the levels above those two (few nodes), flags at run time."""
+    return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
+                         mixed_flag, mixed, False)  # fmt: skip
+
+
+@njit(cache=True, nogil=True)
 def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
     """Decode one chunk: the Morton codes of its ``npts`` points (sorted, repeated per
     duplicate) into ``codes_out`` and the attribute differences into ``chan_out`` (N, C).
@@ -760,7 +786,7 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
     sse = np.empty(N_SSE, np.uint32)
     atlas = np.zeros(PAD * PAD * PAD, np.int16)
     rows = np.zeros(MAP_ROWS, np.uint64)
-    ncur = 1
+    ncur = np.int64(1)  # not the literal 1: the level functions are compiled for int64 alone
     prior = _prior_states()
     for d in range(depth):
         models[:] = prior  # a copy, as cheap as the fill of 1/2 it replaces
@@ -769,22 +795,15 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
         mixed = d >= depth - MIX_LEVELS
         mixed_flag = depth - 1 - FLAG_MIX_LEVELS <= d < depth - 1
         last = d == depth - 1  # the children are voxels: no map cells needed
-        # one specialised copy of the level loop per kind of level (constant flags)
-        if last:  # mixed (MIX_LEVELS >= 1), its flag not
-            m, xa, xb, pos = _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas,
-                                           rows, False, True, True)
-        elif mixed_flag and mixed:
-            m, xa, xb, pos = _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas,
-                                           rows, True, True, False)
-        elif mixed_flag:
-            m, xa, xb, pos = _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas,
-                                           rows, True, False, False)
-        elif mixed:
-            m, xa, xb, pos = _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas,
-                                           rows, False, True, False)
+        if last:
+            m, xa, xb, pos = _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, models, sse,
+                                                atlas, rows)  # fmt: skip
+        elif d == depth - 2:
+            m, xa, xb, pos = _decode_next_to_last(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models,
+                                                  sse, atlas, rows)  # fmt: skip
         else:
-            m, xa, xb, pos = _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas,
-                                           rows, False, False, False)
+            m, xa, xb, pos = _decode_upper_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models,
+                                                 sse, atlas, rows, mixed_flag, mixed)  # fmt: skip
         if m < 0:
             return -1
         cur, nxt = nxt, cur
