@@ -21,9 +21,13 @@ at 3 MP and 15 MP, and the first run of the CLI stages against their second (the
 5. ``scan``, ``tiles`` and ``preview`` of the 2048x1536 capture on an empty numba cache (a fresh
    ``NUMBA_CACHE_DIR``: compiles), and on one that ``python -m workers.warmup`` filled (what
    ``make setup`` does), first and second run. Target: first run after set-up <= 1.3x the second.
+6. Start-up: ``graylight --help`` and every command's ``--help``, each a new process (best of 5
+   wall), beside the bare interpreter's start-up (``python -c pass``, the floor of any Python
+   command), and whether the command imported numba (``python -X importtime``). Target: < 0.3 s
+   for every command that needs no numba.
 
 Sections can be run alone: ``python -m tests.bench.bench_scan [decode] [real] [triangulate] [sizes]
-[first-run]`` (all without arguments).
+[first-run] [startup]`` (all without arguments).
 """
 
 from __future__ import annotations
@@ -43,7 +47,7 @@ import numpy as np
 from shared.core.datapaths import shared_data_dir
 from shared.formats.capture import numbered_frames, opencv_order_capture
 from shared.scan.decode import decode_capture, decode_stack, kernel_threads
-from tests.bench._child import run_graylight
+from tests.bench._child import run_graylight, run_measured
 
 REPO = Path(__file__).resolve().parents[2]
 REAL = shared_data_dir() / "procam-kamino410"
@@ -228,8 +232,39 @@ def bench_first_run() -> None:
         shutil.rmtree(work, ignore_errors=True)
 
 
+def _imports_numba(args: list[str]) -> bool:
+    """Whether ``graylight ARGS`` imports numba (read from ``python -X importtime``)."""
+    res = subprocess.run([sys.executable, "-X", "importtime", "-m", "services.cli.main", *args], cwd=REPO,
+                         capture_output=True, text=True)  # fmt: skip
+    return any(line.split("|")[-1].strip() == "numba" for line in res.stderr.splitlines())
+
+
+def bench_startup() -> None:
+    """``graylight --help`` and each command's ``--help`` in a new process: best of 5 wall
+    seconds beside ``python -c pass``; target < 0.3 s where the command needs no numba."""
+    from services.cli.main import COMMANDS
+
+    def best(cmd: list[str]) -> float:
+        return min(run_measured(cmd).wall for _ in range(5))
+
+    bare = best([sys.executable, "-c", "pass"])
+    exe = str(Path(sys.executable).parent / "graylight")
+    rows = []
+    for args in ([], *([c] for c in sorted(COMMANDS))):
+        rows.append((" ".join(["graylight", *args, "--help"]), best([exe, *args, "--help"]),
+                     _imports_numba([*args, "--help"])))  # fmt: skip
+    print(f"start-up, a new process each (best of 5 wall; peer: python -c pass {bare * 1000:.0f} ms; "
+          f"load average {os.getloadavg()[0]:.1f}):")  # fmt: skip
+    for name, wall, numba_in in rows:
+        verdict = "imports numba" if numba_in else ("reached" if wall < 0.3 else "NOT reached")
+        print(f"  {name:34s} {wall * 1000:5.0f} ms  {wall / bare:4.1f}x the bare interpreter  "
+              f"(target < 300 ms without numba: {verdict})")  # fmt: skip
+    free = [wall for _, wall, numba_in in rows if not numba_in]
+    print(f"  {len(free)} of {len(rows)} need no numba; the slowest of them {max(free) * 1000:.0f} ms (target < 300 ms)")
+
+
 def main(argv: list[str] | None = None) -> None:
-    sections = {"decode", "real", "triangulate", "sizes", "first-run"}
+    sections = {"decode", "real", "triangulate", "sizes", "first-run", "startup"}
     # Other words (make bench's own arguments, when run from tests.bench.run) are not sections.
     wanted = (set(sys.argv[1:] if argv is None else argv) & sections) or sections
     if {"decode", "real"} & wanted and not (REAL / "capture_0").is_dir():
@@ -245,6 +280,8 @@ def main(argv: list[str] | None = None) -> None:
         bench_scan_sizes()
     if "first-run" in wanted:
         bench_first_run()
+    if "startup" in wanted:
+        bench_startup()
 
 
 if __name__ == "__main__":
