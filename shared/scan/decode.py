@@ -633,10 +633,10 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
         ithr = np.empty(W, diff.dtype)
         wb = np.empty(W, diff.dtype)
         kq = np.empty(W, np.float32)
-        q = np.empty((1, W), diff.dtype)  # one plane's differences at a time
+        dd = np.empty(W, diff.dtype)  # one plane's differences at a time
         a1 = np.empty(W, diff.dtype)
         a2 = np.empty(W, diff.dtype)
-        blk, sel, qa, qb, mk, blocks, frac, ep, ek, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
+        blk, sel, qa, qb, mk, blocks, frac, ep, ek, slow, hist = _row_scratch(W, dd, max_level - lowest + 1)
         while True:
             band = next_item(counter)
             if band >= n_bands:
@@ -700,7 +700,6 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                         prefetch(pn, x)
                         if with_inverse:
                             prefetch(rn, x)
-                    dd = q[0]
                     # One pass a plane: the difference, stored for the sub-pixel step's edge pick,
                     # is read back at once (a register, not memory) for the sign, weakness and
                     # confidence.
