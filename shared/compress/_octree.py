@@ -792,16 +792,17 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
         models[:] = prior  # a copy, as cheap as the fill of 1/2 it replaces
         for k in range(3):
             sse[k * SSE_N**3 : (k + 1) * SSE_N**3] = SSE_INIT
-        mixed = d >= depth - MIX_LEVELS
-        mixed_flag = depth - 1 - FLAG_MIX_LEVELS <= d < depth - 1
-        last = d == depth - 1  # the children are voxels: no map cells needed
-        if last:
+        # The last two levels' flags are constants in their functions (the rule below, as the
+        # encoder applies it, at d = depth - 1 and depth - 2); the levels above pass them here.
+        if d == depth - 1:  # the children are voxels: no map cells needed
             m, xa, xb, pos = _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, models, sse,
                                                 atlas, rows)  # fmt: skip
         elif d == depth - 2:
             m, xa, xb, pos = _decode_next_to_last(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models,
                                                   sse, atlas, rows)  # fmt: skip
         else:
+            mixed = d >= depth - MIX_LEVELS
+            mixed_flag = depth - 1 - FLAG_MIX_LEVELS <= d < depth - 1
             m, xa, xb, pos = _decode_upper_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models,
                                                  sse, atlas, rows, mixed_flag, mixed)  # fmt: skip
         if m < 0:
