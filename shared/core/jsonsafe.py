@@ -1,0 +1,118 @@
+"""JSON from outside, parsed with bounds: size, nesting depth and number length checked first.
+
+Python's ``json`` recurses once per nesting level (10,000 brackets raise ``RecursionError``),
+converts any run of digits to an ``int`` (5,000 digits raise ``ValueError`` naming CPython's
+limit) and accepts ``NaN`` and ``Infinity``, which JSON does not have. A client's document
+must fail with an :class:`~shared.core.errors.InputError` that names the document, never with
+one of those. :func:`loads_bounded` checks the size, then the nesting depth with a linear scan
+that never recurses (strings masked out first, so brackets inside them do not count), then
+parses with number hooks that refuse over-long numbers and the non-JSON constants.
+
+Every JSON document a client sends goes through here: HTTP bodies and form fields, and the
+files of a submission (``capture.json``, ``scanset.json``, ``rig.json``, camera paths).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from shared.core.errors import InputError
+
+__all__ = ["MAX_DEPTH", "MAX_DOCUMENT_BYTES", "MAX_NUMBER_CHARS", "json_depth", "loads_bounded", "read_json_bounded"]
+
+#: Deepest nesting any Graylight document has is about 5; 64 leaves room without reaching recursion limits.
+MAX_DEPTH = 64
+#: Longest number literal accepted: float64 round-trips in 17 significant digits plus sign and exponent.
+MAX_NUMBER_CHARS = 40
+#: Default size bound of one document (a capture.json of 40 patterns is about 4 kB; a scan set of
+#: hundreds of views well under 1 MiB).
+MAX_DOCUMENT_BYTES = 1 << 20
+
+# A JSON string literal: quotes with escapes inside. Applied to bytes so that no decode is needed first.
+_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
+_OPEN = np.frombuffer(b"[{", dtype=np.uint8)
+_CLOSE = np.frombuffer(b"]}", dtype=np.uint8)
+
+
+def json_depth(data: bytes) -> int:
+    """The deepest bracket nesting of JSON text ``data`` (strings masked), by a linear scan.
+
+    Unbalanced text returns the depth it reaches; the parser reports the malformation itself.
+    """
+    masked = _STRING.sub(b'""', data)
+    a = np.frombuffer(masked, dtype=np.uint8)
+    step = np.isin(a, _OPEN).astype(np.int32) - np.isin(a, _CLOSE).astype(np.int32)
+    if step.size == 0:
+        return 0
+    return int(np.cumsum(step).max(initial=0))
+
+
+def _number_hook(kind: type, what: str):
+    def parse(text: str) -> Any:
+        if len(text) > MAX_NUMBER_CHARS:
+            raise InputError(what, f"a number of {len(text)} characters (at most {MAX_NUMBER_CHARS})")
+        return kind(text)
+
+    return parse
+
+
+def _no_constant(what: str):
+    def parse(name: str) -> Any:
+        raise InputError(what, f"{name} is not a JSON number")
+
+    return parse
+
+
+def loads_bounded(data: bytes | str, what: str, *, max_bytes: int = MAX_DOCUMENT_BYTES,
+                  max_depth: int = MAX_DEPTH) -> Any:
+    """Parse JSON text from a client with bounds; :class:`InputError` naming ``what`` on any problem.
+
+    Parameters
+    ----------
+    data : bytes or str
+        The document (UTF-8 when bytes).
+    what : str
+        How the error names the document: a file name relative to the submission, or a field.
+    max_bytes : int
+        Largest accepted size in bytes of the UTF-8 text.
+    max_depth : int
+        Deepest accepted nesting of arrays and objects.
+    """
+    raw = data.encode("utf-8") if isinstance(data, str) else bytes(data)
+    if len(raw) > max_bytes:
+        raise InputError(what, f"JSON document of {len(raw)} bytes is too large (at most {max_bytes})")
+    depth = json_depth(raw)
+    if depth > max_depth:
+        raise InputError(what, f"JSON nested {depth} levels deep (at most {max_depth})")
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise InputError(what, f"not UTF-8 text ({exc.reason} at byte {exc.start})") from None
+    try:
+        return json.loads(text, parse_int=_number_hook(int, what), parse_float=_number_hook(float, what),
+                          parse_constant=_no_constant(what))
+    except json.JSONDecodeError as exc:
+        raise InputError(what, f"malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    except RecursionError:  # the depth scan bounds it; kept so that no path can leak the bare name
+        raise InputError(what, "JSON nested too deeply") from None
+
+
+def read_json_bounded(path: str | os.PathLike[str], what: str, *, missing: str,
+                      max_bytes: int = MAX_DOCUMENT_BYTES, max_depth: int = MAX_DEPTH) -> Any:
+    """Read and parse a JSON file with :func:`loads_bounded`, reading at most ``max_bytes + 1`` bytes.
+
+    ``what`` names the file in errors (relative to the submission, never an absolute worker path);
+    ``missing`` is the problem reported when it is not a regular file.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(what, missing)
+    with open(p, "rb") as f:
+        raw = f.read(max_bytes + 1)
+    return loads_bounded(raw, what, max_bytes=max_bytes, max_depth=max_depth)

@@ -1,0 +1,57 @@
+"""Bounded JSON parsing of client documents (shared.core.jsonsafe)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from shared.core.errors import InputError
+from shared.core.jsonsafe import json_depth, loads_bounded, read_json_bounded
+
+
+def test_parses_ordinary_documents_like_json() -> None:
+    doc = {"format": "graycode-v1", "columns": [{"bit": 9, "p": "a[{.png"}], "x": -1.5e-3, "t": True, "n": None}
+    assert loads_bounded(json.dumps(doc), "capture.json") == doc
+
+
+@pytest.mark.parametrize("depth", [10_000, 100_000])
+def test_deep_nesting_is_an_input_error_naming_the_document(depth: int) -> None:
+    with pytest.raises(InputError, match=r"^params: JSON nested \d+ levels deep"):
+        loads_bounded("[" * depth + "]" * depth, "params")
+
+
+def test_brackets_inside_strings_do_not_count() -> None:
+    text = json.dumps({"a": "[" * 5000 + '\\"' + "{" * 5000})
+    assert json_depth(text.encode()) == 1
+    assert loads_bounded(text, "f.json")["a"].startswith("[[[")
+
+
+@pytest.mark.parametrize("literal", ["1" * 5000, "-" + "9" * 400, "1." + "0" * 100, "1e" + "9" * 50])
+def test_overlong_numbers_are_refused_by_name(literal: str) -> None:
+    with pytest.raises(InputError, match=r"^rig\.json: a number of \d+ characters"):
+        loads_bounded('{"fx": ' + literal + "}", "rig.json")
+
+
+@pytest.mark.parametrize("constant", ["NaN", "Infinity", "-Infinity"])
+def test_non_json_constants_are_refused(constant: str) -> None:
+    with pytest.raises(InputError, match=f"{constant} is not a JSON number"):
+        loads_bounded(f'{{"a": {constant}}}', "scanset.json")
+
+
+def test_size_is_checked_before_parsing_and_file_reads_are_bounded(tmp_path) -> None:
+    with pytest.raises(InputError, match="too large"):
+        loads_bounded(b"[" + b"0," * 1000 + b"0]", "body", max_bytes=100)
+    big = tmp_path / "big.json"
+    big.write_bytes(b'"' + b"x" * 5_000_000 + b'"')
+    with pytest.raises(InputError, match=r"^scanset\.json: JSON document of 1025 bytes is too large"):
+        read_json_bounded(big, "scanset.json", missing="missing", max_bytes=1024)
+
+
+def test_malformed_and_non_utf8_name_the_document(tmp_path) -> None:
+    with pytest.raises(InputError, match=r"^capture\.json: malformed JSON at line 1"):
+        loads_bounded("{", "capture.json")
+    with pytest.raises(InputError, match=r"^capture\.json: not UTF-8"):
+        loads_bounded(b'{"a": "\xff"}', "capture.json")
+    with pytest.raises(InputError, match=r"^rig\.json: no rig here$"):
+        read_json_bounded(tmp_path / "absent.json", "rig.json", missing="no rig here")
