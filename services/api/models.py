@@ -46,11 +46,12 @@ _DESCRIPTIONS = {
     401: "no valid ``Authorization: Bearer KEY``",
     404: "no such object, or it belongs to another key",
     409: "the object's state does not allow this (already final, already used, wrong offset)",
-    413: "the request body is larger than the upload limit",
+    413: "the request body is larger than the upload limit (archives, chunks) or the JSON body limit",
     416: "the requested byte range lies outside the file",
     422: "the request is invalid: every problem with its field",
     429: "the key's limit of concurrently running jobs is reached (the limit is named)",
-    507: "the key's limit of stored bytes is reached (the limit is named)",
+    507: "the key's limit of stored bytes is reached (the limit is named), or the service's storage is full "
+         "(with Retry-After)",
 }
 
 
@@ -129,8 +130,14 @@ class UploadOut(BaseModel):
 
 
 class Health(BaseModel):
-    status: str
-    database: bool
+    """Whether the service can take work: ``ok``, or ``degraded`` (answered 503) when the
+    database does not answer or the data folder's free space is below the configured floor."""
+
+    status: str = Field(description="ok or degraded")
+    database: bool = Field(description="the job database answers")
+    free_bytes: int | None = Field(None, description="free bytes of the data folder's filesystem (None: unreadable)")
+    min_free_bytes: int = Field(description="the floor below which the service is degraded (GRAYLIGHT_MIN_FREE_BYTES)")
+    problems: list[str] = Field(default_factory=list, description="what makes the service degraded, one line each")
 
 
 class UploadCreate(BaseModel):

@@ -24,6 +24,7 @@ object of its own under :func:`detached_key`, beside the stage's object.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -284,8 +285,10 @@ class ArtifactStore:
             manifest = Manifest(key, prefix, entries, time.time())
             self._write_manifest(key, manifest)
         except BaseException:
-            # A full disk, a failing store: no manifest, so no object; take the files back too.
+            # A full disk, a failing store: no manifest, so no object; take the files back too,
+            # and the object's folder when nothing else is in it.
             self._remove_quietly(base)
+            self._remove_empty(self._obj(key))
             raise
         won = self.manifest(key)
         if won is not None and won.prefix != prefix:
@@ -355,6 +358,12 @@ class ArtifactStore:
         except Exception as exc:
             log.warning("could not remove the partial object %s: %s", path, exc)
 
+    def _remove_empty(self, path: str) -> None:
+        """Remove the local folder ``path`` if it is empty (on S3 a folder is no object)."""
+        if self.is_local:
+            with contextlib.suppress(OSError):
+                os.rmdir(path)
+
     def _remove(self, path: str) -> None:
         try:
             self.fs.rm(path, recursive=True)
@@ -373,8 +382,17 @@ class ArtifactStore:
         return self._path("uploads", upload_id)
 
     def put_chunk(self, upload_id: str, index: int, src: Path) -> None:
-        """Store chunk number ``index`` of an upload (the database records the offset)."""
-        self.fs.put_file(str(src), f"{self._upload_dir(upload_id)}/{index:08d}")
+        """Store chunk number ``index`` of an upload (the database records the offset); a
+        failed write (a full disk) leaves no partial chunk."""
+        try:
+            self.fs.put_file(str(src), f"{self._upload_dir(upload_id)}/{index:08d}")
+        except BaseException:
+            self._remove_quietly(f"{self._upload_dir(upload_id)}/{index:08d}")
+            raise
+
+    def drop_chunk(self, upload_id: str, index: int) -> None:
+        """Remove chunk ``index`` of an upload (one the database did not record)."""
+        self._remove(f"{self._upload_dir(upload_id)}/{index:08d}")
 
     def assemble_upload(self, upload_id: str, chunks: int, dest: Path) -> None:
         """Concatenate an upload's chunks into the local file ``dest``."""

@@ -24,6 +24,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     Float,
     ForeignKey,
@@ -156,6 +157,16 @@ class UploadRow(Base):
     chunks: Mapped[int] = mapped_column(Integer, default=0)
     created_at: Mapped[float] = mapped_column(Float)
     finished: Mapped[bool] = mapped_column(Boolean, default=False)
+
+
+class CaptureSizeRow(Base):
+    """Bytes a capture archive unpacks to (its checked headers, enforced while inflating): its
+    unpacked copy in a worker's cache counts against the key's stored bytes while a job of the
+    capture is unfinished (:mod:`shared.service.usage`)."""
+
+    __tablename__ = "capture_sizes"
+    capture_key: Mapped[str] = mapped_column(String(64), primary_key=True)
+    unpacked_bytes: Mapped[int] = mapped_column(BigInteger)
 
 
 # ---------------------------------------------------------------------------------------
@@ -460,32 +471,37 @@ class JobStore:
     def create_job(self, owner_id: int, new: NewJob) -> tuple[Job, list[Stage]]:
         """Insert a job and its stages; stages with no upstream start ``queued``. Returns the job
         and the stages to publish."""
+        with self.session() as s, s.begin():
+            return self.insert_job(s, owner_id, new)
+
+    def insert_job(self, s: Session, owner_id: int, new: NewJob) -> tuple[Job, list[Stage]]:
+        """:meth:`create_job` inside the caller's transaction ``s`` (admission checks the key's
+        limits and inserts in one, :mod:`shared.service.admission`)."""
         now = time.time()
         jid = str(uuid.uuid4())
-        with self.session() as s, s.begin():
-            seq = (s.scalar(select(func.max(JobRow.seq))) or 0) + 1
-            job = JobRow(
-                id=jid, owner_id=owner_id, batch_id=new.batch_id, kind=new.kind, name=new.name[:300],
-                state=JobState.QUEUED, capture_ref=new.capture_ref, capture_key=new.capture_key,
-                params=dict(new.params), created_at=now, seq=seq,
+        seq = (s.scalar(select(func.max(JobRow.seq))) or 0) + 1
+        job = JobRow(
+            id=jid, owner_id=owner_id, batch_id=new.batch_id, kind=new.kind, name=new.name[:300],
+            state=JobState.QUEUED, capture_ref=new.capture_ref, capture_key=new.capture_key,
+            params=dict(new.params), created_at=now, seq=seq,
+        )  # fmt: skip
+        s.add(job)
+        s.flush()
+        rows = []
+        for i, spec in enumerate(new.graph):
+            if spec.is_map:
+                continue  # its rows appear when the stage it fans out from finishes
+            st = StageState.QUEUED if not spec.depends_on else StageState.PENDING
+            row = StageRow(
+                job_id=jid, name=spec.name, position=i * FANOUT_SLOTS, queue=spec.queue,
+                depends_on=list(spec.depends_on),
+                state=st, queued_at=now if st == StageState.QUEUED else None,
             )  # fmt: skip
-            s.add(job)
-            s.flush()
-            rows = []
-            for i, spec in enumerate(new.graph):
-                if spec.is_map:
-                    continue  # its rows appear when the stage it fans out from finishes
-                st = StageState.QUEUED if not spec.depends_on else StageState.PENDING
-                row = StageRow(
-                    job_id=jid, name=spec.name, position=i * FANOUT_SLOTS, queue=spec.queue,
-                    depends_on=list(spec.depends_on),
-                    state=st, queued_at=now if st == StageState.QUEUED else None,
-                )  # fmt: skip
-                s.add(row)
-                rows.append(row)
-            s.flush()
-            self._event(s, jid, None, None, JobState.QUEUED, new.kind)
-            out = _job(job, rows)
+            s.add(row)
+            rows.append(row)
+        s.flush()
+        self._event(s, jid, None, None, JobState.QUEUED, new.kind)
+        out = _job(job, rows)
         return out, [st for st in out.stages if st.state == StageState.QUEUED]
 
     def get_job(self, job_id: str, owner_id: int | None = None) -> Job | None:
