@@ -39,6 +39,7 @@ from pathlib import Path
 from shared.core.errors import InputError
 from shared.service.archive import ArchiveLimits, extract_archive
 from shared.service.artifacts import ArtifactError, ArtifactStore, detached_key, sha256_file
+from shared.service.capture_cache import release_capture
 from shared.service.config import Settings
 from shared.service.faults import storage_fault
 from shared.service.jobs import (
@@ -272,6 +273,15 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
     finally:
         reset_log_context(log_ids)
         beat.stop()
+        _release_capture(settings, store, job.id)
+
+
+def _release_capture(settings: Settings, store: JobStore, job_id: str) -> None:
+    """The job's unpacked capture goes when the job has ended (issue 21: it counted against the key)."""
+    try:
+        release_capture(settings, store, job_id)
+    except Exception as exc:  # a cache left behind is the next run's to reuse, never a failed stage
+        log.warning("job %s: could not remove its unpacked capture: %s", job_id, exc)
 
 
 def _user_facing(exc: InputError, job: Job, settings: Settings) -> str:

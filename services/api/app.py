@@ -26,7 +26,7 @@ from fastapi import FastAPI
 
 from services.api.deps import Service
 from services.api.errors import install_error_handlers
-from services.api.http import BodyLimit
+from services.api.http import BodyLimit, IgnoreOtherRanges
 from services.api.routers import ROUTERS
 from shared.service.config import Settings, get_settings
 
@@ -52,5 +52,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         viewer = None
     if viewer is not None and hasattr(viewer, "router"):
         app.include_router(viewer.router)
+    app.add_middleware(IgnoreOtherRanges)
     app.add_middleware(BodyLimit, upload_limit=settings.max_upload_bytes + (1 << 20), json_limit=settings.max_json_bytes)
     return app

@@ -16,7 +16,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 from shared.core.errors import InputError
 from shared.core.jsonsafe import loads_bounded
 
-__all__ = ["EXCERPT_CHARS", "BodyLimit", "TooLarge", "byte_range", "excerpt", "is_form", "parse_body", "read_form"]
+__all__ = ["EXCERPT_CHARS", "BodyLimit", "IgnoreOtherRanges", "TooLarge", "byte_range", "excerpt", "is_form", "parse_body", "read_form"]
 
 _Body = TypeVar("_Body", bound=BaseModel)
 
@@ -124,6 +124,37 @@ class BodyLimit:
         await self.app(scope, replay, send)
 
 
+#: The one Range form the API answers (a single byte range, RFC 9110 section 14.2).
+SINGLE_RANGE = re.compile(r"\s*bytes=(\d*)-(\d*)\s*")
+
+
+def _one_byte_range(value: str) -> bool:
+    """Whether ``value`` is one well-formed byte range (``bytes=0-9``, ``bytes=5-``, ``bytes=-5``)."""
+    m = SINGLE_RANGE.fullmatch(value)
+    if m is None or not (m.group(1) or m.group(2)):
+        return False
+    return not (m.group(1) and m.group(2) and int(m.group(1)) > int(m.group(2)))
+
+
+class IgnoreOtherRanges:
+    """ASGI middleware: drop a ``Range`` header that is not one byte range (another unit such as
+    ``items=0-9``, several ranges, or a malformed one), so the file is answered whole (200), as
+    RFC 9110 asks for an unknown unit. A local store (Starlette's ``FileResponse``) and S3
+    (:func:`byte_range`) then answer alike, and no answer is a ``multipart/byteranges`` the
+    document does not list."""
+
+    def __init__(self, app: ASGIApp) -> None:
+        self.app = app
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] == "http":
+            headers = scope.get("headers", [])
+            kept = [(k, v) for k, v in headers if k != b"range" or _one_byte_range(v.decode("latin-1"))]
+            if len(kept) != len(headers):
+                scope = {**scope, "headers": kept}
+        await self.app(scope, receive, send)
+
+
 #: Longest excerpt of a client's input an error answer quotes.
 EXCERPT_CHARS = 200
 
@@ -141,7 +172,7 @@ def byte_range(header: str | None, size: int) -> tuple[int, int] | None:
     answer; HTTP 416 when the range lies outside the file. Viewers read ``octree.bin`` so."""
     if not header:
         return None
-    m = re.fullmatch(r"\s*bytes=(\d*)-(\d*)\s*", header)
+    m = SINGLE_RANGE.fullmatch(header)
     if m is None or (not m.group(1) and not m.group(2)):
         return None  # multi-range or malformed: answer with the whole file, as HTTP allows
     if m.group(1):

@@ -60,6 +60,29 @@ def errors(*codes: int) -> dict[int | str, dict[str, Any]]:
     return {c: {"model": ValidationErrorOut if c == 422 else ErrorOut, "description": _DESCRIPTIONS[c]} for c in codes}
 
 
+# ---- artifact media types ----------------------------------------------------------------------
+#: The media type each artifact is served with, by file suffix; any other file is
+#: ``application/octet-stream``. A closed list, so the OpenAPI document names every type the
+#: API serves (:func:`artifact_content`).
+ARTIFACT_MEDIA_TYPES = {
+    ".png": "image/png", ".jpg": "image/jpeg", ".jpeg": "image/jpeg", ".webp": "image/webp",
+    ".mp4": "video/mp4", ".json": "application/json", ".csv": "text/csv", ".txt": "text/plain",
+    ".glb": "model/gltf-binary", ".gltf": "model/gltf+json", ".html": "text/html",
+}  # fmt: skip
+OCTET_STREAM = "application/octet-stream"
+
+
+def artifact_media_type(name: str) -> str:
+    """The media type an artifact file ``name`` is served with."""
+    suffix = name[name.rfind(".") :].lower() if "." in name.rsplit("/", 1)[-1] else ""
+    return ARTIFACT_MEDIA_TYPES.get(suffix, OCTET_STREAM)
+
+
+def artifact_content() -> dict[str, Any]:
+    """The ``content`` of an artifact answer in the OpenAPI document: every media type served."""
+    return {t: {"schema": {"type": "string", "format": "binary"}} for t in sorted({OCTET_STREAM, *ARTIFACT_MEDIA_TYPES.values()})}
+
+
 # ---- resources ------------------------------------------------------------------------------
 class StageOut(BaseModel):
     name: str

@@ -3,7 +3,6 @@ and ``GET /v1/jobs/{id}/artifacts/{name}`` (one file, with byte ranges from S3).
 
 from __future__ import annotations
 
-import mimetypes
 from pathlib import Path
 
 from fastapi import APIRouter, HTTPException, Request
@@ -11,7 +10,7 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 
 from services.api.deps import Key, Svc, owned_job
 from services.api.http import byte_range
-from services.api.models import ArtifactList, ArtifactOut, errors
+from services.api.models import ArtifactList, ArtifactOut, artifact_content, artifact_media_type, errors
 from shared.service.artifacts import ArtifactStore
 from shared.service.jobs import StageState, stage_spec
 from shared.service.jobstore import Job
@@ -51,8 +50,8 @@ def list_artifacts(job_id: str, key: Key, svc: Svc) -> ArtifactList:
 
 
 @router.get("/v1/jobs/{job_id}/artifacts/{name:path}",
-            responses={200: {"content": {"application/octet-stream": {}}, "description": "the file"},
-                       206: {"content": {"application/octet-stream": {}}, "description": "the requested byte range"},
+            responses={200: {"content": artifact_content(), "description": "the file"},
+                       206: {"content": artifact_content(), "description": "the requested byte range"},
                        **errors(401, 404, 416, 422)})  # fmt: skip
 def get_artifact(job_id: str, name: str, key: Key, svc: Svc, request: Request) -> Response:
     """One file: a short name (``cloud.ply``, ``preview.mp4``) or ``STAGE/PATH``
@@ -75,7 +74,7 @@ def get_artifact(job_id: str, name: str, key: Key, svc: Svc, request: Request) -
     m = svc.arts.manifest(okey)
     if m is None or fname not in m.files:
         raise HTTPException(404, f"job {job.id} has no artifact {name!r}")
-    media = mimetypes.guess_type(fname)[0] or "application/octet-stream"
+    media = artifact_media_type(fname)
     headers = {"ETag": f'"{m.files[fname].sha256}"', "X-Checksum-SHA256": m.files[fname].sha256}
     local = svc.arts.local_file(okey, fname)
     if local is not None:
