@@ -25,6 +25,8 @@ import uuid
 from collections.abc import Iterable, Sequence
 
 from sqlalchemy import select, update
+from sqlalchemy.dialects.postgresql import insert as pg_insert
+from sqlalchemy.dialects.sqlite import insert as sqlite_insert
 from sqlalchemy.orm import Session
 
 from shared.service.artifacts import ArtifactStore
@@ -46,6 +48,18 @@ __all__ = ["RETRY_AFTER", "Admission", "UploadTaken"]
 
 #: Seconds a client refused for running jobs is told to wait before trying again.
 RETRY_AFTER = 30
+
+
+def _record_size(s: Session, capture_key: str, unpacked: int) -> None:
+    """Record a capture's unpacked size once (two keys may submit the same capture at once:
+    the second insert does nothing instead of failing the transaction)."""
+    dialect = s.get_bind().dialect.name
+    insert = {"postgresql": pg_insert, "sqlite": sqlite_insert}.get(dialect)
+    if insert is None:  # another database: look first (a concurrent duplicate fails one request)
+        if s.get(CaptureSizeRow, capture_key) is None:
+            s.add(CaptureSizeRow(capture_key=capture_key, unpacked_bytes=unpacked))
+        return
+    s.execute(insert(CaptureSizeRow).values(capture_key=capture_key, unpacked_bytes=unpacked).on_conflict_do_nothing())
 
 
 class UploadTaken(Exception):
@@ -105,16 +119,16 @@ class Admission:
         with self.store.session() as s, s.begin():
             self._lock(s, key)
             for ckey, n in (unpacked or {}).items():
-                if s.get(CaptureSizeRow, ckey) is None:
-                    s.add(CaptureSizeRow(capture_key=ckey, unpacked_bytes=int(n)))
-            s.flush()  # the new jobs' unpacked captures count in the check below
-            pending = {n.capture_key for n in news} & set(unpacked or {})
-            self._check(key, len(news), sum((unpacked or {})[k] for k in pending), objects, s)
+                _record_size(s, ckey, int(n))
             if upload_id is not None:
+                # Used up first, so its bytes count once (as the object made of it), not twice.
                 res = s.execute(update(UploadRow).where(UploadRow.id == upload_id, UploadRow.finished.is_(False))
                                 .values(finished=True))  # fmt: skip
                 if res.rowcount == 0:
                     raise UploadTaken(upload_id)
+            s.flush()  # the new jobs' unpacked captures count in the check below
+            pending = {n.capture_key for n in news} & set(unpacked or {})
+            self._check(key, len(news), sum((unpacked or {})[k] for k in pending), objects, s)
             batch_id = self._batch(s, key, batch) if batch else None
             return [self.store.insert_job(s, key.id, dataclasses.replace(n, batch_id=batch_id)) for n in news]
 
