@@ -135,7 +135,7 @@ def server(_cleanup: None) -> str:
 
 @pytest.mark.slow
 @schema.parametrize()
-@settings(max_examples=12, deadline=None, database=None, suppress_health_check=list(HealthCheck))
+@settings(max_examples=10, deadline=None, database=None, suppress_health_check=list(HealthCheck))
 def test_api_honours_its_document(case, server: str) -> None:
     case.call_and_validate(base_url=server, headers=AUTH, checks=[not_a_server_error, *CHECKS])
 
