@@ -89,7 +89,7 @@ def rerun(svc: Service, job: Job, new_params: dict[str, Any] | None = None) -> b
     return True
 
 
-@router.post("/v1/jobs/{job_id}/retry", response_model=JobOut, responses=errors(400, 401, 404, 409, 422, 429, 507))
+@router.post("/v1/jobs/{job_id}/retry", response_model=JobOut, responses=errors(400, 401, 404, 409, 413, 422, 429, 507))
 def retry_job(job_id: str, key: Key, svc: Svc, body: RetryIn | None = None) -> JobOut:
     """Re-run the stages that failed or were cancelled, and those whose inputs changed
     (new parameters, a new stage version); finished stages with unchanged inputs are kept."""
