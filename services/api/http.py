@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import errno
 import re
 from typing import Any, TypeVar
 
@@ -216,5 +217,9 @@ async def read_form(request: Request, max_files: int) -> FormData:
         return await request.form(max_files=max_files, max_fields=16, max_part_size=64 << 10)
     except TooLarge:
         raise
+    except OSError as exc:
+        if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+            raise  # the spool folder is full: 507 (services.api.errors), not a malformed form
+        raise HTTPException(400, excerpt(str(exc)) or "malformed multipart form") from None
     except Exception as exc:
         raise HTTPException(400, excerpt(str(exc)) or "malformed multipart form") from None
