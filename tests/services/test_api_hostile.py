@@ -175,6 +175,8 @@ def test_unknown_range_units_are_ignored_alike(store: str, tmp_path: Path, monke
             assert (r.status_code, r.content) == (200, whole.content), (store, rng, r.status_code, r.text[:200])
         part = client.get(url, headers={**auth, "Range": "bytes=0-9"})
         assert (part.status_code, part.content) == (206, whole.content[:10])
+        outside = client.get(url, headers={**auth, "Range": f"bytes={len(whole.content)}-"})
+        assert outside.status_code == 416 and "outside the file" in outside.json()["detail"], outside.text
 
 
 def test_every_served_media_type_is_documented(api) -> None:

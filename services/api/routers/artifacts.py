@@ -78,6 +78,7 @@ def get_artifact(job_id: str, name: str, key: Key, svc: Svc, request: Request) -
     headers = {"ETag": f'"{m.files[fname].sha256}"', "X-Checksum-SHA256": m.files[fname].sha256}
     local = svc.arts.local_file(okey, fname)
     if local is not None:
+        byte_range(request.headers.get("range"), m.files[fname].size)  # a range outside: the documented JSON 416
         return FileResponse(local, media_type=media, headers=headers, filename=Path(fname).name)
     size = m.files[fname].size
     headers["Accept-Ranges"] = "bytes"
