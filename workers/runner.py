@@ -39,7 +39,7 @@ from pathlib import Path
 from shared.core.errors import InputError
 from shared.service.archive import ArchiveLimits, extract_archive
 from shared.service.artifacts import ArtifactError, ArtifactStore, detached_key, sha256_file
-from shared.service.capture_cache import release_capture
+from shared.service.capture_cache import release_capture, sweep_captures
 from shared.service.config import Settings
 from shared.service.faults import storage_fault
 from shared.service.jobs import (
@@ -277,9 +277,11 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
 
 
 def _release_capture(settings: Settings, store: JobStore, job_id: str) -> None:
-    """The job's unpacked capture goes when the job has ended (issue 21: it counted against the key)."""
+    """Unpacked captures go when their last unfinished job has ended (issue 21: they count
+    against the key): this job's, and any other no unfinished job reads (cancelled while queued)."""
     try:
         release_capture(settings, store, job_id)
+        sweep_captures(settings, store)
     except Exception as exc:  # a cache left behind is the next run's to reuse, never a failed stage
         log.warning("job %s: could not remove its unpacked capture: %s", job_id, exc)
 
