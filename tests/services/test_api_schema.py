@@ -103,8 +103,10 @@ def negative_data_rejection_as_sent(ctx, response, case) -> None:
     """schemathesis's ``negative_data_rejection``, except when the body it sent is one the
     document allows: a mutation of one ``anyOf`` branch can land inside another (``compress``
     "was object, became null", which the null branch allows), and the case keeps its negative
-    label. Every body the document forbids must still be refused."""
-    if _document_allows_body(case):
+    label. A 413 is a refusal too (a body over the JSON limit is refused by its size before it
+    is parsed; schemathesis's list of refusing statuses leaves 413 out). Every body the document
+    forbids must still be refused."""
+    if _document_allows_body(case) or response.status_code == 413:
         return None
     return oa.negative_data_rejection(ctx, response, case)
 
