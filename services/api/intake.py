@@ -294,6 +294,10 @@ class Intake:
             if isinstance(rig, UploadFile):
                 # One byte past the bound, so an over-long rig is refused as such, never cut.
                 data = await rig.read(MAX_DOCUMENT_BYTES + 1)
+                if len(data) > MAX_DOCUMENT_BYTES:
+                    size = rig.size if rig.size is not None else f"more than {MAX_DOCUMENT_BYTES}"
+                    raise InputError(rig.filename or "rig", f"rig file of {size} bytes is too large "
+                                                           f"(at most {MAX_DOCUMENT_BYTES})")  # fmt: skip
                 params["rig"] = await run_in_threadpool(self.store_rig, data, rig.filename or "rig", stored)
             elif rig is not None:
                 raise InputError("rig", "must be a file")

@@ -95,6 +95,11 @@ def test_deeply_nested_json_is_a_422_everywhere(api, capture: Path, tmp_path: Pa
         loc, msg = _one_problem(client.post(path, headers=headers, **kw))
         assert "JSON nested 100" in msg and "levels deep (at most 64)" in msg, (path, loc, msg)
         assert loc in (["body"], ["body", "params"], ["body", "myrig.json"]), (path, loc)
+    # A rig over the 1 MiB bound is refused as too large, never cut and then called malformed.
+    big = b'{"pad": "' + b"x" * (1 << 20) + b'"}'
+    loc, msg = _one_problem(client.post("/v1/jobs", headers=auth, files={
+        "capture": ("c.zip", archive.read_bytes(), "application/zip"), "rig": ("big.json", big, "application/json")}))
+    assert loc == ["body", "big.json"] and "too large" in msg and str(len(big)) in msg, msg
     assert _objects(senv) == [] and client.get("/v1/jobs", headers=auth).json()["total"] == 0
     # Inside an archive: the job fails naming the file, never with a bare RecursionError.
     bad = tmp_path / "deep.zip"
