@@ -152,6 +152,13 @@ class StageSpec:
     detach: tuple[str, ...] = ()
     detached_inputs: tuple[str, ...] = ()
     release_unless: str | None = None
+    # Short names a published file is also served under, as (alias, file): a multi-view job's
+    # merged.ply is its cloud.ply, so every kind answers the same links.
+    aliases: tuple[tuple[str, str], ...] = ()
+    # The stage's share of a job's work, relative to the others (job progress weighs each
+    # stage's own fraction by it): the typical run time, in units of a scan's triangulation,
+    # measured on the test service (small scans and scan sets; see tests/services/test_job_links.py).
+    weight: float = 1.0
 
     @property
     def is_map(self) -> bool:
@@ -162,10 +169,24 @@ class StageSpec:
         """Upstream stages (inputs other than the capture)."""
         return tuple(i for i in self.inputs if i != CAPTURE)
 
+    def published_file(self, short: str) -> str | None:
+        """The file of this stage's output served under the short name ``short``, or None."""
+        if short in self.publish:
+            return short
+        return next((f for a, f in self.aliases if a == short and f in self.publish), None)
+
+    @property
+    def short_names(self) -> tuple[str, ...]:
+        """Every short name this stage publishes: its files, then its aliases."""
+        return (*self.publish, *(a for a, f in self.aliases if f in self.publish))
+
 
 #: The level-of-detail meshes a merge writes (shared.merge.pipeline: ``mesh_lod{k}.glb`` for the
 #: default ``MeshParams.lods``, 1/4, 1/16 and 1/64 of the faces), published by their names.
 MESH_LOD_FILES: tuple[str, ...] = ("mesh_lod1.glb", "mesh_lod2.glb", "mesh_lod3.glb")
+
+#: The interchange files the export stage writes of a job's cloud (a scan's, or the merged one).
+EXPORT_FILES: tuple[str, ...] = ("cloud.laz", "cloud.copc.laz", "cloud.e57")
 
 GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     "scan": (
@@ -186,9 +207,9 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
         StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
                   params=("preview", "preview_epoch"), switch="render"),
-        # The cloud in the formats GIS and survey software read (LAS 1.4 LAZ, COPC).
+        # The cloud in the formats GIS and survey software read (LAS 1.4 LAZ, COPC, E57).
         # CPU work (LAZ compression), so it runs on the cpu queue; {"export": false} skips it.
-        StageSpec("export", "cpu", ("triangulate",), 7200, publish=("cloud.laz", "cloud.copc.laz"), switch="export"),
+        StageSpec("export", "cpu", ("triangulate",), 7200, publish=EXPORT_FILES, switch="export", version=2),
     ),
     "calibrate": (
         StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json")),
@@ -205,7 +226,7 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("mv_merge", "cpu", (CAPTURE, "mv_plan", "mv_decode", "mv_triangulate"), 7200,
                   publish=("merged.ply", "registration.json", "mesh.glb", "mesh.ply", "report.json",
                            *MESH_LOD_FILES),
-                  params=("drop_unregistered",)),
+                  params=("drop_unregistered",), aliases=(("cloud.ply", "merged.ply"),), weight=8.0),
         # The object compressed: the merged cloud (merged.glo) or the views' range images
         # (ranges/*.glr), whichever is smaller.
         StageSpec("mv_compress", "cpu", ("mv_merge",), 3600, publish=("merged.glo", "compress.json"), params=("compress",)),
@@ -214,6 +235,8 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
         StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
                   params=("preview", "preview_epoch"), switch="render"),
+        # The merged cloud in the interchange formats, as a scan's cloud is.
+        StageSpec("export", "cpu", ("mv_merge",), 7200, publish=EXPORT_FILES, switch="export", version=2),
     ),
     # A service self-test: one trivial stage that sleeps params["seconds"] (at most 60) and
     # writes probe.json. It measures queue overhead and proves the workers are alive.
@@ -379,6 +402,21 @@ def ready_to_queue(stages: Iterable[StageView]) -> list[str]:
     stages = list(stages)
     done = {s.name for s in stages if s.state == StageState.SUCCEEDED}
     return [s.name for s in stages if s.state == StageState.PENDING and all(d in done for d in s.depends_on)]
+
+
+def job_fraction(kind: str, stages: Iterable[tuple[str, str, float]]) -> float:
+    """The finished fraction of a ``kind`` job from its stage rows ``(name, state, progress)``:
+    each row counts its own progress (1 when succeeded), weighed by its spec's ``weight``, so a
+    long merge moves the job as far as it does its own work, not one stage in twelve."""
+    done = total = 0.0
+    for name, state, progress in stages:
+        try:
+            w = stage_spec(kind, name).weight
+        except KeyError:
+            w = 1.0
+        total += w
+        done += w * (1.0 if state == StageState.SUCCEEDED else min(max(progress, 0.0), 1.0))
+    return done / total if total else 0.0
 
 
 def job_state_from_stages(states: Iterable[str], cancelled: bool = False) -> JobState:
