@@ -21,7 +21,7 @@ from pathlib import Path
 from shared.core.errors import InputError
 from shared.service.artifacts import ArtifactStore
 from shared.service.config import Settings
-from shared.service.jobs import JobState, row_key
+from shared.service.jobs import JobState, row_key, stage_spec
 from shared.service.jobstore import Job, JobStore
 from shared.service.rerenders import Rerender, RerenderStore, request_rerender
 from workers.runner import SUMMARY_FILE, TRANSIENT, Heartbeat, LeaseLost, _run_adapter, public_summary
@@ -112,6 +112,7 @@ def _render(job: Job, upstream: dict[str, str], arts: ArtifactStore, settings: S
         out = tmp / "out"
         out.mkdir()
         summary = public_summary(_run_adapter(job, "preview", ("tiles",), local, arts, settings, beat, out), out, work)
+        summary["published"] = [n for n in stage_spec(job.kind, "preview").publish if (out / n).is_file()]
         if beat.lost.is_set():
             return None
         (out / SUMMARY_FILE).write_text(json.dumps(summary, default=str))

@@ -345,6 +345,7 @@ def _execute(
         out = tmp / "out"
         out.mkdir()
         summary = public_summary(_run_adapter(job, stage.name, inputs, local_inputs, arts, settings, beat, out), out, work)
+        summary["published"] = [n for n in spec.publish if (out / n).is_file()]  # the links the API gives
         if beat.lost.is_set():
             # Someone else holds the stage now; their run will store the same object.
             return None

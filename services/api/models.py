@@ -204,7 +204,7 @@ def published_names(job: Job) -> list[str]:
     out: list[str] = []
     for st in job.stages:
         if st.state == StageState.SUCCEEDED:
-            out.extend(n for n in stage_spec(job.kind, st.name).short_names if n not in out)
+            out.extend(n for n in stage_spec(job.kind, st.name).published_names(st.summary) if n not in out)
     return out
 
 

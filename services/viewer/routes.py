@@ -25,6 +25,8 @@ VIEWER_DIST = Path(__file__).resolve().parent / "dist"
 TILES_URL_TEMPLATE = "/v1/jobs/{job}/artifacts/tiles/"
 #: Where the API lists a job's artifacts (the viewer looks there for ``mesh.glb``, ``mesh_lod*.glb``).
 ARTIFACTS_URL_TEMPLATE = "/v1/jobs/{job}/artifacts"
+#: Where the API answers a job's record (the viewer titles the page with the job's name).
+RECORD_URL_TEMPLATE = "/v1/jobs/{job}"
 #: Marker in ``index.html`` replaced by the page configuration.
 CONFIG_MARKER = "<!--graylight-config-->"
 
@@ -91,7 +93,8 @@ def create_router(dist: Path = VIEWER_DIST, tiles_url_template: str = TILES_URL_
             raise HTTPException(404, f"job id {job!r} is not valid")
         root = request.scope.get("root_path", "")
         config = {"tiles": root + tiles_url_template.format(job=job), "job": job,
-                  "artifacts": root + artifacts_url_template.format(job=job)}  # fmt: skip
+                  "artifacts": root + artifacts_url_template.format(job=job),
+                  "record": root + RECORD_URL_TEMPLATE.format(job=job)}  # fmt: skip
         return HTMLResponse(render_page(dist, config), headers={"Cache-Control": "no-cache"})
 
     return router

@@ -7,8 +7,9 @@ Out: :class:`CaptureRow` records — the capture's name as submitted, its job's 
 names of the artifacts it published (``cloud.ply``, ``preview.mp4``, ...) — and their CSV and
 JSON forms. Every file sent has its row: a refused file is never left out of the report.
 
-Reads nothing but the job records: the points come from the triangulation stage's summary
-and the artifact names from the job graph's ``publish`` lists of the stages that succeeded,
+Reads nothing but the job records: the points come from the triangulation (or merge) stage's
+summary and the artifact names from the stages' summaries (``published``: the files each wrote)
+and the job graph's ``publish`` lists of the stages that succeeded,
 so a report of a thousand captures costs one query.
 """
 
@@ -58,7 +59,7 @@ def capture_row(job: Job) -> CaptureRow:
         summary = st.summary or {}
         if st.name in ("triangulate", "mv_merge") and isinstance(summary.get("points"), int):
             points = int(summary["points"])
-        for name in stage_spec(job.kind, st.name).short_names:
+        for name in stage_spec(job.kind, st.name).published_names(summary):
             if name not in published:
                 published.append(name)
     error = _one_line(job.error)

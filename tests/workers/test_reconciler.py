@@ -1,6 +1,6 @@
 """The reconciler against a real Redis (private queue names): expired leases are re-queued
 and re-published, lost messages are re-published, a stage that keeps killing workers fails,
-and the nightly re-render resets only preview stages."""
+and the nightly re-render queues a re-render beside the job, touching none of its stages."""
 
 from __future__ import annotations
 
@@ -11,8 +11,8 @@ import redis
 
 from shared.service.jobs import StageSpec, fan_out, fanout_index, graph_for, stage_key, stage_spec
 from shared.service.jobstore import JobStore, NewJob
-from tests.support.jobsvc import ServiceEnv
 from shared.service.rerenders import RerenderStore
+from tests.support.jobsvc import ServiceEnv
 from workers.reconciler import reconcile_once
 from workers.rerender import enqueue_rerenders
 

@@ -64,6 +64,8 @@ interface PageConfig {
   job?: string;
   /** The job's artifact list (`GET /v1/jobs/{job}/artifacts`). */
   artifacts?: string;
+  /** The job's record (`GET /v1/jobs/{job}`): its name titles the page. */
+  record?: string;
 }
 
 function injectedConfig(): PageConfig {
@@ -755,8 +757,24 @@ function start(): void {
   const tilesUrl = new URL(tiles, document.baseURI);
   // The key is for the job service only: never send it to another origin.
   if (key && tilesUrl.origin === location.origin) headers.Authorization = `Bearer ${key}`;
+  // The title is the job's name (from its record, read with the key), or ?name=, not its id.
   const title = document.getElementById("title");
-  if (title && config.job) title.textContent = `Graylight · ${config.job}`;
+  const showName = (name: string): void => {
+    if (title) title.textContent = `Graylight · ${name}`;
+    document.title = `${name} · Graylight`;
+  };
+  const named = p.get("name");
+  if (named) showName(named);
+  else if (config.job) {
+    showName(config.job);
+    if (config.record) {
+      const recordUrl = new URL(config.record, document.baseURI);
+      fetch(recordUrl, { headers: recordUrl.origin === location.origin ? headers : {} })
+        .then((r) => (r.ok ? (r.json() as Promise<{ name?: string }>) : null))
+        .then((job) => { if (job?.name) showName(job.name); })
+        .catch(() => undefined);
+    }
+  }
   viewer.open(tilesUrl.toString(), headers, p).catch((err: unknown) => {
     viewer.fail(err instanceof Error ? err.message : String(err));
   });
