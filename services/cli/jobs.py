@@ -72,8 +72,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("jobs", help="list your jobs on the job service")
     p.add_argument("--state", default=None, choices=["queued", "running", "succeeded", "failed", "cancelled"])
-    p.add_argument("--batch", default=None)
-    p.add_argument("--limit", type=int, default=50)
+    p.add_argument("--batch", default=None, metavar="ID_OR_NAME", help="only this batch's jobs")
+    p.add_argument("--limit", type=int, default=50, help="jobs a page (newest first)")
+    p.add_argument("--offset", type=int, default=0, help="skip this many (the next page: the offset printed)")
     p.add_argument("--json", action="store_true", help="print the API's JSON")
     p.set_defaults(func=cmd_jobs)
 
@@ -430,7 +431,7 @@ def follow(client: Client, ids: list[str], timeout: float | None = None, interva
 
 def cmd_jobs(args: argparse.Namespace) -> int:
     client = Client()
-    params: dict[str, Any] = {"limit": args.limit}
+    params: dict[str, Any] = {"limit": args.limit, "offset": args.offset}
     if args.state:
         params["state"] = args.state
     if args.batch:
@@ -446,7 +447,8 @@ def cmd_jobs(args: argparse.Namespace) -> int:
             line += f"  [{j['error']}]"
         print(line)
     if page["total"] > len(page["jobs"]):
-        print(f"({len(page['jobs'])} of {page['total']})", file=sys.stderr)
+        more = f"; next page: --offset {page['next_offset']}" if page.get("next_offset") is not None else ""
+        print(f"({len(page['jobs'])} of {page['total']} from {args.offset}{more})", file=sys.stderr)
     return 0
 
 

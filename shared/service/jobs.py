@@ -159,7 +159,8 @@ class StageSpec:
     # stage's own fraction by it): its typical run time in units of a scan's triangulation, at
     # full size (a 15 MP capture, an 8-view set, the default 1280x720 10 s preview: decode about
     # 3x triangulation, a merge 27-76 s against 2-4 s, preview frames rendered on the CPU). Rough
-    # on purpose: it only has to keep the job's progress moving with the work.
+    # on purpose: it only has to keep the job's progress moving with the work. A map stage's
+    # weight is the share of all its instances together (a set's 8 views decoded: 8 x 3).
     weight: float = 1.0
 
     @property
@@ -214,7 +215,7 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         # Tiles fan out: a plan, one task per chunk (subtree), a merge (fan-in counted in the
         # database). The merge keeps the name "tiles": its folder is what viewers load.
         StageSpec("tiles_plan", "render", ("triangulate",), 7200, switch="render", params=("tiles",), weight=0.5),
-        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan"),
+        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan", weight=1.5),
         StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
         StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
                   params=("preview", "preview_epoch"), switch="render", weight=6.0),
@@ -231,9 +232,10 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     # the merge (register, fuse, mesh) of all views, then tiles and preview of the merged cloud.
     "multiview": (
         StageSpec("mv_plan", "cpu", (CAPTURE,), 600, publish=("scanset.json",), weight=0.5),
-        StageSpec("mv_ingest", "cpu", (CAPTURE, "mv_plan"), 600, fanout_from="mv_plan", weight=0.5),
-        StageSpec("mv_decode", "cpu", (CAPTURE, "mv_ingest"), 3600, fanout_from="mv_plan", weight=3.0),
-        StageSpec("mv_triangulate", "cpu", (CAPTURE, "mv_ingest", "mv_decode"), 3600, fanout_from="mv_plan"),
+        StageSpec("mv_ingest", "cpu", (CAPTURE, "mv_plan"), 600, fanout_from="mv_plan", weight=4.0),
+        StageSpec("mv_decode", "cpu", (CAPTURE, "mv_ingest"), 3600, fanout_from="mv_plan", weight=24.0),
+        StageSpec("mv_triangulate", "cpu", (CAPTURE, "mv_ingest", "mv_decode"), 3600, fanout_from="mv_plan",
+                  weight=8.0),
         StageSpec("mv_merge", "cpu", (CAPTURE, "mv_plan", "mv_decode", "mv_triangulate"), 7200,
                   publish=("merged.ply", "registration.json", "mesh.glb", "mesh.ply", "report.json",
                            *MESH_LOD_FILES),
@@ -242,7 +244,7 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         # (ranges/*.glr), whichever is smaller.
         StageSpec("mv_compress", "cpu", ("mv_merge",), 3600, publish=("merged.glo", "compress.json"), params=("compress",)),
         StageSpec("tiles_plan", "render", ("mv_merge",), 7200, switch="render", params=("tiles",), weight=0.5),
-        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan"),
+        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan", weight=1.5),
         StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
         StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
                   params=("preview", "preview_epoch"), switch="render", weight=6.0),
@@ -417,16 +419,24 @@ def ready_to_queue(stages: Iterable[StageView]) -> list[str]:
 
 def job_fraction(kind: str, stages: Iterable[tuple[str, str, float]]) -> float:
     """The finished fraction of a ``kind`` job from its stage rows ``(name, state, progress)``:
-    each row counts its own progress (1 when succeeded), weighed by its spec's ``weight``, so a
-    long merge moves the job as far as it does its own work, not one stage in twelve."""
-    done = total = 0.0
+    each stage counts its own progress (1 when succeeded), weighed by its spec's ``weight``, so a
+    long merge moves the job as far as it does its own work, not one stage in twenty. A map
+    stage's weight is that of all its instances together (their mean progress), counted from
+    the moment its parent has a row, so the fraction does not fall when a stage fans out."""
+    groups: dict[str, list[float]] = {}
     for name, state, progress in stages:
-        try:
-            w = stage_spec(kind, name).weight
-        except KeyError:
-            w = 1.0
-        total += w
-        done += w * (1.0 if state == StageState.SUCCEEDED else min(max(progress, 0.0), 1.0))
+        frac = 1.0 if state == StageState.SUCCEEDED else min(max(float(progress), 0.0), 1.0)
+        groups.setdefault(base_name(name), []).append(frac)
+    done = total = 0.0
+    for spec in GRAPHS.get(kind, ()):
+        members = groups.get(spec.name)
+        if members is None and not (spec.is_map and spec.fanout_from in groups):
+            continue  # switched off (or not part of this job)
+        total += spec.weight
+        if members:
+            done += spec.weight * sum(members) / len(members)
+        elif spec.fanout_from is not None and min(groups[spec.fanout_from]) >= 1.0:
+            done += spec.weight  # its parent counted nothing to fan out into
     return done / total if total else 0.0
 
 

@@ -14,6 +14,7 @@ import json
 import subprocess
 import time
 from collections.abc import Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ import pytest
 from shared.service.jobstore import JobStore
 from shared.service.queue import RERENDER_TASK, publisher
 from shared.service.rerenders import RerenderStore
-from tests.support import jobsvc
+from tests.support import jobsvc, viewer_browser
 from tests.support.scansets import cached_scanset
 
 pytestmark = pytest.mark.slow
@@ -45,13 +46,14 @@ class Finished:
     submit: subprocess.CompletedProcess
     batch: dict[str, Any]  # POST /v1/batches answer (a good archive and a non-archive)
     samples: list[dict[str, Any]] = field(default_factory=list)  # the scan set's job polled while it ran
+    http: httpx.Client = field(default_factory=lambda: httpx.Client(timeout=60))  # one connection, kept alive
 
     @property
     def auth(self) -> dict[str, str]:
         return {"Authorization": f"Bearer {self.key}"}
 
     def get(self, path: str, **kw: Any) -> httpx.Response:
-        return httpx.get(f"{self.url}{path}", headers={**self.auth, **kw.pop("headers", {})}, timeout=60, **kw)
+        return self.http.get(f"{self.url}{path}", headers={**self.auth, **kw.pop("headers", {})}, **kw)
 
     def cli(self, *args: str, timeout: float = 120) -> subprocess.CompletedProcess:
         return subprocess.run([jobsvc.GRAYLIGHT, *args], env=self.env, capture_output=True, text=True, timeout=timeout)
@@ -71,11 +73,13 @@ def _final(f: Finished, job: str, timeout: float) -> dict[str, Any]:
 @pytest.fixture(scope="module")
 def finished(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Finished]:
     root = tmp_path_factory.mktemp("links")
-    capture = jobsvc.simulate_small(root / "vase")
-    scanset = cached_scanset(root / "sets", views=4, size=(320, 240), projector=(256, 192))
-    with jobsvc.service_env(root) as senv:
+    with jobsvc.service_env(root) as senv, ThreadPoolExecutor(1) as pool:
+        # The captures are simulated while the service's processes start.
+        simulated = pool.submit(lambda: (jobsvc.simulate_small(root / "vase"),
+                                         cached_scanset(root / "sets", views=4, size=(320, 240), projector=(256, 192))))
         _proc, url = jobsvc.start_api(senv)
         worker = jobsvc.start_worker(senv, "cpu,render", concurrency=2)
+        capture, scanset = simulated.result()
         key = JobStore(senv.settings.database_url).create_key("registrar")[1]
         env = {**senv.env, "GRAYLIGHT_API_URL": url, "GRAYLIGHT_API_KEY": key}
         # The scan set's folder as a user has it: no --kind, scanset.json at its top.
@@ -108,6 +112,7 @@ def finished(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Finished]:
         for j in f.batch["jobs"]:
             assert _final(f, j, 300)["state"] == "succeeded"
         yield f
+        f.http.close()
 
 
 def _walk(f: Finished, answer: Any, seen: dict[str, int]) -> None:
@@ -243,6 +248,12 @@ def test_job_show_download_and_view(finished: Finished, tmp_path: Path) -> None:
     assert got == {"cloud.ply"} | {n for n in listing if n.startswith("tiles/")}
     assert hashlib.sha256((tmp_path / "mv" / "cloud.ply").read_bytes()).hexdigest() == listing["cloud.ply"]["sha256"]
     assert f.cli("view", f.multiview).stdout.strip() == f"{f.url}/viewer/{f.multiview}#key={f.key}"
+    # The viewer page names the job's record, whose name titles the page (not the job's id).
+    page = httpx.get(f"{f.url}/viewer/{f.multiview}").text
+    config = json.loads(page.split('id="graylight-config" type="application/json">', 1)[1].split("</script>", 1)[0])
+    assert f.get(config["record"]).json()["name"].startswith("scanset-")
+    listing_page = f.cli("jobs", "--batch", BATCH, "--limit", "1")
+    assert listing_page.stdout.split()[0] == f.multiview and "--offset 1" in listing_page.stderr
 
     port = jobsvc.free_port()
     view = subprocess.Popen([jobsvc.GRAYLIGHT, "view", str(tmp_path / "mv"), "--port", str(port)], env=f.env,
@@ -259,13 +270,25 @@ def test_job_show_download_and_view(finished: Finished, tmp_path: Path) -> None:
 
         jobsvc.wait_for(up, 30, "graylight view up")
         page = httpx.get(line, follow_redirects=True, timeout=10)
-        assert page.status_code == 200 and "graylight-config" not in page.text[:0]
+        assert page.status_code == 200
         query = httpx.URL(str(page.url)).params
         assert query["name"] == "mv" and query["tiles"] == "/results/tiles/"
         meta = httpx.get(f"{line.rstrip('/')}{query['tiles']}metadata.json", timeout=10)
         assert meta.status_code == 200 and meta.json()["points"] > 0
         part = httpx.get(f"{line.rstrip('/')}{query['tiles']}octree.bin", headers={"Range": "bytes=0-63"}, timeout=10)
         assert part.status_code == 206 and len(part.content) == 64
+        # In a browser: the local results load (no "Failed to fetch"), and the job's page is
+        # titled with the job's name.
+        name = f.get(f"/v1/jobs/{f.multiview}").json()["name"]
+        with viewer_browser.chromium() as browser:
+            local = viewer_browser.Page(browser, line)
+            state = local.wait_idle()
+            assert state.get("error") in (None, "") and not local.errors, (state, local.errors)
+            assert local.page.title() == "mv · Graylight"
+            job_page = viewer_browser.Page(browser, f"{f.url}/viewer/{f.multiview}#key={f.key}")
+            job_page.wait_idle()
+            job_page.page.wait_for_function("(n) => document.title.startsWith(n)", arg=name, timeout=10_000)
+            assert job_page.page.title() == f"{name} · Graylight" and not job_page.errors, job_page.errors
     finally:
         view.terminate()
         view.wait(timeout=10)
