@@ -260,6 +260,11 @@ class Batch:
         return sum(self.counts.values())
 
     @property
+    def job_count(self) -> int:
+        """How many jobs the batch has (its files but the rejected ones)."""
+        return self.total - self.counts.get(REJECTED, 0)
+
+    @property
     def progress(self) -> float:
         done = sum(self.counts.get(s, 0) for s in ("succeeded", "failed", "cancelled", REJECTED))
         return done / self.total if self.total else 1.0

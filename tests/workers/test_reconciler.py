@@ -100,6 +100,17 @@ def test_nightly_rerender_queues_beside_the_job(svc_env: ServiceEnv, tmp_path: P
     assert rec.state == "queued" and rec.params["preview_epoch"] and rec.base_key == done.stage("preview").output_key
     assert queue_len(svc_env, "render") == 1 and queue_len(svc_env, "cpu") == 0
     assert isinstance(stage_spec("scan", "preview"), StageSpec)
+    # Its worker dies mid-render: after a lease the reconciler queues it again (and publishes
+    # it); the job is still untouched.
+    rr = RerenderStore(store)
+    held = rr.claim_rerender(rec.id)
+    assert held is not None and rr.claim_rerender(rec.id) is None  # a duplicate message does nothing
+    assert reconcile_once(settings, store).rerenders_requeued == 0  # its lease is fresh
+    report = reconcile_once(settings, store, now=time.time() + settings.lease_seconds + 1)
+    assert report.rerenders_requeued == 1 and rr.get_rerender(rec.id).state == "queued"
+    assert queue_len(svc_env, "render") == 2
+    assert not rr.heartbeat_rerender(rec.id, held.lease_token)  # the dead worker's lease is gone
+    assert store.get_job(job.id).state == "succeeded"
 
 
 def test_abandoned_upload_sessions_are_deleted_with_their_chunks(svc_env: ServiceEnv, tmp_path: Path) -> None:

@@ -56,13 +56,13 @@ async def submit_batch(request: Request, key: Key, svc: Svc) -> BatchOut:
     svc.store.add_rejects(bid, [(r["capture"], r["error"]) for r in rejected])
     b = svc.store.get_batch(bid, key.id)
     assert b is not None
-    return batch_out(b, jobs, rejected, jobs_total=svc.store.batch_job_ids(bid, limit=1)[1])
+    return batch_out(b, jobs, rejected, jobs_total=b.job_count)
 
 
 @router.get("/v1/batches", response_model=list[BatchOut], responses=errors(401, 422))
 def list_batches(key: Key, svc: Svc) -> list[BatchOut]:
     """Your batches, oldest first, each with its counts by state and its rejected files."""
-    return [batch_out(b, jobs_total=b.total - b.counts.get("rejected", 0)) for b in svc.store.list_batches(key.id)]
+    return [batch_out(b, jobs_total=b.job_count) for b in svc.store.list_batches(key.id)]
 
 
 def batch_by_ref(svc: Service, ref: str, key: ApiKey) -> Batch:
@@ -109,7 +109,7 @@ def batch_report_json(batch_id: str, key: Key, svc: Svc, request: Request) -> Ba
                   artifacts=[ArtifactLink(name=a, url=_link(request, r, a)) for a in r.artifacts])  # fmt: skip
         for r in report_rows(batch_jobs(svc, key, b), b.rejects)
     ]
-    return BatchReport(batch=batch_out(b, jobs_total=b.total - b.counts.get("rejected", 0)), rows=rows)
+    return BatchReport(batch=batch_out(b, jobs_total=b.job_count), rows=rows)
 
 
 @router.get("/v1/batches/{batch_id}/report.csv", response_class=Response,
@@ -151,4 +151,4 @@ def rerender_batch(batch_id: str, key: Key, svc: Svc) -> BatchRerenderOut:
             if (r := request_rerender(svc.store, j, "all", "manual", svc.settings, epoch)) is not None]  # fmt: skip
     if not done:
         raise HTTPException(409, f"batch {b.id}: no succeeded job with a preview to re-render (or all are under way)")
-    return BatchRerenderOut(batch=batch_out(b, jobs_total=b.total - b.counts.get("rejected", 0)), rerendering=done)
+    return BatchRerenderOut(batch=batch_out(b, jobs_total=b.job_count), rerendering=done)
