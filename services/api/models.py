@@ -151,6 +151,7 @@ class ArtifactOut(BaseModel):
 
 class ArtifactList(BaseModel):
     job: str
+    name: str = Field("", description="the job's name (the viewer titles its page with it)")
     artifacts: list[ArtifactOut]
 
 

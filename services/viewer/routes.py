@@ -5,7 +5,7 @@ from the URL made by ``tiles_url_template`` (default ``/v1/jobs/{job}/artifacts/
 under the app's root path); the browser sends the API key it was given in the page URL's
 fragment (``/viewer/{job}#key=...``), the ``key`` query parameter or the ``graylight_key``
 cookie as ``Authorization: Bearer`` to that same-origin URL, and lists the job's artifacts
-(``artifacts_url_template``) for a ``mesh.glb`` to offer. ``/viewer/?tiles=URL`` shows any
+(``artifacts_url_template``) for a ``mesh.glb`` to offer and the job's ``name`` to title the page. ``/viewer/?tiles=URL`` shows any
 tiles folder (``&mesh=URL`` a mesh with it). Assets come from ``services/viewer/dist``
 (``make viewer`` builds them with npm).
 """
@@ -25,8 +25,6 @@ VIEWER_DIST = Path(__file__).resolve().parent / "dist"
 TILES_URL_TEMPLATE = "/v1/jobs/{job}/artifacts/tiles/"
 #: Where the API lists a job's artifacts (the viewer looks there for ``mesh.glb``, ``mesh_lod*.glb``).
 ARTIFACTS_URL_TEMPLATE = "/v1/jobs/{job}/artifacts"
-#: Where the API answers a job's record (the viewer titles the page with the job's name).
-RECORD_URL_TEMPLATE = "/v1/jobs/{job}"
 #: Marker in ``index.html`` replaced by the page configuration.
 CONFIG_MARKER = "<!--graylight-config-->"
 
@@ -60,7 +58,7 @@ def render_page(dist: Path, config: dict[str, str] | None = None) -> str:
 def create_router(dist: Path = VIEWER_DIST, tiles_url_template: str = TILES_URL_TEMPLATE,
                   artifacts_url_template: str = ARTIFACTS_URL_TEMPLATE) -> APIRouter:
     """Routes serving the viewer from ``dist``, pointing job pages at ``tiles_url_template``
-    and ``artifacts_url_template``."""
+    and ``artifacts_url_template`` (whose ``name``, the job's, titles the page)."""
     router = APIRouter(tags=["viewer"])
     assets = (dist / "assets").resolve()
 
@@ -93,8 +91,7 @@ def create_router(dist: Path = VIEWER_DIST, tiles_url_template: str = TILES_URL_
             raise HTTPException(404, f"job id {job!r} is not valid")
         root = request.scope.get("root_path", "")
         config = {"tiles": root + tiles_url_template.format(job=job), "job": job,
-                  "artifacts": root + artifacts_url_template.format(job=job),
-                  "record": root + RECORD_URL_TEMPLATE.format(job=job)}  # fmt: skip
+                  "artifacts": root + artifacts_url_template.format(job=job)}  # fmt: skip
         return HTMLResponse(render_page(dist, config), headers={"Cache-Control": "no-cache"})
 
     return router

@@ -248,10 +248,10 @@ def test_job_show_download_and_view(finished: Finished, tmp_path: Path) -> None:
     assert got == {"cloud.ply"} | {n for n in listing if n.startswith("tiles/")}
     assert hashlib.sha256((tmp_path / "mv" / "cloud.ply").read_bytes()).hexdigest() == listing["cloud.ply"]["sha256"]
     assert f.cli("view", f.multiview).stdout.strip() == f"{f.url}/viewer/{f.multiview}#key={f.key}"
-    # The viewer page names the job's record, whose name titles the page (not the job's id).
+    # The viewer page reads the job's artifact list, whose name titles the page (not the job's id).
     page = httpx.get(f"{f.url}/viewer/{f.multiview}").text
     config = json.loads(page.split('id="graylight-config" type="application/json">', 1)[1].split("</script>", 1)[0])
-    assert f.get(config["record"]).json()["name"].startswith("scanset-")
+    assert f.get(config["artifacts"]).json()["name"].startswith("scanset-")
     listing_page = f.cli("jobs", "--batch", BATCH, "--limit", "1")
     assert listing_page.stdout.split()[0] == f.multiview and "--offset 1" in listing_page.stderr
 

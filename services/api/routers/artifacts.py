@@ -50,7 +50,7 @@ def job_files(arts: ArtifactStore, job: Job) -> list[ArtifactOut]:
 def list_artifacts(job_id: str, key: Key, svc: Svc) -> ArtifactList:
     """Files of every finished stage: ``STAGE/PATH``, plus short names (``cloud.ply``)."""
     job = owned_job(svc, job_id, key)
-    return ArtifactList(job=job.id, artifacts=job_files(svc.arts, job))
+    return ArtifactList(job=job.id, name=job.name, artifacts=job_files(svc.arts, job))
 
 
 @router.get("/v1/jobs/{job_id}/artifacts/{name:path}",
