@@ -453,7 +453,7 @@ def cmd_jobs(args: argparse.Namespace) -> int:
 
 
 # ---- batches ----------------------------------------------------------------------------------
-def _batch_id(raw: str) -> str:
+def batch_path(raw: str) -> str:
     """A batch's id or name, percent-encoded for its URL path."""
     from urllib.parse import quote
 
@@ -465,7 +465,7 @@ def _batch_id(raw: str) -> str:
 
 def cmd_batch_status(args: argparse.Namespace) -> int:
     """Print a batch's counts by state and its progress; exit 1 when any job failed."""
-    b = Client().request("GET", f"/v1/batches/{_batch_id(args.batch_id)}")
+    b = Client().request("GET", f"/v1/batches/{batch_path(args.batch_id)}")
     counts = ", ".join(f"{n} {s}" for s, n in sorted(b["counts"].items())) or "no jobs"
     print(f"{b['id']}  {b['name']}: {b['total']} captures, {counts}, {b['progress'] * 100:.1f} % done")
     for r in b.get("rejected", []):
@@ -478,7 +478,7 @@ def cmd_batch_report(args: argparse.Namespace) -> int:
     from shared.core.files import atomic_file
 
     client = Client()
-    path = f"/v1/batches/{_batch_id(args.batch_id)}/report.{args.format}"
+    path = f"/v1/batches/{batch_path(args.batch_id)}/report.{args.format}"
     if args.format == "csv":
         text = client.text(path)
     else:
@@ -493,7 +493,7 @@ def cmd_batch_report(args: argparse.Namespace) -> int:
 
 def cmd_batch_retry(args: argparse.Namespace) -> int:
     """Re-run a batch's failed and cancelled jobs; print their ids, one a line."""
-    r = Client().request("POST", f"/v1/batches/{_batch_id(args.batch_id)}/retry")
+    r = Client().request("POST", f"/v1/batches/{batch_path(args.batch_id)}/retry")
     for job_id in r["retried"]:
         print(job_id)
     return 0

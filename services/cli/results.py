@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 from urllib.parse import quote
 
-from services.cli.jobs import Client, print_links
+from services.cli.jobs import Client, batch_path, print_links
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
 
@@ -133,10 +133,7 @@ def cmd_rerender(args: argparse.Namespace) -> int:
     """Ask for new previews; print the ids of the jobs being re-rendered."""
     client = Client()
     if args.batch:
-        target = args.target.strip()
-        if not target or "/" in target:
-            raise InputError("ID_OR_BATCH", f"not a batch id or name: {args.target!r}")
-        r = client.request("POST", f"/v1/batches/{quote(target, safe='')}/rerender")
+        r = client.request("POST", f"/v1/batches/{batch_path(args.target)}/rerender")
         ids = r["rerendering"]
     else:
         ids = [client.request("POST", f"{_job_path(args.target)}/rerender")["id"]]
