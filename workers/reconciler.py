@@ -113,12 +113,30 @@ def reconcile_once(settings: Settings, store: JobStore | None = None, now: float
     if to_publish:
         report.republished = publish_stages(to_publish, settings)
     report.uploads_deleted = _delete_expired_uploads(settings, store, now, arts)
+    report.rerenders_requeued = _repair_rerenders(settings, store, now)
+    return report
+
+
+def _repair_rerenders(settings: Settings, store: JobStore, now: float) -> int:
+    """Step 5: a running re-render whose lease expired is queued again; a queued one's message
+    is sent again when the render queue is empty (it was lost) or after ten leases (as for
+    stages: a nightly run of many re-renders waits in the queue without being re-sent)."""
+    lease = settings.lease_seconds
     rr = RerenderStore(store)
-    for rec in rr.stale_rerenders(now - lease):
+    stale = rr.stale_rerenders(now - lease)
+    if not stale:
+        return 0
+    lengths = _queue_lengths(settings, {"render"}) if any(r.state == StageState.QUEUED for r in stale) else None
+    count = 0
+    for rec in stale:
+        if rec.state == StageState.QUEUED:
+            queue_empty = lengths is not None and lengths.get("render", 1) == 0
+            if not (queue_empty or rec.queued_at < now - 10 * lease):
+                continue
         if rr.requeue_rerender(rec):
             publish_rerender(rec.id, settings)
-            report.rerenders_requeued += 1
-    return report
+            count += 1
+    return count
 
 
 def _delete_expired_uploads(settings: Settings, store: JobStore, now: float, arts: ArtifactStore | None) -> int:

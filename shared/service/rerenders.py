@@ -47,6 +47,7 @@ class RerenderRow(Base):
     lease_token: Mapped[str | None] = mapped_column(String(36), nullable=True)
     heartbeat_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     requested_at: Mapped[float] = mapped_column(Float)
+    queued_at: Mapped[float] = mapped_column(Float)  # when last queued (or its message last re-sent)
     started_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     finished_at: Mapped[float | None] = mapped_column(Float, nullable=True)
     error: Mapped[str | None] = mapped_column(Text, nullable=True)
@@ -70,6 +71,7 @@ class Rerender:
     lease_token: str | None
     heartbeat_at: float | None
     requested_at: float
+    queued_at: float
     started_at: float | None
     finished_at: float | None
     error: str | None
@@ -79,7 +81,7 @@ def _rerender(r: RerenderRow) -> Rerender:
     return Rerender(
         id=r.id, job_id=r.job_id, reason=r.reason, state=r.state, params=dict(r.params or {}), base_key=r.base_key,
         output_key=r.output_key, progress=r.progress, attempts=r.attempts, lease_token=r.lease_token,
-        heartbeat_at=r.heartbeat_at, requested_at=r.requested_at, started_at=r.started_at,
+        heartbeat_at=r.heartbeat_at, requested_at=r.requested_at, queued_at=r.queued_at, started_at=r.started_at,
         finished_at=r.finished_at, error=r.error,
     )  # fmt: skip
 
@@ -123,7 +125,7 @@ class RerenderStore:
             if busy:
                 return None
             row = RerenderRow(id=str(uuid.uuid4()), job_id=job_id, reason=reason[:32], state=StageState.QUEUED,
-                              params=dict(params), base_key=preview.output_key, requested_at=now)  # fmt: skip
+                              params=dict(params), base_key=preview.output_key, requested_at=now, queued_at=now)  # fmt: skip
             s.add(row)
             s.add(EventRow(job_id=job_id, stage="rerender", old=None, new=StageState.QUEUED, at=now, detail=reason))
             s.flush()
@@ -219,23 +221,28 @@ class RerenderStore:
 
     def stale_rerenders(self, older_than: float) -> list[Rerender]:
         """Re-renders running with a heartbeat before ``older_than`` (their worker died) or queued
-        before it (their message may be lost): the reconciler queues them again."""
+        (or last re-sent) before it (their message may be lost): the reconciler's to look at."""
         with self.session() as s:
             rows = s.scalars(select(RerenderRow).where(
                 ((RerenderRow.state == StageState.RUNNING) & (RerenderRow.heartbeat_at < older_than))
-                | ((RerenderRow.state == StageState.QUEUED) & (RerenderRow.requested_at < older_than))
+                | ((RerenderRow.state == StageState.QUEUED) & (RerenderRow.queued_at < older_than))
             )).all()  # fmt: skip
             return [_rerender(r) for r in rows]
 
     def requeue_rerender(self, r: Rerender) -> bool:
-        """Queue a stale re-render again (compare-and-set on what the reconciler saw)."""
+        """Queue a stale re-render again, or note that its message is sent again (compare-and-set
+        on what the reconciler saw, so two reconcilers cannot both)."""
+        now = time.time()
         with self.session() as s, s.begin():
             res = s.execute(
                 update(RerenderRow)
                 .where(RerenderRow.id == r.id, RerenderRow.state == r.state, RerenderRow.heartbeat_at == r.heartbeat_at,
-                       RerenderRow.requested_at == r.requested_at)
-                .values(state=StageState.QUEUED, lease_token=None, requested_at=time.time())
+                       RerenderRow.queued_at == r.queued_at)
+                .values(state=StageState.QUEUED, lease_token=None, queued_at=now)
             )  # fmt: skip
+            if res.rowcount and r.state == StageState.RUNNING:
+                s.add(EventRow(job_id=r.job_id, stage="rerender", old=StageState.RUNNING, new=StageState.QUEUED, at=now,
+                               detail="its worker stopped renewing the lease"))  # fmt: skip
             return res.rowcount > 0
 
 

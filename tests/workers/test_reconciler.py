@@ -110,6 +110,12 @@ def test_nightly_rerender_queues_beside_the_job(svc_env: ServiceEnv, tmp_path: P
     assert report.rerenders_requeued == 1 and rr.get_rerender(rec.id).state == "queued"
     assert queue_len(svc_env, "render") == 2
     assert not rr.heartbeat_rerender(rec.id, held.lease_token)  # the dead worker's lease is gone
+    # Queued behind other messages, it is not re-sent every pass (a nightly run of thousands
+    # would pile up duplicates), only after ten leases.
+    later = time.time() + settings.lease_seconds + 1
+    assert reconcile_once(settings, store, now=later).rerenders_requeued == 0
+    assert reconcile_once(settings, store, now=later + 10 * settings.lease_seconds).rerenders_requeued == 1
+    assert queue_len(svc_env, "render") == 3
     assert store.get_job(job.id).state == "succeeded"
 
 
