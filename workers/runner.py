@@ -35,6 +35,7 @@ import tempfile
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from shared.core.errors import InputError
 from shared.service.archive import ArchiveLimits, extract_archive
@@ -121,10 +122,14 @@ class Heartbeat(threading.Thread):
             raise LeaseLost(f"stage {self.stage_id} lost its lease")
         self.progress = fraction
 
+    def renew(self) -> bool:
+        """Renew the lease with the current progress; False when it is lost."""
+        return self.store.heartbeat(self.stage_id, self.token, self.progress)
+
     def run(self) -> None:
         while not self._stop_event.wait(self.interval):
             try:
-                if not self.store.heartbeat(self.stage_id, self.token, self.progress):
+                if not self.renew():
                     log.warning("stage %s: lease lost", self.stage_id)
                     self.lost.set()
                     return
@@ -351,7 +356,8 @@ def _execute(
                                                         arts, settings, beat, tmp / "inputs" / producer)  # fmt: skip
         out = tmp / "out"
         out.mkdir()
-        summary = _run_adapter(job, stage.name, inputs, local_inputs, arts, settings, beat, out)
+        summary = public_summary(_run_adapter(job, stage.name, inputs, local_inputs, arts, settings, beat, out), out, work)
+        summary["published"] = [n for n in spec.publish if (out / n).is_file()]  # the links the API gives
         if beat.lost.is_set():
             # Someone else holds the stage now; their run will store the same object.
             return None
@@ -367,6 +373,23 @@ def _execute(
         return summary
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def public_summary(doc: Any, out: Path, work: Path) -> Any:
+    """A stage's summary as the API shows it: a path inside its output folder ``out`` becomes the
+    published file's name (``preview.mp4``), and no other path of this worker's scratch folder
+    ``work`` is kept (it names nothing a client can reach)."""
+    if isinstance(doc, dict):
+        return {k: public_summary(v, out, work) for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [public_summary(v, out, work) for v in doc]
+    if isinstance(doc, str) and doc.startswith("/"):
+        p = Path(doc)
+        if p.is_relative_to(out):
+            return p.relative_to(out).as_posix() or "."
+        if p.is_relative_to(work) or p.is_relative_to(work.parent):
+            return p.name
+    return doc
 
 
 def _run_adapter(job: Job, name: str, inputs: tuple[str, ...], local_inputs: dict[str, Path], arts: ArtifactStore,

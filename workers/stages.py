@@ -144,15 +144,18 @@ def run_preview(ctx: StageContext) -> dict[str, Any]:
 
 
 def run_export(ctx: StageContext) -> dict[str, Any]:
-    """The cloud as LAZ and COPC (``cloud.laz``, ``cloud.copc.laz``)."""
+    """The cloud (a scan's, or a multi-view job's merged cloud) as LAZ, COPC and E57
+    (``cloud.laz``, ``cloud.copc.laz``, ``cloud.e57``)."""
     from shared.render.export import export_cloud
 
-    cloud = ctx.inputs["triangulate"] / "cloud.ply"
+    cloud = ctx.inputs["triangulate"] / "cloud.ply" if "triangulate" in ctx.inputs else ctx.inputs["mv_merge"] / "merged.ply"
     laz = export_cloud(cloud, ctx.out_dir / "cloud.laz", "laz")
     ctx.progress(0.3)
     copc = export_cloud(cloud, ctx.out_dir / "cloud.copc.laz", "copc", workers=1)
+    ctx.progress(0.8)
+    e57 = export_cloud(cloud, ctx.out_dir / "cloud.e57", "e57")
     return _jsonable({"points": laz["points"], "scale": laz["scale"], "laz_bytes": laz["bytes"],
-                      "copc_bytes": copc["bytes"], "copc_nodes": copc["nodes"]})  # fmt: skip
+                      "copc_bytes": copc["bytes"], "copc_nodes": copc["nodes"], "e57_bytes": e57["bytes"]})  # fmt: skip
 
 
 def run_compress(ctx: StageContext) -> dict[str, Any]:

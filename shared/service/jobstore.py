@@ -148,6 +148,18 @@ class EventRow(Base):
     detail: Mapped[str | None] = mapped_column(Text, nullable=True)
 
 
+class BatchRejectRow(Base):
+    """A file sent with a batch and refused at intake: kept so the batch accounts for it."""
+
+    __tablename__ = "batch_rejects"
+    __table_args__ = (Index("ix_batch_rejects_batch", "batch_id"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    batch_id: Mapped[str] = mapped_column(ForeignKey("batches.id"))
+    capture: Mapped[str] = mapped_column(Text)  # its name as sent
+    error: Mapped[str] = mapped_column(Text)  # the one-line reason
+    at: Mapped[float] = mapped_column(Float)
+
+
 class UploadRow(Base):
     __tablename__ = "uploads"
     id: Mapped[str] = mapped_column(String(36), primary_key=True)
@@ -230,20 +242,42 @@ class Job:
 
 
 @dataclass(frozen=True)
+class Reject:
+    """A file of a batch refused at intake: its name as sent and the one-line reason."""
+
+    capture: str
+    error: str
+    at: float
+
+
+#: The count a batch gives its refused files under (beside the job states).
+REJECTED = "rejected"
+
+
+@dataclass(frozen=True)
 class Batch:
+    """A batch: ``counts`` of its jobs by state plus ``rejected`` files (refused at intake,
+    each listed in ``rejects``), so ``total`` is every file sent."""
+
     id: str
     owner_id: int
     name: str
     created_at: float
     counts: dict[str, int]
+    rejects: tuple[Reject, ...] = ()
 
     @property
     def total(self) -> int:
         return sum(self.counts.values())
 
     @property
+    def job_count(self) -> int:
+        """How many jobs the batch has (its files but the rejected ones)."""
+        return self.total - self.counts.get(REJECTED, 0)
+
+    @property
     def progress(self) -> float:
-        done = sum(self.counts.get(s, 0) for s in ("succeeded", "failed", "cancelled"))
+        done = sum(self.counts.get(s, 0) for s in ("succeeded", "failed", "cancelled", REJECTED))
         return done / self.total if self.total else 1.0
 
 
@@ -453,6 +487,7 @@ class JobStore:
             )
 
     def get_batch(self, batch_id: str, owner_id: int | None = None) -> Batch | None:
+        """A batch with its job counts by state and its refused files (count ``rejected``)."""
         with self.session() as s:
             row = s.get(BatchRow, batch_id)
             if row is None or (owner_id is not None and row.owner_id != owner_id):
@@ -460,7 +495,30 @@ class JobStore:
             counts = dict(
                 s.execute(select(JobRow.state, func.count()).where(JobRow.batch_id == batch_id).group_by(JobRow.state)).all()
             )
-            return Batch(row.id, row.owner_id, row.name, row.created_at, {k: int(v) for k, v in counts.items()})
+            rejects = tuple(
+                Reject(r.capture, r.error, r.at)
+                for r in s.scalars(select(BatchRejectRow).where(BatchRejectRow.batch_id == batch_id).order_by(BatchRejectRow.id))
+            )
+            counts = {k: int(v) for k, v in counts.items()}
+            if rejects:
+                counts[REJECTED] = len(rejects)
+            return Batch(row.id, row.owner_id, row.name, row.created_at, counts, rejects)
+
+    def add_rejects(self, batch_id: str, rejects: Iterable[tuple[str, str]]) -> None:
+        """Keep the files of a batch refused at intake, ``(name as sent, one-line reason)``."""
+        now = time.time()
+        with self.session() as s, s.begin():
+            for capture, error in rejects:
+                s.add(BatchRejectRow(batch_id=batch_id, capture=capture[:1000], error=" ".join(error.split())[:2000], at=now))
+
+    def batch_job_ids(self, batch_id: str, limit: int = 100, offset: int = 0) -> tuple[list[str], int]:
+        """A page of the ids of a batch's jobs, oldest first, and how many it has."""
+        with self.session() as s:
+            total = int(s.scalar(select(func.count()).select_from(JobRow).where(JobRow.batch_id == batch_id)) or 0)
+            ids = s.scalars(
+                select(JobRow.id).where(JobRow.batch_id == batch_id).order_by(JobRow.seq).limit(limit).offset(offset)
+            ).all()
+            return list(ids), total
 
     def list_batches(self, owner_id: int) -> list[Batch]:
         with self.session() as s:

@@ -6,15 +6,17 @@
 and tiles have run. The stage adapters read the same checked values.
 
 ========================  =========  =============================================================
-key                       kinds      meaning
+key                       kinds      meaning (mv: multiview)
 ========================  =========  =============================================================
-``render``                scan       ``false`` leaves out tiles and preview (and what follows them)
-``export``                scan       ``false`` leaves out the LAZ / COPC export
-``tiles``                 scan       ``{"max_chunk": int >= 100, "max_leaf": int >= 100,
+``render``                scan, mv   ``false`` leaves out tiles and preview (and what follows them)
+``export``                scan, mv   ``false`` leaves out the LAZ / COPC / E57 export (of the
+                                     scan's cloud, or of a multiview job's merged cloud)
+``drop_unregistered``     mv         ``true`` leaves out views that register to nothing
+``tiles``                 scan, mv   ``{"max_chunk": int >= 100, "max_leaf": int >= 100,
                                      "node_codec": "plain" | "octree"}`` (octree-coded nodes: opt-in)
-``preview``               scan       ``{"path", "size": [w, h], "seconds", "fps"}``
+``preview``               scan, mv   ``{"path", "size": [w, h], "seconds", "fps"}``
                                      (:class:`shared.render.options.PreviewOptions`)
-``compress``              scan       ``{"quantum": q}`` or ``{"max_error": e}`` (rig units, > 0; default
+``compress``              scan, mv   ``{"quantum": q}`` or ``{"max_error": e}`` (rig units, > 0; default
                                      lossless at 0.02 mm) and ``"keep_range"``: false publishes
                                      ``range.glr`` only, not the raw ``range.npz``, and deletes
                                      the raw image once ``range.glr`` is stored (default true)
@@ -164,7 +166,7 @@ def _bool(description: str) -> Param:
 PARAMS: dict[str, dict[str, Param]] = {
     "scan": {
         "render": _bool("false leaves out tiles and preview"),
-        "export": _bool("false leaves out the LAZ / COPC export"),
+        "export": _bool("false leaves out the LAZ / COPC / E57 export"),
         "tiles": Param(lambda v, f: tiles_options(v, f), _TILES_SCHEMA),
         "preview": Param(_preview, _PREVIEW_SCHEMA),
         "compress": Param(lambda v, f: compress_options(v, f), _COMPRESS_SCHEMA),
@@ -172,6 +174,7 @@ PARAMS: dict[str, dict[str, Param]] = {
     "calibrate": {},
     "multiview": {
         "render": _bool("false leaves out tiles and preview of the merged cloud"),
+        "export": _bool("false leaves out the LAZ / COPC / E57 export of the merged cloud"),
         "drop_unregistered": _bool("true leaves out, with a warning, views that register to nothing"),
         "tiles": Param(lambda v, f: tiles_options(v, f), _TILES_SCHEMA),
         "preview": Param(_preview, _PREVIEW_SCHEMA),

@@ -203,11 +203,12 @@ def test_batch_from_storage_references_and_manifest(api, capture: Path, tmp_path
                                                         "captures": ["objects/ab"], "params": {"render": False}})  # fmt: skip
     assert r.status_code == 201, r.text
     b = r.json()
-    assert len(b["jobs"]) == 1 and b["total"] == 1
+    # Every reference sent is accounted for: the refused ones count, as "rejected" (issue 24).
+    assert len(b["jobs"]) == 1 and b["total"] == 3
     assert sorted(x["capture"] for x in b["rejected"]) == ["inbox/missing.zip", "objects/ab"]
     drive(senv, b["jobs"][0])
     prog = client.get(f"/v1/batches/{b['id']}", headers=alice).json()
-    assert prog["counts"] == {"succeeded": 1} and prog["progress"] == 1.0
+    assert prog["counts"] == {"succeeded": 1, "rejected": 2} and prog["progress"] == 1.0
     assert client.get(f"/v1/batches/{b['id']}", headers=bob).status_code == 404
     listed = client.get("/v1/jobs", headers=alice, params={"batch": "museum", "state": "succeeded"}).json()
     assert [j["id"] for j in listed["jobs"]] == b["jobs"]
