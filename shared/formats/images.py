@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from shared.core.errors import InputError
+from shared.core.paths import open_regular
 
 #: Bytes read by :func:`probe_image`; JPEG headers can sit behind large EXIF blocks.
 _PROBE_BYTES = 1 << 16
@@ -153,9 +154,8 @@ def _probe_tiff(head: bytes, path: Path) -> ImageInfo:
 
 
 def _open_head(path: Path) -> bytes:
-    if not path.is_file():
-        raise InputError(path, "image file is missing")
-    with open(path, "rb") as f:
+    # Without blocking and regular files only: an image path may come from a client's capture.
+    with open_regular(path, path, missing="image file is missing") as f:
         head = f.read(_PROBE_BYTES)
     if not head:
         raise InputError(path, "image file is empty")
@@ -189,9 +189,8 @@ def probe_image(path: str | os.PathLike[str]) -> ImageInfo:
 
 
 def _read_bytes(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise InputError(path, "image file is missing")
-    data = np.fromfile(path, dtype=np.uint8)
+    with open_regular(path, path, missing="image file is missing") as f:
+        data = np.frombuffer(f.read(), dtype=np.uint8)
     if data.size == 0:
         raise InputError(path, "image file is empty")
     # Decoders fill a cut-off image with grey and only warn, so check the end marker first.
