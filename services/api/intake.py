@@ -29,7 +29,7 @@ from starlette.datastructures import FormData, UploadFile
 
 from services.api.quota import Quota
 from shared.core.errors import InputError
-from shared.formats.rig import parse_rig
+from shared.formats.rig import MAX_RIG_BYTES, parse_rig_bytes
 from shared.service.archive import ArchiveLimits, inspect_archive
 from shared.service.artifacts import ArtifactError, ArtifactStore, sha256_file
 from shared.service.config import Settings
@@ -159,11 +159,7 @@ class Intake:
         return f"object:{key}", key
 
     def store_rig(self, data: bytes, label: str) -> str:
-        try:
-            doc = json.loads(data.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputError(label, f"not a JSON rig file ({exc})") from None
-        parse_rig(doc, label)
+        parse_rig_bytes(data, label)  # bounded: over MAX_RIG_BYTES is "too large", deep nesting refused
         with tempfile.TemporaryDirectory() as tmp:
             p = Path(tmp) / "rig.json"
             p.write_bytes(data)
@@ -249,7 +245,7 @@ class Intake:
         incoming = sum(f.size or 0 for f in (capture, rig) if isinstance(f, UploadFile))
         await run_in_threadpool(self.quota.admit, key, 1, incoming)
         if isinstance(rig, UploadFile):
-            params["rig"] = await run_in_threadpool(self.store_rig, await rig.read(1 << 20), rig.filename or "rig")
+            params["rig"] = await run_in_threadpool(self.store_rig, await rig.read(MAX_RIG_BYTES + 1), rig.filename or "rig")
         elif rig is not None:
             raise InputError("rig", "must be a file")
         if kind == "probe":
