@@ -14,6 +14,8 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import json
+import os
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -48,14 +50,29 @@ def _dragon_conf() -> list[list[str]]:
     return [ln.split() for ln in lines if ln.startswith("bmesh")]
 
 
+def _place(src: Path, dst: Path) -> None:
+    """``dst`` a hard link to ``src``, or a copy where links cannot cross filesystems."""
+    if dst.exists():
+        return
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
 def dragon_scanset(folder: Path, turntable: bool) -> Path:
-    """Write ``folder/scanset.json`` naming the 15 dragon scans (units m), angles from the file names."""
+    """Write ``folder/scanset.json`` naming the 15 dragon scans (units m), angles from the file names.
+
+    The scans are hard-linked (copied across filesystems) into ``folder``: a scan set's paths must
+    lie inside its own folder, links leading out of it included."""
     conf = _dragon_conf()
-    views = [{"cloud": str(DRAGON / c[1]), "units": "m"} for c in conf]
+    folder.mkdir(parents=True, exist_ok=True)
+    for c in conf:
+        _place(DRAGON / c[1], folder / c[1])
+    views = [{"cloud": c[1], "units": "m"} for c in conf]
     doc: dict = {"format": "graylight-scanset-v1", "views": views}
     if turntable:
         doc["turntable"] = {"angles_deg": [float(c[1].rsplit("_", 1)[1].split(".")[0]) for c in conf]}
-    folder.mkdir(parents=True, exist_ok=True)
     (folder / "scanset.json").write_text(json.dumps(doc))
     return folder
 
