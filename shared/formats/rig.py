@@ -173,10 +173,10 @@ def parse_rig(doc: Any, where: Path | str = "rig.json") -> Rig:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise InputError(where, 'field "R" is not a rotation matrix')
     T = _matrix(doc["T"], (3,), where, "T")
+    if np.abs(T).max() > MAX_BASELINE:  # before the norm, which would overflow
+        raise InputError(where, f'field "T": a baseline of {np.abs(T).max():.6g} {units} or more is more than {MAX_BASELINE:g}')
     if np.linalg.norm(T) == 0:
         raise InputError(where, 'field "T" is zero: camera and projector cannot share an optical centre')
-    if np.linalg.norm(T) > MAX_BASELINE:
-        raise InputError(where, f'field "T": a baseline of {np.linalg.norm(T):.6g} {units} is more than {MAX_BASELINE:g}')
     return Rig(
         camera=_device(doc["camera"], where, "camera"),
         projector=_device(doc["projector"], where, "projector"),
