@@ -21,6 +21,13 @@ A path file is JSON::
 ``t`` (optional, increasing, 0..1) places a keyframe in time; without it keyframes are evenly
 spaced. Poses between keyframes are interpolated linearly. A path whose eye wanders farther
 than :data:`MAX_DISTANCE_FACTOR` scene diagonals from the scene is rejected (InputError).
+A keyframe whose target is its eye looks at the scene's centre.
+
+Only the CLI reads a file (``--path FILE``, a local user's own; bounded and without blocking,
+:func:`read_path_file`). A job names no file: its keyframes come inline in
+``params.preview.camera`` (``fov`` and at most :data:`MAX_INLINE_KEYFRAMES` keyframes of ``eye``
+and ``target``), validated at intake by :func:`parse_camera_doc`, so a path on the worker (a
+FIFO, ``/dev/zero``, another tenant's file) is never opened.
 """
 
 from __future__ import annotations
