@@ -14,14 +14,13 @@ from __future__ import annotations
 import fcntl
 import hashlib
 import json
-import os
-import shutil
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from shared.core.datapaths import shared_data_dir
+from tests.support.links import place_file
 
 DRAGON = shared_data_dir() / "stanford-dragon-turntable"
 
@@ -50,16 +49,6 @@ def _dragon_conf() -> list[list[str]]:
     return [ln.split() for ln in lines if ln.startswith("bmesh")]
 
 
-def _place(src: Path, dst: Path) -> None:
-    """``dst`` a hard link to ``src``, or a copy where links cannot cross filesystems."""
-    if dst.exists():
-        return
-    try:
-        os.link(src, dst)
-    except OSError:
-        shutil.copyfile(src, dst)
-
-
 def dragon_scanset(folder: Path, turntable: bool) -> Path:
     """Write ``folder/scanset.json`` naming the 15 dragon scans (units m), angles from the file names.
 
@@ -68,7 +57,7 @@ def dragon_scanset(folder: Path, turntable: bool) -> Path:
     conf = _dragon_conf()
     folder.mkdir(parents=True, exist_ok=True)
     for c in conf:
-        _place(DRAGON / c[1], folder / c[1])
+        place_file(DRAGON / c[1], folder / c[1])
     views = [{"cloud": c[1], "units": "m"} for c in conf]
     doc: dict = {"format": "graylight-scanset-v1", "views": views}
     if turntable:
