@@ -171,6 +171,8 @@ def materialize_capture(job: Job, arts: ArtifactStore, settings: Settings) -> Pa
                 info = arts.ref_info(ref)
             except FileNotFoundError:
                 raise InputError(ref, "no such file or folder in storage") from None
+            except ArtifactError as exc:  # a link out of the store (made after intake), a FIFO
+                raise InputError("capture_ref", str(exc)) from None
             if info.get("type") == "directory":
                 staged = Path(tmp) / "dir"
                 try:
