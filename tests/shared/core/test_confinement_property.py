@@ -158,3 +158,26 @@ def test_every_contract_and_kind_once() -> None:
             with_target = _refusal(contract, kind, ["a", "b"], exists=True)
             if kind in OUTSIDE:
                 assert with_target == _refusal(contract, kind, ["a", "b"], exists=False), (contract, kind)
+
+
+def test_the_worker_copy_of_a_reference_refuses_links_out(tmp_path: Path) -> None:
+    """A link placed in a referenced folder after intake, or a FIFO there, is refused when the
+    worker copies the folder (finding 8: the worker copied files from outside the store)."""
+    store = tmp_path / "store"
+    (store / "inbox" / "cap").mkdir(parents=True)
+    (store / "inbox" / "cap" / "capture.json").write_text("{}")
+    outside = tmp_path / "secret.png"
+    outside.write_bytes(b"secret")
+    arts = ArtifactStore(str(store))
+    (store / "inbox" / "cap" / "white.png").symlink_to(outside)
+    for n, cause in enumerate(("link", "fifo")):
+        if cause == "fifo":
+            (store / "inbox" / "cap" / "white.png").unlink()
+            os.mkfifo(store / "inbox" / "cap" / "white.png")
+        try:
+            arts.ref_read("inbox/cap", tmp_path / f"copy{n}", 1 << 20, 10)
+        except ArtifactError as exc:
+            assert "inbox/cap/white.png" in str(exc) and "secret" not in str(exc), str(exc)
+        else:
+            raise AssertionError(f"a {cause} in a referenced folder was copied")
+        assert not (tmp_path / f"copy{n}" / "white.png").exists()
