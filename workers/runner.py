@@ -257,8 +257,11 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
         if retries_left:
             store.release_stage(stage_id, token, reason)
             raise
-        store.fail_stage(stage_id, token, f"gave up after retries; {reason}")
-        return Outcome("failed", stage_id, reason)
+        log.error("job %s stage %s: gave up after retries; %s", job.id, stage.name, reason)
+        msg = (f"stage {stage.name} gave up after retries: a connection to the broker, the database or the "
+               "store kept failing; the worker's log has the details")
+        store.fail_stage(stage_id, token, msg)
+        return Outcome("failed", stage_id, msg)
     except Exception as exc:
         from celery.exceptions import SoftTimeLimitExceeded
 
