@@ -85,8 +85,10 @@ class Rig:
         }
 
 
-#: The keys of each object of the contract; any other is an error naming it.
-_TOP_KEYS = ("units", "camera", "projector", "R", "T")
+#: The keys of each object of the contract; any other is an error naming it. "radiometry" (the
+#: camera response and fall-off, written by the simulator and calibration) is validated by its own
+#: parser (issue 23's branch adds it).
+_TOP_KEYS = ("units", "camera", "projector", "R", "T", "radiometry")
 _DEVICE_KEYS = ("width", "height", "K", "dist")
 #: Largest device side in pixels, and the range of focal lengths (pixels) and principal points
 #: (within this many image sides of the image) a real lens gives: a focal length of 1e308 parses
