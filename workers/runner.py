@@ -29,6 +29,7 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import socket
 import tempfile
@@ -176,6 +177,8 @@ def materialize_capture(job: Job, arts: ArtifactStore, settings: Settings) -> Pa
                 info = arts.ref_info(ref)
             except FileNotFoundError:
                 raise InputError(ref, "no such file or folder in storage") from None
+            except ArtifactError as exc:  # a link out of the store (made after intake), a FIFO
+                raise InputError("capture_ref", str(exc)) from None
             if info.get("type") == "directory":
                 staged = Path(tmp) / "dir"
                 try:
@@ -260,8 +263,11 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
         if retries_left:
             store.release_stage(stage_id, token, reason)
             raise
-        store.fail_stage(stage_id, token, f"gave up after retries; {reason}")
-        return Outcome("failed", stage_id, reason)
+        log.error("job %s stage %s: gave up after retries; %s", job.id, stage.name, reason)
+        msg = (f"stage {stage.name} gave up after retries: a connection to the broker, the database or the "
+               "store kept failing; the worker's log has the details")
+        store.fail_stage(stage_id, token, msg)
+        return Outcome("failed", stage_id, msg)
     except Exception as exc:
         from celery.exceptions import SoftTimeLimitExceeded
 
@@ -272,7 +278,7 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
             msg = fault
         else:
             log.exception("job %s stage %s failed", job.id, stage.name)
-            msg = f"{type(exc).__name__}: {exc}"
+            msg = unexpected_failure(exc, stage.name, _reading(job, spec.inputs, upstream))
         store.fail_stage(stage_id, token, msg)
         return Outcome("failed", stage_id, msg)
     finally:
@@ -293,14 +299,56 @@ def _release_capture(settings: Settings, store: JobStore, job_id: str) -> None:
 
 def _user_facing(exc: InputError, job: Job, settings: Settings) -> str:
     """The error with a path inside this machine's capture cache replaced by the capture's
-    name and the file's path inside it (``scan7.zip:col_02.png: truncated PNG``)."""
+    name and the file's path inside it (``scan7.zip:col_02.png: truncated PNG``); any other
+    path of this machine's data folder (an upstream stage's output in the object cache) by its
+    file name. A failed stage's message never carries an internal worker path."""
     cache = settings.cache_dir / "captures" / job.capture_key
+    label = job.name or job.capture_ref
     where = Path(exc.where)
     if where.is_absolute() and where.is_relative_to(cache):
-        rel = where.relative_to(cache).as_posix()
-        label = job.name or job.capture_ref
-        return f"{label}:{rel}: {exc.problem}"
-    return str(exc)
+        head = f"{label}:{where.relative_to(cache).as_posix()}"
+    elif where.is_absolute() and where.is_relative_to(settings.data_dir):
+        head = where.name
+    else:
+        head = exc.where
+    return scrub_paths(f"{head}: {exc.problem}", {cache: f"{label}:", settings.data_dir: ""})
+
+
+def scrub_paths(text: str, roots: dict[Path, str]) -> str:
+    """``text`` with every path under one of ``roots`` rewritten: the root replaced by its label
+    (``scan7.zip:``) when the label is not empty, else the path reduced to its file name."""
+    for root, label in roots.items():
+        pattern = re.escape(str(root).rstrip("/")) + r"/[^\s:'\"]*"
+        text = re.sub(pattern, lambda m, r=root, lab=label: (lab + Path(m.group()).relative_to(r).as_posix()) if lab
+                      else Path(m.group()).name, text)
+    return text
+
+
+def _reading(job: Job, inputs: tuple[str, ...], upstream: dict[str, str]) -> str:
+    """What a stage reads, as its failure message names it: the capture (by the name it was
+    submitted under) or the outputs of the stages before it."""
+    parts = []
+    if CAPTURE in inputs and not job.capture_ref.startswith("none:"):
+        parts.append(f"the capture {job.name or job.capture_ref.partition(':')[2][:12]}")
+    if upstream:
+        names = sorted({base_name(n) for n in upstream})
+        parts.append(f"the output of {', '.join(names)}")
+    return " and ".join(parts) or "its parameters"
+
+
+def unexpected_failure(exc: BaseException, stage: str, reading: str) -> str:
+    """One line for a stage that failed on something no check foresaw: the stage and what it was
+    reading, never the bare exception (``MemoryError``, ``OverflowError: int too big ...``) nor a
+    path; the traceback is in the worker's log."""
+    if isinstance(exc, MemoryError):
+        what = "ran out of memory"
+    elif isinstance(exc, RecursionError):
+        what = "met input nested too deeply"
+    elif isinstance(exc, ArithmeticError):  # OverflowError among them
+        what = "met a number out of range"
+    else:
+        what = "failed unexpectedly"
+    return f"stage {stage} {what} while reading {reading}; the worker's log has the details"
 
 
 #: File in every stage object holding the stage's summary (hidden from artifact listings);

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-from shared.core.errors import InputError
+from shared.core.errors import InputError, relative_message
 from shared.core.files import write_json_atomic
 from shared.formats.capture import load_capture
 from shared.render.options import PreviewOptions
@@ -198,8 +198,8 @@ def _in_view(spec: Any, step: Callable[[], dict[str, Any]]) -> dict[str, Any]:
     """Run ``step``; an input error names the view (``views[2] (view_02): ...``)."""
     try:
         return step()
-    except InputError as exc:
-        raise InputError(spec.where, str(exc)) from None
+    except InputError as exc:  # its file named as in the scan set, not where this worker unpacked it
+        raise InputError(spec.where, relative_message(exc, spec.path.parent)) from None
 
 
 def run_mv_ingest(ctx: StageContext) -> dict[str, Any]:

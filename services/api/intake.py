@@ -32,7 +32,7 @@ from starlette.datastructures import FormData, UploadFile
 from services.api.http import excerpt
 from shared.core.errors import InputError
 from shared.core.jsonsafe import MAX_DOCUMENT_BYTES, loads_bounded
-from shared.formats.rig import parse_rig
+from shared.formats.rig import parse_rig_bytes
 from shared.service.admission import Admission, UploadTaken
 from shared.service.archive import ArchiveLimits, inspect_archive
 from shared.service.artifacts import ArtifactError, ArtifactStore, sha256_file
@@ -182,7 +182,7 @@ class Intake:
         return f"object:{key}", key
 
     def store_rig(self, data: bytes, label: str, stored: _Stored) -> str:
-        parse_rig(loads_bounded(data, label), label)
+        parse_rig_bytes(data, label)  # bounded: size, depth, numbers, strict keys
         with tempfile.TemporaryDirectory() as tmp:
             p = Path(tmp) / "rig.json"
             p.write_bytes(data)

@@ -51,9 +51,14 @@ def _tiles(args: argparse.Namespace) -> int:
 
 def _preview(args: argparse.Namespace) -> int:
     from services.cli.progress import progress_bar
+    from shared.render.camera_path import NAMED_PATHS, parse_camera_doc, read_path_file
     from shared.render.stages import preview_stage
 
-    options = PreviewOptions(path=args.path, size=parse_size(args.size, "--size"), seconds=args.seconds, fps=args.fps)
+    camera = None
+    if args.path not in NAMED_PATHS:  # a local keyframe file: the user names their own files
+        camera = parse_camera_doc(read_path_file(args.path), args.path)
+    options = PreviewOptions(path=args.path if camera is None else "auto", size=parse_size(args.size, "--size"),
+                             seconds=args.seconds, fps=args.fps, camera=camera, camera_where=args.path)
     with progress_bar("preview") as progress:  # frames rendered
         report = preview_stage(Path(args.tiles), Path(args.out), options.checked("--"), renderer=args.renderer,
                                progress=progress)  # fmt: skip

@@ -54,5 +54,6 @@ def read_json(path: str | os.PathLike[str], missing: str) -> Any:
     too large, too deep or malformed (never a ``RecursionError``).
 
     ``missing`` is the problem to report when the file does not exist (it says what the file is for).
+    Opened without blocking, regular files only: every JSON input may come from a client.
     """
     return read_json_bounded(path, str(Path(path)), missing=missing)

@@ -55,6 +55,6 @@ def preview_stage(
 
     return render_preview(
         Path(tiles_dir), Path(out_path), path=options.path, size=options.size, seconds=options.seconds,
-        fps=options.fps, renderer=renderer,
+        fps=options.fps, renderer=renderer, camera=options.camera, camera_where=options.camera_where,
         progress=progress,
     )  # fmt: skip
