@@ -1,6 +1,6 @@
 """``graylight publish`` and ``graylight rerun``.
 
-* ``publish OUTPUT_DIR --out DIR [--title T --collection C --identifier I]``: a museum's folder from a
+* ``publish OUTPUT_DIR --out DIR [--title T] [--collection C] [--identifier I]``: a museum's folder from a
   ``graylight merge`` or ``graylight scan`` output: ``scene.svx.json`` (Smithsonian Voyager) with the
   model's derivatives, ``paradata.json``, ``qa.json`` and ``qa.html`` (:mod:`shared.publish.folder`).
 * ``rerun PARADATA.json --out DIR``: repeat the run a paradata document records, from the same inputs
@@ -78,7 +78,35 @@ def _cmd_rerun(args: argparse.Namespace) -> int:
     return 0
 
 
+def _cmd_publish(args: argparse.Namespace) -> int:
+    from shared.publish.folder import ObjectMeta, publish_folder
+
+    source = Path(args.source)
+    meta = ObjectMeta(title=args.title if args.title is not None else source.resolve().name,
+                      collection=args.collection or "", identifier=args.identifier if args.identifier is not None
+                      else source.resolve().name)
+    qa = publish_folder(source, Path(args.out), meta)
+    out = Path(args.out)
+    print(qa["verdict"]["line"])
+    levels = ", ".join(f"{d['quality']} {d['file']}" for d in qa["derivatives"])
+    print(f"scene:    {out / 'scene.svx.json'} ({levels})")
+    print(f"report:   {out / 'qa.html'} ({out / 'qa.json'})")
+    print(f"paradata: {out / 'paradata.json'}")
+    return 0
+
+
 def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("publish", help="a Voyager scene, paradata and quality report from a merge or scan output",
+                              description="Write a folder a museum can put on its web server: scene.svx.json "
+                                          "(Smithsonian Voyager) with the model's derivatives, paradata.json, "
+                                          "qa.json and qa.html, from a graylight merge or scan output folder.")
+    p.add_argument("source", help="a graylight merge or scan output folder")
+    p.add_argument("--out", required=True, help="folder to write (must not exist or be empty)")
+    p.add_argument("--title", help="the object's title (default: the source folder's name)")
+    p.add_argument("--collection", help="the collection it belongs to")
+    p.add_argument("--identifier", help="its identifier in the collection (default: the source folder's name)")
+    p.set_defaults(func=_cmd_publish)
+
     p = subparsers.add_parser("rerun", help="repeat a recorded run from its paradata.json and compare the outputs",
                               description="Repeat the run a paradata.json records, from the same inputs, into "
                                           "another folder; compare every output's sha256 with the recorded one.")
