@@ -12,25 +12,12 @@ import pytest
 from pyld import jsonld
 
 from services.cli.main import main
-from tests.support.scansets import cached_scanset
 
 PROV = "http://www.w3.org/ns/prov#"
 
 
 def _sha(path: Path) -> str:
     return hashlib.sha256(path.read_bytes()).hexdigest()
-
-
-@pytest.fixture(scope="module")
-def small_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return cached_scanset(tmp_path_factory.mktemp("publish-set"), views=4, size=(320, 240), projector=(256, 192))
-
-
-@pytest.fixture(scope="module")
-def scanned(small_set: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("scan") / "scan"
-    assert main(["scan", str(small_set / "view_00"), "--out", str(out)]) == 0
-    return out
 
 
 def test_scan_paradata_is_prov_jsonld(scanned: Path, small_set: Path) -> None:
@@ -108,9 +95,8 @@ def test_later_steps_carry_the_earlier_ones(scanned: Path, tmp_path: Path) -> No
 
 
 @pytest.mark.slow
-def test_rerun_reproduces_a_merge(small_set: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    first, again = tmp_path / "first", tmp_path / "again"
-    assert main(["merge", str(small_set), "--out", str(first)]) == 0
+def test_rerun_reproduces_a_merge(merged: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    first, again = merged, tmp_path / "again"
     assert main(["rerun", str(first / "paradata.json"), "--out", str(again)]) == 0
     files = [p.relative_to(first) for p in sorted(first.rglob("*")) if p.is_file() and p.suffix in (".ply", ".glb", ".npz")]
     assert len(files) >= 10
