@@ -208,3 +208,40 @@ def test_qa_html_renders_offline_in_chromium(published: dict[str, Path], tmp_pat
         page.screenshot(path=str(tmp_path / "qa.png"), full_page=True)
     assert problems == []
     assert len(imgs) >= 2 and min(imgs) > 100  # the plots decoded
+
+
+def test_calibration_evidence_and_the_verdict(small_set: Path, tmp_path: Path) -> None:
+    """A rig with its calibration session's report beside it (as graylight calibrate writes them) shows
+    its figures; a camera reprojection RMS over the threshold makes the object not publishable."""
+    cap = tmp_path / "cap"
+    shutil.copytree(small_set / "view_00", cap)
+    rig = json.loads((cap / "rig.json").read_text())
+    poses = [{"name": f"pose_{i:02d}", "used": i != 3, "reason": "board not found" if i == 3 else None,
+              "camera_rms_px": 0.1 + 0.02 * i, "projector_rms_px": 0.08 + 0.01 * i} for i in range(6)]
+    report = {"format": "graylight-calibration-v1", "rig": rig, "units": "mm", "baseline": 250.0,
+              "rms_px": {"camera": 0.18, "projector": 0.12, "stereo": 0.2}, "poses": poses,
+              "board_check": {"square_size": 40.0, "square_rms_error_pct": 0.3, "poses": []}}
+    (cap / "rig-report.json").write_text(json.dumps(report))
+    assert main(["scan", str(cap), "--out", str(tmp_path / "scan")]) == 0
+    assert _publish(tmp_path / "scan", tmp_path / "good") == 0
+    qa = json.loads((tmp_path / "good" / "qa.json").read_text())
+    assert qa["calibration"]["rms_px"]["camera"] == 0.18 and qa["calibration"]["poses_used"] == 5
+    assert qa["calibration"]["skipped"] == {"pose_03": "board not found"}
+    assert qa["verdict"]["publishable"]
+    html = (tmp_path / "good" / "qa.html").read_text()
+    assert "reprojection RMS per pose" in html and "board not found" in html
+    # The scan's own paradata carries the session's figures with the rig.
+    para = json.loads((tmp_path / "scan" / "paradata.json").read_text())
+    act = next(n for n in para["@graph"] if n["@id"] == para["run"])
+    assert next(iter(act["rig"].values()))["calibration"]["rms_px"]["camera"] == 0.18
+    report["rms_px"]["camera"] = 1.6
+    (cap / "rig-report.json").write_text(json.dumps(report))
+    assert _publish(tmp_path / "scan", tmp_path / "bad") == 0
+    verdict = json.loads((tmp_path / "bad" / "qa.json").read_text())["verdict"]
+    assert verdict == {"publishable": False, "reasons": ["calibration reprojection RMS of the camera 1.60 px > 1 px"],
+                       "line": "not publishable: calibration reprojection RMS of the camera 1.60 px > 1 px"}
+    # A report of another rig (the rig was re-calibrated since) is not taken as this rig's evidence.
+    report["rig"]["T"][0] += 1.0
+    (cap / "rig-report.json").write_text(json.dumps(report))
+    assert _publish(tmp_path / "scan", tmp_path / "other") == 0
+    assert "rms_px" not in json.loads((tmp_path / "other" / "qa.json").read_text())["calibration"]
