@@ -125,9 +125,11 @@ def _process(src: Source, meta: ObjectMeta, thresholds: QaThresholds) -> dict[st
             sha256_file(src.paradata), "summary": doc.get("summary", []), "steps": [*steps, publish]}
 
 
-def publish_folder(source_dir: Path, out: Path, meta: ObjectMeta, thresholds: QaThresholds | None = None) -> dict[str, Any]:
+def publish_folder(source_dir: Path, out: Path, meta: ObjectMeta, thresholds: QaThresholds | None = None,
+                   rig: Path | None = None) -> dict[str, Any]:
     """Publish the merge or scan output ``source_dir`` into ``out`` (see the module's docstring);
-    returns the quality report. :class:`InputError` for a source that cannot be published or an ``out``
+    returns the quality report. ``rig``: the rig file, when the source's records name a place it no
+    longer is (a job stage's). :class:`InputError` for a source that cannot be published or an ``out``
     that holds files."""
     thresholds = thresholds or QaThresholds()
     for field, value in (("--title", meta.title), ("--collection", meta.collection), ("--identifier", meta.identifier)):
@@ -147,7 +149,7 @@ def publish_folder(source_dir: Path, out: Path, meta: ObjectMeta, thresholds: Qa
         mesh = glb_positions(stage / top.uri) if top.info.faces > 0 else None
         model_pts = mesh if mesh is not None else cloud_xyz
         R, t, how = upright_pose(model_pts, (src.registration or {}).get("turntable_axis"))
-        qa, counts = build_qa(src, infos, cloud_xyz, mesh, meta.as_dict(), thresholds)
+        qa, counts = build_qa(src, infos, cloud_xyz, mesh, meta.as_dict(), thresholds, rig)
         qa["pose"] = {"up_from": how, "rotation": R.tolist(), "translation_mm": t.tolist()}
         targets = (mesh if mesh is not None else cloud_xyz) @ R.T + t
         png = coverage_map_png(targets, counts, int(qa["coverage"]["views"]))

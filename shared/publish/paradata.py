@@ -48,11 +48,14 @@ from shared.core.jsonsafe import read_json_bounded
 
 log = logging.getLogger(__name__)
 
-__all__ = ["GL", "LIBRARIES", "PARADATA_FILE", "PARADATA_FORMAT", "Run", "build_paradata", "file_entity",
+__all__ = ["GL", "LIBRARIES", "PARADATA_FILE", "PARADATA_FORMAT", "STAGE_PARADATA_FILE", "Run", "build_paradata", "file_entity",
            "load_paradata", "main_activity", "normalised_json_sha256", "paradata_path_for", "rig_figures", "sha256_file", "software",
            "write_paradata"]
 
 PARADATA_FILE = "paradata.json"
+#: A job stage's own record in its output folder (hidden: the runner's records are; the job's
+#: ``paradata.json`` is the publish stage's).
+STAGE_PARADATA_FILE = ".paradata.json"
 PARADATA_FORMAT = "graylight-paradata-v1"
 #: Graylight's own vocabulary (a namespace for its terms; not fetched by processors).
 GL = "https://graylight.org/ns/paradata#"
@@ -113,6 +116,9 @@ class Run:
     ended: datetime
     command: Sequence[str] | None = None
     output_root: Path | None = None
+    #: Take an input's sha256 from the record of the run that wrote it (same path and size) instead of
+    #: reading it again: for job stages, whose inputs are immutable artifacts; a CLI run re-reads.
+    trust_recorded: bool = False
     run_id: str = field(default_factory=lambda: f"urn:graylight:run:{uuid.uuid4()}")
 
 
@@ -239,20 +245,26 @@ def paradata_path_for(output: Path) -> Path:
     return output / PARADATA_FILE if output.is_dir() else output.with_name(f"{output.name}.{PARADATA_FILE}")
 
 
-def _earlier_graph(path: Path, digest: str) -> list[dict[str, Any]]:
-    """The graph of the paradata that recorded ``path`` as an output with this sha256 (an earlier
-    run's), or nothing."""
-    for candidate in (path.with_name(f"{path.name}.{PARADATA_FILE}"), path.parent / PARADATA_FILE,
-                      path.parent.parent / PARADATA_FILE):
-        if not candidate.is_file():
-            continue
-        try:
-            doc = load_paradata(candidate)
-        except InputError:
-            continue
-        if any(n.get("sha256") == digest and n.get("wasGeneratedBy") for n in doc["@graph"]):
-            return doc["@graph"]
-    return []
+def _recorded(path: Path, digest: str | None) -> tuple[dict[str, Any] | None, list[dict[str, Any]]]:
+    """The output entity an earlier run recorded for ``path`` (a ``paradata.json`` or a job stage's
+    ``.paradata.json`` in its folder or the two above, naming it by its path relative to that folder
+    and, when ``digest`` is given, by the same sha256; else by the same size) and that run's graph."""
+    size = path.stat().st_size
+    for folder in (path.parent, path.parent.parent, path.parent.parent.parent):
+        for name in (f"{path.name}.{PARADATA_FILE}", PARADATA_FILE, STAGE_PARADATA_FILE):
+            candidate = folder / name
+            if not candidate.is_file() or (name.startswith(path.name) and folder != path.parent):
+                continue
+            try:
+                doc = load_paradata(candidate)
+            except InputError:
+                continue
+            rel = path.relative_to(folder).as_posix()
+            for n in doc["@graph"]:
+                if n.get("wasGeneratedBy") and n.get("path") in (rel, path.name) and n.get("byteSize") == size \
+                        and (digest is None or n.get("sha256") == digest):
+                    return n, doc["@graph"]
+    return None, []
 
 
 def build_paradata(run: Run, agent: Mapping[str, Any] | None = None) -> dict[str, Any]:
@@ -267,10 +279,14 @@ def build_paradata(run: Run, agent: Mapping[str, Any] | None = None) -> dict[str
         for top in paths:
             for f in _files_of(Path(top)):
                 n += 1
-                ent = file_entity(f, f"{run.run_id}:input:{n}", role, Path(top) if Path(top).is_dir() else None)
+                prior, earlier = _recorded(f, None) if run.trust_recorded else (None, [])
+                if prior is None:
+                    ent = file_entity(f, f"{run.run_id}:input:{n}", role, Path(top) if Path(top).is_dir() else None)
+                    prior, earlier = _recorded(f, ent["sha256"])
+                ent = prior if prior is not None else ent
                 used.append(ent["@id"])
-                graph[ent["@id"]] = ent
-                for node in _earlier_graph(f, ent["sha256"]):
+                graph.setdefault(ent["@id"], ent)
+                for node in earlier:
                     graph.setdefault(node["@id"], node)
                 if f.suffix == ".json" and (fig := rig_figures(f)) is not None:
                     ent["rig"] = fig

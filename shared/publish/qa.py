@@ -80,8 +80,8 @@ def rig_path_of(source: Source) -> Path | None:
     return path if path is not None and path.is_file() else None
 
 
-def _calibration(source: Source, th: QaThresholds) -> tuple[dict[str, Any] | None, list[str]]:
-    rig = rig_path_of(source)
+def _calibration(source: Source, th: QaThresholds, rig: Path | None) -> tuple[dict[str, Any] | None, list[str]]:
+    rig = rig or rig_path_of(source)
     if rig is None:
         return {"note": "the rig file is not where the source says: no calibration evidence"}, []
     report = calibration_report_for(rig)
@@ -197,13 +197,15 @@ def _flags(quality: dict[str, Any] | None) -> tuple[list[dict[str, Any]], list[s
 
 
 def build_qa(source: Source, levels: dict[str, GlbInfo], model_points: np.ndarray, mesh_vertices: np.ndarray | None,
-             meta: dict[str, str], th: QaThresholds | None = None) -> tuple[dict[str, Any], np.ndarray]:
+             meta: dict[str, str], th: QaThresholds | None = None,
+             rig: Path | None = None) -> tuple[dict[str, Any], np.ndarray]:
     """The quality report (see the module's docstring) and the coverage count of each target
     ((M,) int: views within the radius of each mesh vertex, or of each cloud point without a mesh).
-    ``model_points`` (N, 3) mm: the cloud; ``mesh_vertices`` (M, 3) mm of the highest mesh level, or None."""
+    ``model_points`` (N, 3) mm: the cloud; ``mesh_vertices`` (M, 3) mm of the highest mesh level, or None;
+    ``rig``: the rig file when the source's records do not say where it is now (a job's stages)."""
     th = th or QaThresholds()
     why: list[str] = []
-    calib, w = _calibration(source, th)
+    calib, w = _calibration(source, th, rig)
     why += w
     views: list[dict[str, Any]] = []
     pairs: list[dict[str, Any]] = []

@@ -62,8 +62,8 @@ def read_source(root: Path) -> Source:
     if not report_path.is_file():
         raise InputError(root, "no report.json: not a graylight merge or scan output folder")
     report = _read(report_path, "report.json")
-    paradata = root / "paradata.json"
-    paradata = paradata if paradata.is_file() else None
+    # A CLI output's paradata, or a job stage's record (the merge stage's output folder).
+    paradata = next((p for p in (root / "paradata.json", root / ".paradata.json") if p.is_file()), None)
     notes: list[str] = []
     if (root / "registration.json").is_file() or "registered_views" in report:
         registration = _read(root / "registration.json", "registration.json")

@@ -167,6 +167,9 @@ class StageSpec:
 #: default ``MeshParams.lods``, 1/4, 1/16 and 1/64 of the faces), published by their names.
 MESH_LOD_FILES: tuple[str, ...] = ("mesh_lod1.glb", "mesh_lod2.glb", "mesh_lod3.glb")
 
+#: What the publish stage serves by name (shared.publish.folder; the scene's derivatives are in its folder).
+PUBLISH_FILES: tuple[str, ...] = ("scene.svx.json", "qa.json", "qa.html", "paradata.json")
+
 GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     "scan": (
         StageSpec("ingest", "cpu", (CAPTURE,), 600, publish=("capture.json",), params=("rig",)),
@@ -189,6 +192,8 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         # The cloud in the formats GIS and survey software read (LAS 1.4 LAZ, COPC).
         # CPU work (LAZ compression), so it runs on the cpu queue; {"export": false} skips it.
         StageSpec("export", "cpu", ("triangulate",), 7200, publish=("cloud.laz", "cloud.copc.laz"), switch="export"),
+        # The object as a museum publishes it (shared.publish): Voyager scene, quality report, the job's paradata.
+        StageSpec("publish", "cpu", (CAPTURE, "triangulate"), 1800, publish=PUBLISH_FILES),
     ),
     "calibrate": (
         StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json")),
@@ -214,6 +219,7 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
         StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
                   params=("preview", "preview_epoch"), switch="render"),
+        StageSpec("publish", "cpu", (CAPTURE, "mv_merge"), 1800, publish=PUBLISH_FILES),
     ),
     # A service self-test: one trivial stage that sleeps params["seconds"] (at most 60) and
     # writes probe.json. It measures queue overhead and proves the workers are alive.

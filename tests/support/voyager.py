@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import functools
 import http.server
+import json
 import threading
 import time
 from collections.abc import Iterator
@@ -14,12 +15,26 @@ from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
+from jsonschema import Draft7Validator
+from referencing import Registry, Resource
+
 from shared.core.datapaths import shared_data_dir
 from tests.support.viewer_browser import chromium
 
-__all__ = ["VOYAGER_DIR", "VoyagerResult", "open_in_voyager", "serve_static"]
+__all__ = ["SVX_SCHEMAS", "VOYAGER_DIR", "VoyagerResult", "open_in_voyager", "serve_static", "svx_validator"]
 
 VOYAGER_DIR = shared_data_dir().parent / "tools" / "voyager-explorer"
+SVX_SCHEMAS = shared_data_dir().parent / "reference" / "voyager-svx-schema"
+
+
+def svx_validator() -> Draft7Validator:
+    """A draft-07 validator of ``document.schema.json`` with the other four of Voyager's schemas registered."""
+    docs = [json.loads(p.read_text()) for p in sorted(SVX_SCHEMAS.glob("*.schema.json"))]
+    assert len(docs) == 5
+    registry = Registry().with_resources([(d["$id"], Resource.from_contents(d)) for d in docs])
+    root = next(d for d in docs if d["$id"].endswith("/document.schema.json"))
+    Draft7Validator.check_schema(root)
+    return Draft7Validator(root, registry=registry)
 _TYPES = {".js": "application/javascript", ".glb": "model/gltf-binary", ".json": "application/json",
           ".wasm": "application/wasm", ".html": "text/html", ".css": "text/css", ".png": "image/png",
           ".ply": "application/octet-stream", ".woff": "font/woff", ".woff2": "font/woff2"}

@@ -13,23 +13,16 @@ import numpy as np
 import pytest
 import trimesh
 from jsonschema import Draft7Validator
-from referencing import Registry, Resource
 from scipy.spatial.transform import Rotation
 
 from services.cli.main import main
-from shared.core.datapaths import shared_data_dir
+from tests.support.voyager import svx_validator
 
-SCHEMAS = shared_data_dir().parent / "reference" / "voyager-svx-schema"
 HOSTILE = '<script>alert(1)</script> "Bunny" / ../x'
 
 
 def _validator() -> Draft7Validator:
-    docs = [json.loads(p.read_text()) for p in sorted(SCHEMAS.glob("*.schema.json"))]
-    assert len(docs) == 5
-    registry = Registry().with_resources([(d["$id"], Resource.from_contents(d)) for d in docs])
-    root = next(d for d in docs if d["$id"].endswith("/document.schema.json"))
-    Draft7Validator.check_schema(root)
-    return Draft7Validator(root, registry=registry)
+    return svx_validator()
 
 
 def _publish(source: Path, out: Path, *extra: str) -> int:

@@ -1,0 +1,82 @@
+"""The job service's publish stage and its paradata: a scan job and a multi-view job end with a
+Voyager scene that validates, a quality report and the job's paradata.json holding every stage
+(W3C PROV, expanded by pyld); each stage's output carries its own record."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import zipfile
+from pathlib import Path
+
+import pytest
+from pyld import jsonld
+
+from shared.service.artifacts import ArtifactStore, sha256_file
+from shared.service.jobs import PUBLISH_FILES, graph_for, stage_spec
+from shared.service.jobstore import JobStore, NewJob
+from tests.support.inprocess import drive, run_scan_job
+from tests.support.jobsvc import capture_zip, make_env
+from tests.support.scansets import cached_scanset
+from tests.support.voyager import svx_validator
+
+
+def _activities(doc: dict) -> list[dict]:
+    return [n for n in doc["@graph"] if n.get("@type") == "Activity"]
+
+
+def test_scan_job_publishes_scene_report_and_paradata(tmp_path: Path, small_capture: Path) -> None:
+    assert stage_spec("scan", "publish").publish == PUBLISH_FILES
+    arts, job = run_scan_job(make_env(tmp_path / "svc").settings, small_capture, tmp_path,
+                             {"render": False, "export": False})
+    assert [s.name for s in job.stages][-1] == "publish"
+    out = arts.fetch(job.stage("publish").output_key, tmp_path / "pub")
+    scene = json.loads((out / "scene.svx.json").read_text())
+    assert list(svx_validator().iter_errors(scene)) == []
+    assert scene["metas"][0]["collection"]["identifier"] == job.id
+    assert [s["stage"] for s in scene["metas"][0]["process"]["steps"]] == ["ingest", "decode", "triangulate", "publish"]
+    qa = json.loads((out / "qa.json").read_text())
+    assert qa["views"][0]["points"] > 1000 and qa["verdict"]["line"]
+    doc = json.loads((out / "paradata.json").read_text())
+    assert sorted(a["stage"] for a in _activities(doc)) == ["decode", "ingest", "publish", "triangulate"]
+    jsonld.expand(doc)
+    # The submitted capture's files are named once (by the stage that read them first), by sha256.
+    with zipfile.ZipFile(tmp_path / "c.zip") as z:  # the archive run_scan_job submitted
+        submitted = sorted(hashlib.sha256(z.read(m)).hexdigest() for m in z.namelist())
+    entities = [n for n in doc["@graph"] if n.get("role") == "capture"]
+    assert sorted(e["sha256"] for e in entities) == submitted
+    # Every stage's output holds its own record; the cloud the publish stage used is triangulate's output.
+    tri = arts.fetch(job.stage("triangulate").output_key, tmp_path / "tri")
+    record = json.loads((tri / ".paradata.json").read_text())
+    cloud = next(n for n in record["@graph"] if n.get("path") == "cloud.ply")
+    assert cloud["sha256"] == sha256_file(tri / "cloud.ply")
+    publish = next(a for a in _activities(doc) if a["stage"] == "publish")
+    assert cloud["@id"] in publish["used"]
+
+
+@pytest.mark.slow
+def test_multiview_job_publishes_the_merged_object(tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> None:
+    scanset = cached_scanset(tmp_path_factory.mktemp("mv-publish"), views=4, size=(320, 240), projector=(256, 192))
+    settings = make_env(tmp_path / "svc").settings
+    store = JobStore(settings.database_url)
+    owner, _ = store.create_key("t")
+    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
+    archive = capture_zip(scanset, tmp_path / "set.zip")
+    key = sha256_file(archive)
+    arts.put_files(key, {"capture.zip": archive})
+    params = {"render": False}
+    job, _ = store.create_job(owner.id, NewJob(kind="multiview", capture_ref=f"object:{key}", capture_key=key,
+                                               graph=graph_for("multiview", params), name="set.zip", params=params))
+    drive(settings, job.id, rounds=40)
+    job = store.get_job(job.id)
+    assert job.state == "succeeded", job
+    out = arts.fetch(job.stage("publish").output_key, tmp_path / "pub")
+    scene = json.loads((out / "scene.svx.json").read_text())
+    assert list(svx_validator().iter_errors(scene)) == []
+    assert [d["quality"] for d in scene["models"][0]["derivatives"]] == ["Thumb", "Low", "Medium", "High"]
+    doc = json.loads((out / "paradata.json").read_text())
+    stages = sorted(a["stage"] for a in _activities(doc))
+    assert stages.count("mv_triangulate#3") == 1 and "mv_merge" in stages and "publish" in stages
+    jsonld.expand(doc)
+    qa = json.loads((out / "qa.json").read_text())
+    assert len(qa["views"]) == 4 and qa["calibration"]["rig"].endswith("rig.json")
