@@ -80,3 +80,57 @@ def test_multiview_job_publishes_the_merged_object(tmp_path: Path, tmp_path_fact
     jsonld.expand(doc)
     qa = json.loads((out / "qa.json").read_text())
     assert len(qa["views"]) == 4 and qa["calibration"]["rig"].endswith("rig.json")
+
+
+def _finished_scan_job(settings, capture: Path, tmp: Path, params: dict) -> tuple[str, str]:
+    """A scan job run to its end in-process; (job id, its owner's API key)."""
+    store = JobStore(settings.database_url)
+    _owner, key = store.create_key("t")
+    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
+    archive = capture_zip(capture, tmp / "c.zip")
+    ckey = sha256_file(archive)
+    arts.put_files(ckey, {"capture.zip": archive})
+    job, _ = store.create_job(_owner.id, NewJob(kind="scan", capture_ref=f"object:{ckey}", capture_key=ckey,
+                                                graph=graph_for("scan", params), name="c.zip", params=params))
+    drive(settings, job.id)
+    assert store.get_job(job.id).state == "succeeded"
+    return job.id, key
+
+
+def test_publish_a_job_by_its_id(tmp_path: Path, small_capture: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """``graylight publish JOB_ID``: the publish stage's folder as the service made it, checked by sha256;
+    with a title, the job's scan outputs published here; a job still running is refused in one line."""
+    from fastapi.testclient import TestClient
+
+    from services.api.app import create_app
+    from services.cli.jobs import Client, ServiceError
+    from services.cli.publish import fetch_published
+    from shared.core.errors import InputError
+    from shared.publish.folder import ObjectMeta
+
+    settings = make_env(tmp_path / "svc").settings
+    jid, key = _finished_scan_job(settings, small_capture, tmp_path, {"render": False, "export": False})
+    client = Client(url="http://testserver", key=key, http=TestClient(create_app(settings)))
+    qa = fetch_published(client, jid, tmp_path / "web", ObjectMeta(title="unused"))
+    names = sorted(p.name for p in (tmp_path / "web").iterdir())
+    assert {"scene.svx.json", "qa.json", "qa.html", "paradata.json", "cloud_high.glb", "cloud_thumb.glb"} <= set(names)
+    assert qa == json.loads((tmp_path / "web" / "qa.json").read_text())
+    scene = json.loads((tmp_path / "web" / "scene.svx.json").read_text())
+    assert scene["metas"][0]["collection"]["identifier"] == jid
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".web")]
+    qa2 = fetch_published(client, jid, tmp_path / "named", ObjectMeta(title="<i>Plane</i>", identifier="P-1"),
+                          republish=True)
+    assert qa2["object"]["title"] == "<i>Plane</i>"
+    scene2 = json.loads((tmp_path / "named" / "scene.svx.json").read_text())
+    assert scene2["metas"][0]["collection"] == {"title": "&lt;i&gt;Plane&lt;/i&gt;", "identifier": "P-1"}
+    assert list(svx_validator().iter_errors(scene2)) == []
+    with pytest.raises(ServiceError, match="HTTP 404: job 00000000-0000-0000-0000-000000000000 not found"):
+        fetch_published(client, "00000000-0000-0000-0000-000000000000", tmp_path / "none", ObjectMeta(title="x"))
+    # A job that has not run yet: refused by name, nothing written.
+    store = JobStore(settings.database_url)
+    queued, _ = store.create_job(store.get_job(jid).owner_id, NewJob(
+        kind="scan", capture_ref=f"object:{'0' * 64}", capture_key="0" * 64, graph=graph_for("scan", {}),
+        name="q.zip", params={}))
+    with pytest.raises(InputError, match=f"^job {queued.id}: is queued: only a finished job can be published$"):
+        fetch_published(client, queued.id, tmp_path / "q", ObjectMeta(title="x"))
+    assert not (tmp_path / "q").exists()
