@@ -134,3 +134,36 @@ def test_publish_a_job_by_its_id(tmp_path: Path, small_capture: Path, capsys: py
     with pytest.raises(InputError, match=f"^job {queued.id}: is queued: only a finished job can be published$"):
         fetch_published(client, queued.id, tmp_path / "q", ObjectMeta(title="x"))
     assert not (tmp_path / "q").exists()
+
+
+def test_batch_report_repeats_the_verdict_with_links(tmp_path: Path, small_capture: Path) -> None:
+    """A batch of a good scan and one that fails: the report's rows carry the verdict of the one that was
+    published and the links to its scene and quality report; the failed one has neither."""
+    import csv
+    import io
+
+    from shared.service.report import report_csv, report_rows
+
+    settings = make_env(tmp_path / "svc").settings
+    store = JobStore(settings.database_url)
+    owner, _ = store.create_key("t")
+    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
+    jobs = []
+    for name, drop in (("good.zip", ()), ("no-rig.zip", ("rig.json",))):
+        archive = capture_zip(small_capture, tmp_path / name, drop=drop)
+        ckey = sha256_file(archive)
+        arts.put_files(ckey, {"capture.zip": archive})
+        params = {"render": False, "export": False}
+        job, _ = store.create_job(owner.id, NewJob(kind="scan", capture_ref=f"object:{ckey}", capture_key=ckey,
+                                                   graph=graph_for("scan", params), name=name, params=params))
+        drive(settings, job.id)
+        jobs.append(store.get_job(job.id))
+    rows = report_rows(jobs)
+    good, bad = rows
+    published = arts.fetch(jobs[0].stage("publish").output_key, tmp_path / "pub")
+    assert good.verdict == json.loads((published / "qa.json").read_text())["verdict"]["line"]
+    assert {"scene.svx.json", "qa.html", "qa.json", "paradata.json"} <= set(good.artifacts)
+    assert bad.state == "failed" and bad.verdict is None and "scene.svx.json" not in bad.artifacts
+    table = list(csv.DictReader(io.StringIO(report_csv(rows, lambda r, a: f"/v1/jobs/{r.job}/artifacts/{a}"))))
+    assert table[0]["verdict"] == good.verdict and table[1]["verdict"] == ""
+    assert f"/v1/jobs/{good.job}/artifacts/scene.svx.json" in table[0]["artifacts"].split()
