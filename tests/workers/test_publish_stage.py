@@ -54,21 +54,30 @@ def test_scan_job_publishes_scene_report_and_paradata(tmp_path: Path, small_capt
     assert cloud["@id"] in publish["used"]
 
 
+def _run_job(settings, folder: Path, archive: Path, kind: str, params: dict, owner: int | None = None,
+             drop: tuple[str, ...] = ()) -> tuple[JobStore, ArtifactStore, object, str | None]:
+    """Submit ``folder`` zipped as ``archive`` as a ``kind`` job (for ``owner``, else a new key's) and run
+    it to its end in-process: the store, the artifact store, the finished job and the new key (or None)."""
+    store = JobStore(settings.database_url)
+    key = None
+    if owner is None:
+        rec, key = store.create_key("t")
+        owner = rec.id
+    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
+    capture_zip(folder, archive, drop=drop)
+    ckey = sha256_file(archive)
+    arts.put_files(ckey, {"capture.zip": archive})
+    job, _ = store.create_job(owner, NewJob(kind=kind, capture_ref=f"object:{ckey}", capture_key=ckey,
+                                            graph=graph_for(kind, params), name=archive.name, params=params))
+    drive(settings, job.id, rounds=40)
+    return store, arts, store.get_job(job.id), key
+
+
 @pytest.mark.slow
 def test_multiview_job_publishes_the_merged_object(tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> None:
     scanset = cached_scanset(tmp_path_factory.mktemp("mv-publish"), views=4, size=(320, 240), projector=(256, 192))
     settings = make_env(tmp_path / "svc").settings
-    store = JobStore(settings.database_url)
-    owner, _ = store.create_key("t")
-    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
-    archive = capture_zip(scanset, tmp_path / "set.zip")
-    key = sha256_file(archive)
-    arts.put_files(key, {"capture.zip": archive})
-    params = {"render": False}
-    job, _ = store.create_job(owner.id, NewJob(kind="multiview", capture_ref=f"object:{key}", capture_key=key,
-                                               graph=graph_for("multiview", params), name="set.zip", params=params))
-    drive(settings, job.id, rounds=40)
-    job = store.get_job(job.id)
+    _store, arts, job, _key = _run_job(settings, scanset, tmp_path / "set.zip", "multiview", {"render": False})
     assert job.state == "succeeded", job
     out = arts.fetch(job.stage("publish").output_key, tmp_path / "pub")
     scene = json.loads((out / "scene.svx.json").read_text())
@@ -80,21 +89,6 @@ def test_multiview_job_publishes_the_merged_object(tmp_path: Path, tmp_path_fact
     jsonld.expand(doc)
     qa = json.loads((out / "qa.json").read_text())
     assert len(qa["views"]) == 4 and qa["calibration"]["rig"].endswith("rig.json")
-
-
-def _finished_scan_job(settings, capture: Path, tmp: Path, params: dict) -> tuple[str, str]:
-    """A scan job run to its end in-process; (job id, its owner's API key)."""
-    store = JobStore(settings.database_url)
-    _owner, key = store.create_key("t")
-    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
-    archive = capture_zip(capture, tmp / "c.zip")
-    ckey = sha256_file(archive)
-    arts.put_files(ckey, {"capture.zip": archive})
-    job, _ = store.create_job(_owner.id, NewJob(kind="scan", capture_ref=f"object:{ckey}", capture_key=ckey,
-                                                graph=graph_for("scan", params), name="c.zip", params=params))
-    drive(settings, job.id)
-    assert store.get_job(job.id).state == "succeeded"
-    return job.id, key
 
 
 def test_publish_a_job_by_its_id(tmp_path: Path, small_capture: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -109,7 +103,10 @@ def test_publish_a_job_by_its_id(tmp_path: Path, small_capture: Path, capsys: py
     from shared.publish.folder import ObjectMeta
 
     settings = make_env(tmp_path / "svc").settings
-    jid, key = _finished_scan_job(settings, small_capture, tmp_path, {"render": False, "export": False})
+    store, _arts, job, key = _run_job(settings, small_capture, tmp_path / "c.zip", "scan",
+                                      {"render": False, "export": False})
+    assert job.state == "succeeded", job
+    jid = job.id
     client = Client(url="http://testserver", key=key, http=TestClient(create_app(settings)))
     qa = fetch_published(client, jid, tmp_path / "web", ObjectMeta(title="unused"))
     names = sorted(p.name for p in (tmp_path / "web").iterdir())
@@ -127,7 +124,6 @@ def test_publish_a_job_by_its_id(tmp_path: Path, small_capture: Path, capsys: py
     with pytest.raises(ServiceError, match="HTTP 404: job 00000000-0000-0000-0000-000000000000 not found"):
         fetch_published(client, "00000000-0000-0000-0000-000000000000", tmp_path / "none", ObjectMeta(title="x"))
     # A job that has not run yet: refused by name, nothing written.
-    store = JobStore(settings.database_url)
     queued, _ = store.create_job(store.get_job(jid).owner_id, NewJob(
         kind="scan", capture_ref=f"object:{'0' * 64}", capture_key="0" * 64, graph=graph_for("scan", {}),
         name="q.zip", params={}))
@@ -145,19 +141,11 @@ def test_batch_report_repeats_the_verdict_with_links(tmp_path: Path, small_captu
     from shared.service.report import report_csv, report_rows
 
     settings = make_env(tmp_path / "svc").settings
-    store = JobStore(settings.database_url)
-    owner, _ = store.create_key("t")
-    arts = ArtifactStore(settings.storage_url, settings.s3_endpoint)
-    jobs = []
-    for name, drop in (("good.zip", ()), ("no-rig.zip", ("rig.json",))):
-        archive = capture_zip(small_capture, tmp_path / name, drop=drop)
-        ckey = sha256_file(archive)
-        arts.put_files(ckey, {"capture.zip": archive})
-        params = {"render": False, "export": False}
-        job, _ = store.create_job(owner.id, NewJob(kind="scan", capture_ref=f"object:{ckey}", capture_key=ckey,
-                                                   graph=graph_for("scan", params), name=name, params=params))
-        drive(settings, job.id)
-        jobs.append(store.get_job(job.id))
+    params = {"render": False, "export": False}
+    _store, arts, good_job, _key = _run_job(settings, small_capture, tmp_path / "good.zip", "scan", params)
+    bad_job = _run_job(settings, small_capture, tmp_path / "no-rig.zip", "scan", params, owner=good_job.owner_id,
+                       drop=("rig.json",))[2]
+    jobs = [good_job, bad_job]
     rows = report_rows(jobs)
     good, bad = rows
     published = arts.fetch(jobs[0].stage("publish").output_key, tmp_path / "pub")
