@@ -335,9 +335,13 @@ def run_publish(ctx: StageContext) -> dict[str, Any]:
             "derivatives": [d["file"] for d in qa["derivatives"]]}
 
 
+#: Stages whose record is their job's paradata.json (served): the last stage of each graph that has one.
+PUBLIC_PARADATA_STAGES = frozenset({"publish", "calibrate"})
+
+
 def _recorded(func: Callable[[StageContext], dict[str, Any]]) -> Callable[[StageContext], dict[str, Any]]:
     """The adapter, leaving the stage's paradata in its output (shared.publish.stages.record_stage):
-    ``.paradata.json``, or the job's ``paradata.json`` for the publish stage."""
+    ``.paradata.json``, or the job's ``paradata.json`` for :data:`PUBLIC_PARADATA_STAGES`."""
 
     @functools.wraps(func)
     def run(ctx: StageContext) -> dict[str, Any]:
@@ -347,7 +351,7 @@ def _recorded(func: Callable[[StageContext], dict[str, Any]]) -> Callable[[Stage
         summary = func(ctx)
         record_stage(stage=ctx.stage, job_id=ctx.job_id, kind=ctx.kind, params=ctx.params,
                      capture_dir=ctx.capture_dir, inputs=ctx.inputs, out_dir=ctx.out_dir, started=started,
-                     ended=datetime.now(UTC), public=base_name(ctx.stage) == "publish")
+                     ended=datetime.now(UTC), public=base_name(ctx.stage) in PUBLIC_PARADATA_STAGES)
         return summary
 
     return run

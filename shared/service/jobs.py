@@ -196,7 +196,7 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("publish", "cpu", (CAPTURE, "triangulate"), 1800, publish=PUBLISH_FILES),
     ),
     "calibrate": (
-        StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json")),
+        StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json", "paradata.json")),
     ),
     # A multi-view scan set (graylight-scanset-v1): a plan that validates it and fans out three
     # tasks per view, each its own task so that workers on several machines share one object:

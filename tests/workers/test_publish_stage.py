@@ -155,3 +155,24 @@ def test_batch_report_repeats_the_verdict_with_links(tmp_path: Path, small_captu
     table = list(csv.DictReader(io.StringIO(report_csv(rows, lambda r, a: f"/v1/jobs/{r.job}/artifacts/{a}"))))
     assert table[0]["verdict"] == good.verdict and table[1]["verdict"] == ""
     assert f"/v1/jobs/{good.job}/artifacts/scene.svx.json" in table[0]["artifacts"].split()
+
+
+@pytest.mark.slow
+def test_calibrate_job_serves_its_paradata(tmp_path: Path) -> None:
+    """A calibration job's paradata.json names every file of the session by sha256 and the rig it made."""
+    from shared.sim.calibration import simulate_session
+
+    session = simulate_session(tmp_path / "session", n_poses=5, camera_size=(320, 240), projector_size=(128, 96),
+                               seed=1, inverses=False).root
+    settings = make_env(tmp_path / "svc").settings
+    _store, arts, job, _key = _run_job(settings, session, tmp_path / "session.zip", "calibrate", {})
+    assert job.state == "succeeded", job
+    assert "paradata.json" in stage_spec("calibrate", "calibrate").publish
+    out = arts.fetch(job.stage("calibrate").output_key, tmp_path / "cal")
+    doc = json.loads((out / "paradata.json").read_text())
+    jsonld.expand(doc)
+    with zipfile.ZipFile(tmp_path / "session.zip") as z:
+        submitted = sorted(hashlib.sha256(z.read(m)).hexdigest() for m in z.namelist())
+    assert sorted(n["sha256"] for n in doc["@graph"] if n.get("role") == "capture") == submitted
+    rig = next(n for n in doc["@graph"] if n.get("path") == "rig.json")
+    assert rig["sha256"] == sha256_file(out / "rig.json") and rig["wasGeneratedBy"] == doc["run"]
