@@ -325,12 +325,12 @@ def run_publish(ctx: StageContext) -> dict[str, Any]:
         from shared.formats.scanset import load_scanset
 
         rig = load_scanset(ctx.capture_dir).rig
-        qa = publish_folder(ctx.inputs["mv_merge"], ctx.out_dir, meta, rig=rig)
+        qa = publish_folder(ctx.inputs["mv_merge"], ctx.out_dir, meta, rig=rig, points_asset=False)
     else:
         with tempfile.TemporaryDirectory(prefix="publish-src-") as work:
             rig = _rig_for(ctx)
             source = scan_source(ctx.inputs["triangulate"], ctx.capture_dir, rig, Path(work) / "scan")
-            qa = publish_folder(source, ctx.out_dir, meta, rig=rig)
+            qa = publish_folder(source, ctx.out_dir, meta, rig=rig, points_asset=False)
     return {"verdict": qa["verdict"]["line"], "publishable": qa["verdict"]["publishable"],
             "derivatives": [d["file"] for d in qa["derivatives"]]}
 

@@ -67,8 +67,9 @@ def check_label(field: str, value: str) -> str:
     return value
 
 
-def _levels(src: Source, stage: Path) -> tuple[list[SceneAsset], dict[str, GlbInfo]]:
-    """Copy or make the model's levels in ``stage``; measure them."""
+def _levels(src: Source, stage: Path, points_asset: bool) -> tuple[list[SceneAsset], dict[str, GlbInfo]]:
+    """Copy or make the model's levels in ``stage``; measure them. ``points_asset``: copy a cloud-only
+    model's PLY beside its GLBs as the High level's ``Points`` asset."""
     assets: list[SceneAsset] = []
     infos: dict[str, GlbInfo] = {}
     if src.levels:
@@ -88,13 +89,14 @@ def _levels(src: Source, stage: Path) -> tuple[list[SceneAsset], dict[str, GlbIn
     rgb = None if cloud.rgb is None else np.asarray(cloud.rgb, np.uint8)
     if not len(xyz):
         raise InputError(src.cloud, "the cloud has no points: nothing to publish")
-    shutil.copyfile(src.cloud, stage / src.cloud.name)
+    if points_asset:
+        shutil.copyfile(src.cloud, stage / src.cloud.name)
     step = max(1, int(np.ceil(len(xyz) / THUMB_POINTS)))
     for q, sl, name in (("Thumb", slice(None, None, step), "cloud_thumb.glb"), ("High", slice(None), "cloud_high.glb")):
         write_points_glb(stage / name, xyz[sl], None if rgb is None else rgb[sl])
         info = inspect_glb(stage / name)
         infos[q] = info
-        extra = ((src.cloud.name, "Points", src.cloud.stat().st_size),) if q == "High" else ()
+        extra = ((src.cloud.name, "Points", src.cloud.stat().st_size),) if q == "High" and points_asset else ()
         assets.append(SceneAsset(q, name, info, extra))
     return assets, infos
 
@@ -126,10 +128,11 @@ def _process(src: Source, meta: ObjectMeta, thresholds: QaThresholds) -> dict[st
 
 
 def publish_folder(source_dir: Path, out: Path, meta: ObjectMeta, thresholds: QaThresholds | None = None,
-                   rig: Path | None = None) -> dict[str, Any]:
+                   rig: Path | None = None, points_asset: bool = True) -> dict[str, Any]:
     """Publish the merge or scan output ``source_dir`` into ``out`` (see the module's docstring);
     returns the quality report. ``rig``: the rig file, when the source's records name a place it no
-    longer is (a job stage's). :class:`InputError` for a source that cannot be published or an ``out``
+    longer is (a job stage's). ``points_asset``: include a cloud-only model's PLY (a job leaves it out:
+    the job serves the cloud already). :class:`InputError` for a source that cannot be published or an ``out``
     that holds files."""
     thresholds = thresholds or QaThresholds()
     for field, value in (("--title", meta.title), ("--collection", meta.collection), ("--identifier", meta.identifier)):
@@ -141,7 +144,7 @@ def publish_folder(source_dir: Path, out: Path, meta: ObjectMeta, thresholds: Qa
     out.parent.mkdir(parents=True, exist_ok=True)
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     try:
-        assets, infos = _levels(src, stage)
+        assets, infos = _levels(src, stage, points_asset)
         from shared.formats.ply import read_ply
 
         cloud_xyz = np.asarray(read_ply(src.cloud).xyz, np.float64)
