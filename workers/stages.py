@@ -11,12 +11,14 @@ layers contract forbids one): a render worker never loads the decoder's kernels.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -311,6 +313,53 @@ def run_probe(ctx: StageContext) -> dict[str, Any]:
     return doc
 
 
+def run_publish(ctx: StageContext) -> dict[str, Any]:
+    """The object as a museum publishes it (:func:`shared.publish.folder.publish_folder`): the Voyager
+    scene with its derivatives, qa.json and qa.html, from the merge (multiview) or the triangulated
+    cloud (scan); the job's paradata.json is written by :func:`_recorded`."""
+    import tempfile
+
+    from shared.publish.folder import ObjectMeta, publish_folder
+    from shared.publish.stages import scan_source
+
+    assert ctx.capture_dir is not None
+    meta = ObjectMeta(title=f"Job {ctx.job_id}", identifier=ctx.job_id)
+    if ctx.kind == "multiview":
+        from shared.formats.scanset import load_scanset
+
+        rig = load_scanset(ctx.capture_dir).rig
+        qa = publish_folder(ctx.inputs["mv_merge"], ctx.out_dir, meta, rig=rig, points_asset=False)
+    else:
+        with tempfile.TemporaryDirectory(prefix="publish-src-") as work:
+            rig = _rig_for(ctx)
+            source = scan_source(ctx.inputs["triangulate"], ctx.capture_dir, rig, Path(work) / "scan")
+            qa = publish_folder(source, ctx.out_dir, meta, rig=rig, points_asset=False)
+    return {"verdict": qa["verdict"]["line"], "publishable": qa["verdict"]["publishable"],
+            "derivatives": [d["file"] for d in qa["derivatives"]]}
+
+
+#: Stages whose record is their job's paradata.json (served): the last stage of each graph that has one.
+PUBLIC_PARADATA_STAGES = frozenset({"publish", "calibrate"})
+
+
+def _recorded(func: Callable[[StageContext], dict[str, Any]]) -> Callable[[StageContext], dict[str, Any]]:
+    """The adapter, leaving the stage's paradata in its output (shared.publish.stages.record_stage):
+    ``.paradata.json``, or the job's ``paradata.json`` for :data:`PUBLIC_PARADATA_STAGES`."""
+
+    @functools.wraps(func)
+    def run(ctx: StageContext) -> dict[str, Any]:
+        from shared.publish.stages import record_stage
+
+        started = datetime.now(UTC)
+        summary = func(ctx)
+        record_stage(stage=ctx.stage, job_id=ctx.job_id, kind=ctx.kind, params=ctx.params,
+                     capture_dir=ctx.capture_dir, inputs=ctx.inputs, out_dir=ctx.out_dir, started=started,
+                     ended=datetime.now(UTC), public=base_name(ctx.stage) in PUBLIC_PARADATA_STAGES)
+        return summary
+
+    return run
+
+
 STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
     "ingest": run_ingest,
     "decode": run_decode,
@@ -329,4 +378,6 @@ STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
     "mv_decode": run_mv_decode,
     "mv_triangulate": run_mv_triangulate,
     "mv_merge": run_mv_merge,
+    "publish": run_publish,
 }
+STAGE_FUNCS = {name: _recorded(func) for name, func in STAGE_FUNCS.items()}

@@ -281,6 +281,7 @@ class ReportRow(BaseModel):
     points: int | None = Field(None, description="points of its cloud (after triangulation)")
     error: str | None = Field(None, description="the failure reason, one line")
     artifacts: list[ArtifactLink]
+    verdict: str | None = Field(None, description="the quality report's verdict: 'publishable' or why not")
 
 
 class BatchReport(BaseModel):

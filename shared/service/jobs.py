@@ -199,6 +199,8 @@ MESH_LOD_FILES: tuple[str, ...] = ("mesh_lod1.glb", "mesh_lod2.glb", "mesh_lod3.
 
 #: The interchange files the export stage writes of a job's cloud (a scan's, or the merged one).
 EXPORT_FILES: tuple[str, ...] = ("cloud.laz", "cloud.copc.laz", "cloud.e57")
+#: What the publish stage serves by name (shared.publish.folder; the scene's derivatives are in its folder).
+PUBLISH_FILES: tuple[str, ...] = ("scene.svx.json", "qa.json", "qa.html", "paradata.json")
 
 GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     "scan": (
@@ -222,9 +224,11 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         # The cloud in the formats GIS and survey software read (LAS 1.4 LAZ, COPC, E57).
         # CPU work (LAZ compression), so it runs on the cpu queue; {"export": false} skips it.
         StageSpec("export", "cpu", ("triangulate",), 7200, publish=EXPORT_FILES, switch="export", version=2, weight=2.0),
+        # The object as a museum publishes it (shared.publish): Voyager scene, quality report, the job's paradata.
+        StageSpec("publish", "cpu", (CAPTURE, "triangulate"), 1800, publish=PUBLISH_FILES, weight=1.0),
     ),
     "calibrate": (
-        StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json")),
+        StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json", "paradata.json")),
     ),
     # A multi-view scan set (graylight-scanset-v1): a plan that validates it and fans out three
     # tasks per view, each its own task so that workers on several machines share one object:
@@ -250,6 +254,7 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
                   params=("preview", "preview_epoch"), switch="render", weight=6.0),
         # The merged cloud in the interchange formats, as a scan's cloud is.
         StageSpec("export", "cpu", ("mv_merge",), 7200, publish=EXPORT_FILES, switch="export", version=2, weight=2.0),
+        StageSpec("publish", "cpu", (CAPTURE, "mv_merge"), 1800, publish=PUBLISH_FILES, weight=1.0),
     ),
     # A service self-test: one trivial stage that sleeps params["seconds"] (at most 60) and
     # writes probe.json. It measures queue overhead and proves the workers are alive.

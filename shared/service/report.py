@@ -27,7 +27,7 @@ from shared.service.jobstore import REJECTED, Job, Reject
 __all__ = ["CSV_COLUMNS", "CaptureRow", "capture_row", "report_csv", "report_rows", "summarize"]
 
 #: Columns of the CSV report, in order (``artifacts`` is space-separated).
-CSV_COLUMNS = ("capture", "job", "state", "points", "error", "artifacts")
+CSV_COLUMNS = ("capture", "job", "state", "points", "error", "artifacts", "verdict")
 
 
 @dataclass(frozen=True)
@@ -43,6 +43,8 @@ class CaptureRow:
     points: int | None
     error: str | None
     artifacts: list[str] = field(default_factory=list)
+    #: The publish stage's verdict line (``publishable`` or why not; shared.publish.qa), None before it ran.
+    verdict: str | None = None
 
 
 def _one_line(text: str | None) -> str | None:
@@ -52,6 +54,7 @@ def _one_line(text: str | None) -> str | None:
 def capture_row(job: Job) -> CaptureRow:
     """The report row of one job."""
     points: int | None = None
+    verdict: str | None = None
     published: list[str] = []
     for st in job.stages:
         if st.state != StageState.SUCCEEDED:
@@ -59,13 +62,16 @@ def capture_row(job: Job) -> CaptureRow:
         summary = st.summary or {}
         if st.name in ("triangulate", "mv_merge") and isinstance(summary.get("points"), int):
             points = int(summary["points"])
+        if st.name == "publish" and isinstance(summary.get("verdict"), str):
+            verdict = _one_line(summary["verdict"])
         for name in stage_spec(job.kind, st.name).published_names(summary):
             if name not in published:
                 published.append(name)
     error = _one_line(job.error)
     if error is None and job.state == JobState.CANCELLED:
         error = "cancelled"
-    return CaptureRow(capture=job.name, job=job.id, state=job.state, points=points, error=error, artifacts=published)
+    return CaptureRow(capture=job.name, job=job.id, state=job.state, points=points, error=error, artifacts=published,
+                      verdict=verdict)
 
 
 def report_rows(jobs: Iterable[Job], rejects: Iterable[Reject] = ()) -> list[CaptureRow]:
@@ -95,7 +101,8 @@ def report_csv(rows: Iterable[CaptureRow], link: Callable[[CaptureRow, str], str
     w.writerow(CSV_COLUMNS)
     for r in rows:
         links = [link(r, a) if link else a for a in r.artifacts]
-        w.writerow([r.capture, r.job or "", r.state, "" if r.points is None else r.points, r.error or "", " ".join(links)])
+        w.writerow([r.capture, r.job or "", r.state, "" if r.points is None else r.points, r.error or "", " ".join(links),
+                    r.verdict or ""])
     return out.getvalue()
 
 

@@ -105,7 +105,7 @@ def batch_report_json(batch_id: str, key: Key, svc: Svc, request: Request) -> Ba
     """The batch's report: one row per file sent (rejected ones too), oldest first."""
     b = batch_by_ref(svc, batch_id, key)
     rows = [
-        ReportRow(capture=r.capture, job=r.job, state=r.state, points=r.points, error=r.error,
+        ReportRow(capture=r.capture, job=r.job, state=r.state, points=r.points, error=r.error, verdict=r.verdict,
                   artifacts=[ArtifactLink(name=a, url=_link(request, r, a)) for a in r.artifacts])  # fmt: skip
         for r in report_rows(batch_jobs(svc, key, b), b.rejects)
     ]
