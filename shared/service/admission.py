@@ -132,6 +132,20 @@ class Admission:
             batch_id = self._batch(s, key, batch) if batch else None
             return [self.store.insert_job(s, key.id, dataclasses.replace(n, batch_id=batch_id)) for n in news]
 
+    def reset_jobs(self, key: ApiKey, resets: Sequence[tuple[str, Iterable[str], dict | None]]) -> list[Stage]:
+        """Re-run finished jobs: for each ``(job_id, stage names, new params or None)`` put those
+        stages back to pending, after checking that the jobs, queued again, stay within the key's
+        running-jobs limit (and that the key is not over its stored-bytes limit), all in one
+        transaction under the key's lock: concurrent retries cannot pass the limit together.
+        Returns the stages to publish."""
+        with self.store.session() as s, s.begin():
+            self._lock(s, key)
+            self._check(key, len(resets), 0, (), s)
+            out: list[Stage] = []
+            for job_id, names, params in resets:
+                out += self.store.reset_stages_in(s, job_id, names, params)
+            return out
+
     @staticmethod
     def _batch(s: Session, key: ApiKey, name: str) -> str:
         bid = s.scalar(select(BatchRow.id).where(BatchRow.owner_id == key.id, BatchRow.name == name))

@@ -887,29 +887,35 @@ class JobStore:
     def reset_stages(self, job_id: str, names: Iterable[str], params: dict[str, Any] | None = None) -> list[Stage]:
         """Put the named stages (and nothing else) back to ``pending``, make the job ``queued``
         again (optionally with new parameters) and queue whatever is ready. Stages to publish."""
-        names = set(names)
         with self.session() as s, s.begin():
-            job = s.get(JobRow, job_id)
-            if job is None:
-                return []
-            for r in s.scalars(select(StageRow).where(StageRow.job_id == job_id)).all():
-                if r.name in names and can_move_stage(r.state, StageState.PENDING):
-                    self._event(s, job_id, r.name, r.state, StageState.PENDING, "retry")
-                    r.state = StageState.PENDING
-                    r.error = None
-                    r.progress = 0.0
-                    r.finished_at = None
-                    r.started_at = None
-                    r.reused = False
-            if params is not None:
-                job.params = dict(params)
-            if job.state != JobState.QUEUED:
-                self._event(s, job_id, None, job.state, JobState.QUEUED, "retry")
-            job.state = JobState.QUEUED
-            job.error = None
-            job.finished_at = None
-            s.flush()
-            return self._stages_by_id(s, self._refresh_job_state(s, job_id))
+            return self.reset_stages_in(s, job_id, names, params)
+
+    def reset_stages_in(self, s: Session, job_id: str, names: Iterable[str],
+                        params: dict[str, Any] | None = None) -> list[Stage]:  # fmt: skip
+        """:meth:`reset_stages` inside the caller's transaction ``s`` (admission runs it under the
+        key's lock, so that a retry counts against the running-jobs limit atomically)."""
+        names = set(names)
+        job = s.get(JobRow, job_id)
+        if job is None:
+            return []
+        for r in s.scalars(select(StageRow).where(StageRow.job_id == job_id)).all():
+            if r.name in names and can_move_stage(r.state, StageState.PENDING):
+                self._event(s, job_id, r.name, r.state, StageState.PENDING, "retry")
+                r.state = StageState.PENDING
+                r.error = None
+                r.progress = 0.0
+                r.finished_at = None
+                r.started_at = None
+                r.reused = False
+        if params is not None:
+            job.params = dict(params)
+        if job.state != JobState.QUEUED:
+            self._event(s, job_id, None, job.state, JobState.QUEUED, "retry")
+        job.state = JobState.QUEUED
+        job.error = None
+        job.finished_at = None
+        s.flush()
+        return self._stages_by_id(s, self._refresh_job_state(s, job_id))
 
     # ---- uploads ---------------------------------------------------------------------
     def create_upload(self, owner_id: int, filename: str) -> Upload:

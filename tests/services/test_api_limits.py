@@ -66,7 +66,7 @@ def test_running_jobs_limit_holds_under_a_race(database: str | None, capture: Pa
     senv = jobsvc.make_env(tmp_path / "svc", database_url=database, GRAYLIGHT_KEY_MAX_RUNNING_JOBS="1")
     try:
         store = JobStore(senv.settings.database_url)
-        keys = {n: {"Authorization": f"Bearer {store.create_key(n)[1]}"} for n in ("json", "form", "batch")}
+        keys = {n: {"Authorization": f"Bearer {store.create_key(n)[1]}"} for n in ("json", "form", "batch", "retry")}
         inbox = Path(senv.settings.storage_url) / "inbox"
         inbox.mkdir(parents=True)
         (inbox / "cap.zip").write_bytes(archives[0])
@@ -90,9 +90,23 @@ def test_running_jobs_limit_holds_under_a_race(database: str | None, capture: Pa
                               for i in range(RACERS)])  # fmt: skip
         assert sorted(r.status_code for r in answers) == [201] + [429] * (RACERS - 1), [r.text[:200] for r in answers]
         for name, auth in keys.items():
+            if name == "retry":
+                continue
             with httpx.Client(base_url=url, headers=auth) as c:
                 assert c.get("/v1/jobs").json()["total"] == 1, name
                 assert len(c.get("/v1/batches").json()) == (1 if name == "batch" else 0)
+        # Retries: twelve cancelled jobs of one key retried at once, one at a time allowed back in.
+        with httpx.Client(base_url=url, headers=keys["retry"]) as c:
+            ids = []
+            for _ in range(RACERS):
+                made = c.post("/v1/jobs", json={"kind": "probe"})
+                assert made.status_code == 201, made.text[:200]
+                ids.append(made.json()["id"])
+                assert c.post(f"/v1/jobs/{ids[-1]}/cancel").status_code == 200
+        answers = _race(url, [{"url": f"/v1/jobs/{i}/retry", "headers": keys["retry"]} for i in ids])
+        assert sorted(r.status_code for r in answers) == [200] + [429] * (RACERS - 1), [r.text[:200] for r in answers]
+        states = sorted(store.get_job(i).state for i in ids)
+        assert states == ["cancelled"] * (RACERS - 1) + ["queued"], states
     finally:
         for p in reversed(senv.procs):
             p.stop()

@@ -27,7 +27,7 @@ from services.api.models import (
     batch_out,
     errors,
 )
-from services.api.routers.jobs import rerun
+from services.api.routers.jobs import rerun, rerun_plan
 from services.api.schema import batch_body
 from shared.service.jobs import JobState
 from shared.service.jobstore import ApiKey, Batch, Job
@@ -134,8 +134,10 @@ def retry_batch(batch_id: str, key: Key, svc: Svc) -> BatchRetryOut:
     todo = [j for j in batch_jobs(svc, key, b) if j.state in (JobState.FAILED, JobState.CANCELLED)]
     if not todo:
         raise HTTPException(409, f"batch {b.id}: nothing to retry (no job failed or was cancelled)")
-    svc.intake.quota.admit(key, jobs=len(todo))
-    retried = [j.id for j in todo if rerun(svc, j)]
+    plans = [p for j in todo if (p := rerun_plan(j)) is not None]
+    if plans:
+        rerun(svc, key, plans)  # all or none, under the key's limits
+    retried = [p[0] for p in plans]
     return BatchRetryOut(batch=batch_out(owned_batch(svc, b.id, key)), retried=retried)
 
 

@@ -14,7 +14,7 @@ from services.api.intake import JobCreate, check_params
 from services.api.models import JobList, JobOut, RetryIn, errors, job_out
 from services.api.schema import job_body
 from shared.service.jobs import JobState, StageView, rows_to_rerun
-from shared.service.jobstore import Job
+from shared.service.jobstore import ApiKey, Job
 from shared.service.queue import publish_stages
 from shared.service.rerenders import RerenderStore, request_rerender
 
@@ -88,10 +88,11 @@ def cancel_job(job_id: str, key: Key, svc: Svc) -> JobOut:
     return job_out(owned_job(svc, job_id, key))
 
 
-def rerun(svc: Service, job: Job, new_params: dict[str, Any] | None = None) -> bool:
-    """Re-run the job's stages that failed or were cancelled, and those whose inputs changed
-    (``new_params``, a new stage version); their outputs already stored are found, not redone.
-    False when nothing would re-run; 409 when the job is not final."""
+def rerun_plan(job: Job, new_params: dict[str, Any] | None = None) -> tuple[str, list[str], dict[str, Any]] | None:
+    """What re-running ``job`` would reset: ``(job id, stage names, parameters)`` for its stages
+    that failed or were cancelled and those whose inputs changed (``new_params``, a new stage
+    version; their outputs already stored are found, not redone). None when nothing would re-run;
+    409 when the job is not final."""
     if job.state in (JobState.QUEUED, JobState.RUNNING):
         raise HTTPException(409, f"job {job.id} is {job.state}; cancel it first")
     params = dict(job.params)
@@ -100,11 +101,12 @@ def rerun(svc: Service, job: Job, new_params: dict[str, Any] | None = None) -> b
         params = {**new, **({"rig": job.params["rig"]} if "rig" in job.params else {})}
     rows = [StageView(st.name, st.state, st.depends_on, st.output_key) for st in job.stages]  # graph order
     todo = rows_to_rerun(job.kind, rows, job.capture_key, params)
-    if not todo:
-        return False
-    newly = svc.store.reset_stages(job.id, todo, params=params)
-    publish_stages(newly, svc.settings)
-    return True
+    return (job.id, sorted(todo), params) if todo else None
+
+
+def rerun(svc: Service, key: ApiKey, plans: list[tuple[str, list[str], dict[str, Any]]]) -> None:
+    """Reset the planned stages, admitted against ``key``'s limits atomically, and queue them."""
+    publish_stages(svc.intake.quota.reset_jobs(key, plans), svc.settings)
 
 
 @router.post("/v1/jobs/{job_id}/retry", response_model=JobOut, responses=errors(400, 401, 404, 409, 413, 422, 429, 507))
@@ -112,7 +114,8 @@ def retry_job(job_id: str, key: Key, svc: Svc, body: RetryIn | None = None) -> J
     """Re-run the stages that failed or were cancelled, and those whose inputs changed
     (new parameters, a new stage version); finished stages with unchanged inputs are kept."""
     job = owned_job(svc, job_id, key)
-    svc.intake.quota.admit(key, jobs=1)
-    if not rerun(svc, job, body.params if body is not None else None):
+    plan = rerun_plan(job, body.params if body is not None else None)
+    if plan is None:
         raise HTTPException(409, f"job {job.id}: nothing to retry (every stage succeeded with unchanged inputs)")
+    rerun(svc, key, [plan])
     return job_out(owned_job(svc, job_id, key))
