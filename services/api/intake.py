@@ -129,6 +129,13 @@ def form_text(value: Any) -> str | None:
     return str(value)
 
 
+def _form_kind(form: FormData) -> str:
+    """The multipart ``kind`` field: ``scan`` when absent; an empty or unknown one is refused
+    (never read as the default: the OpenAPI document lists the kinds)."""
+    kind = form.get("kind")
+    return "scan" if kind is None else str(form_text(kind))
+
+
 def _form_params(form: FormData, kind: str) -> dict[str, Any]:
     return check_params(loads_bounded(form_text(form.get("params")) or "{}", "params"), kind)
 
@@ -281,7 +288,7 @@ class Intake:
     async def job_from_form(self, form: FormData, key: ApiKey) -> Job:
         """``POST /v1/jobs`` as multipart: ``capture`` (zip or tar) or ``capture_ref``, optional
         ``rig`` file, ``kind``, ``name``, ``batch`` and ``params`` (JSON)."""
-        kind = check_kind(str(form.get("kind") or "scan"))
+        kind = check_kind(_form_kind(form))
         name = check_name(form_text(form.get("name")), "name")
         batch = check_name(form_text(form.get("batch")), "batch")
         params = _form_params(form, kind)
@@ -360,7 +367,7 @@ class Intake:
         name = check_name(form_text(form.get("name")), "name")
         if not name:
             raise InputError("name", "a batch needs a name")
-        kind = check_kind(str(form.get("kind") or "scan"))
+        kind = check_kind(_form_kind(form))
         params = _form_params(form, kind)
         files = form.getlist("captures")
         if any(not isinstance(f, UploadFile) for f in files):

@@ -190,3 +190,15 @@ def test_every_served_media_type_is_documented(api) -> None:
     for status in ("200", "206"):
         assert set(ARTIFACT_MEDIA_TYPES.values()) | {"application/octet-stream"} <= set(op["responses"][status]["content"])
     assert json.loads(io.BytesIO(client.get("/health").content).read())["free_bytes"] > 0
+
+
+def test_an_empty_kind_is_refused_not_read_as_scan(tmp_path: Path) -> None:
+    """schemathesis found it: a multipart batch with ``kind=""`` was created as a scan batch."""
+    senv = jobsvc.make_env(tmp_path / "svc")
+    with TestClient(create_app(senv.settings)) as client:
+        auth = {"Authorization": f"Bearer {JobStore(senv.settings.database_url).create_key('k')[1]}"}
+        for route in ("/v1/batches", "/v1/jobs"):
+            r = client.post(route, headers=auth, data={"kind": "", "name": "b"}, files={"captures" if "batches" in route
+                            else "capture": ("a.zip", b"PK\x05\x06" + b"\0" * 18, "application/zip")})  # fmt: skip
+            assert r.status_code == 422, (route, r.status_code, r.text[:200])
+            assert "unknown job kind ''" in r.text
