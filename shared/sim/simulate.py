@@ -12,16 +12,32 @@ capture folder (``capture.json``, ``rig.json``, ``white.png``, ``black.png``, ``
   through the projector's distortion (OpenCV: projector column ``c`` spans ``[c - 0.5, c + 0.5)``);
 - ``lit`` bool: surface seen by the camera AND lit by the projector (inside its frame, facing it,
   not in its shadow);
-- ``surface`` int16: index of the scene surface seen (-1 none).
+- ``surface`` int16: index of the scene surface seen (-1 none);
+- ``labels`` int8: what the pixel sees, the surface's label (:mod:`shared.sim.scenes`): -1 none,
+  0 object, 1 turntable plate, 2 support (table top or floor), 3 turntable base, 4 backdrop;
+- ``albedo`` (H, W, 3) float32: the linear RGB diffuse albedo (0..1) the image was rendered with
+  (area-filtered over the pixel on planes; NaN where no surface);
+- ``irradiance`` float32: the linear white-minus-black signal per unit albedo, in fractions of full
+  scale: ``(1 - black_level) * cam_vignetting * frame * G`` with ``G = projector_power * cos(theta)
+  * (1000 mm / d)^2 * cos^3(off-axis angle) * (1 - projector_vignetting * r^2)`` (``d`` the distance
+  from the projector's centre, ``r`` the radius from its principal point relative to its farthest
+  corner, ``frame`` the blurred edge of the projector's image, ``cam_vignetting`` cos^4 of the
+  camera ray's angle); 0 where not lit, NaN where no surface;
+- ``response`` (0-d str): the camera response the images went through (:mod:`shared.sim.response`).
 
-Image formation (per pattern, in fractions of the sensor's full scale): projector irradiance with
-cos(theta) and inverse-square falloff, projector black level, defocus blur of the pattern that grows
+So ``linearise(white) - linearise(black) = albedo * irradiance`` (grey cameras: the albedo's luma
+0.299 R + 0.587 G + 0.114 B) up to sensor noise, camera blur, the specular lobe of glossy
+materials and inter-reflection: dividing out the projector's irradiance recovers the albedo.
+
+Image formation (per pattern, linear, in fractions of the sensor's full scale): projector irradiance
+with cos(theta), inverse-square falloff, cos^3 and lens vignetting, projector black level, defocus blur of the pattern that grows
 with distance from the projector's focus (Gaussian in projector pixels, tabulated per blur level),
 shadows by a projector shadow map, ambient light, textured and coloured albedo with pixel-area
 filtering, a Phong specular lobe that can saturate, subsurface scattering (extra pattern blur on
 translucent materials), one bounce of diffuse inter-reflection between
 planes that ask for it, camera vignetting (cos^4), optical blur, shot and read noise, full-well
-clipping and 8- or 16-bit quantisation; grey or colour (BGR PNG) images. Both devices have lens
+clipping, the camera's response curve (sRGB by default) and 8- or 16-bit quantisation; grey or
+colour (BGR PNG) images. Both devices have lens
 distortion: camera pixels are traced along their exact (undistorted) rays, and projector
 coordinates go through the projector's distortion model.
 
@@ -50,7 +66,7 @@ import tempfile
 import time
 from collections.abc import Collection
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -71,6 +87,7 @@ from shared.sim.raycast import (
     shade_points,
     undistort_grid,
 )
+from shared.sim.response import check_response, response_table
 from shared.sim.scenes import (
     LABEL_NONE,
     SCENES,
@@ -114,6 +131,11 @@ class ImagingParams:
     Attributes
     ----------
     projector_power : white-pattern signal of an albedo-1 surface facing the projector at 1 m
+        (on its axis, linear, before the camera's vignetting and response)
+    projector_vignetting : share of the projector's light its lens loses at the image corner
+        farthest from its principal point (quadratic in the radius), beyond the natural cos^3 falloff
+    response : the camera's response curve from linear signal to stored value:
+        ``"srgb"`` (default), ``"linear"`` or ``"gamma:G"`` (:mod:`shared.sim.response`)
     ambient : ambient signal of an albedo-1 surface (room light, lit from above)
     black_level : share of full power an "off" projector pixel still emits
     projector_blur : pattern blur (Gaussian sigma, projector pixels) at the focus distance
@@ -134,6 +156,8 @@ class ImagingParams:
     """
 
     projector_power: float = 0.85
+    projector_vignetting: float = 0.2
+    response: str = "srgb"
     ambient: float = 0.03
     black_level: float = 0.03
     projector_blur: float = 0.45
@@ -416,6 +440,7 @@ class _Render:
     rig: Rig
     imaging: ImagingParams
     profiles: _Profiles
+    response_lut: np.ndarray = field(default_factory=lambda: np.zeros(0))  # empty: linear camera
 
 
 def _albedo(scene: Scene, surf_ids: np.ndarray, P: np.ndarray, rays: tuple[np.ndarray, np.ndarray],
@@ -468,7 +493,7 @@ def _projector_terms(rig: Rig, imaging: ImagingParams, P: np.ndarray, n: np.ndar
     return shade_points(
         P, n, rig.R, rig.T, p.K, p.dist, (p.width, p.height), sm.depth, sm.K, imaging.projector_power,
         imaging.projector_blur, imaging.projector_aperture * p.fx, imaging.projector_focus or focus,
-        0.29 * p.fx / rig.camera.fx, sid, ks, shin, sss,
+        0.29 * p.fx / rig.camera.fx, sid, ks, shin, sss, vignetting=imaging.projector_vignetting,
     )
 
 
@@ -504,10 +529,11 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
     proj_row = np.full(H * W, np.nan, np.float32)
     lit = np.zeros(H * W, np.bool_)
     albedo_map = np.full((H * W, 3), np.nan, np.float32)
+    irradiance = np.full(H * W, np.nan, np.float32)
+    sigma = np.empty(N, np.float32)
     if with_shading:
         A = np.empty((N, nc), np.float32)
         B = np.empty((N, nc), np.float32)
-        sigma = np.empty(N, np.float32)
         coef = np.zeros((N, nc), np.float32) if inter_planes else None
     t_flat, surf_flat, face_flat, rxf, ryf = t.ravel(), surf.ravel(), face.ravel(), rx.ravel(), ry.ravel()
     for c0 in range(0, N, chunk):
@@ -531,20 +557,22 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
         lit[idx] = pt["lit"]
         albedo = _albedo(scene, sv, P, (rx, ry), idx, W)
         albedo_map[idx] = albedo
-        if not with_shading:
-            continue
-        if nc == 1:
-            albedo = (albedo @ luma)[:, None]
         if imaging.vignetting:
             vign = (1.0 / (1.0 + rxf[idx] ** 2 + ryf[idx] ** 2) ** 2).astype(np.float32)
         else:
             vign = np.ones(len(idx), np.float32)
+        sl = slice(c0, c0 + len(idx))
+        sigma[sl] = pt["sigma"]
+        # White minus black per unit albedo (the projector frame's edge profile follows below).
+        irradiance[idx] = vign * (1.0 - imaging.black_level) * pt["G"]
+        if not with_shading:
+            continue
+        if nc == 1:
+            albedo = (albedo @ luma)[:, None]
         # Room light from above (camera -Y is roughly up in every scene).
         amb = (imaging.ambient * (0.65 + 0.35 * np.clip(-n[:, 1], 0, None))).astype(np.float32)
-        sl = slice(c0, c0 + len(idx))
         A[sl] = vign[:, None] * (pt["G"][:, None] * albedo + pt["spec"][:, None])
         B[sl] = vign[:, None] * amb[:, None] * albedo
-        sigma[sl] = pt["sigma"]
         if coef is not None:
             coef[sl] = vign[:, None] * albedo
     del t, face, t_flat, face_flat
@@ -552,11 +580,10 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
     truth = Truth(
         depth=depth.reshape(H, W), points=points.reshape(H, W, 3), normals=normals.reshape(H, W, 3),
         proj_col=proj_col.reshape(H, W), proj_row=proj_row.reshape(H, W), lit=lit.reshape(H, W), surface=surf,
-        labels=label_of[surf], albedo=albedo_map.reshape(H, W, 3),
+        labels=label_of[surf], albedo=albedo_map.reshape(H, W, 3), irradiance=irradiance.reshape(H, W),
+        response=imaging.response,
     )
     pg = _profiles_geometry(rig)
-    if not with_shading:
-        return _Render(truth=truth, shading=None, rig=rig, imaging=imaging, profiles=pg)
     levels, lvl = _sigma_levels(sigma)
     del sigma
     S = pg.per_px
@@ -576,6 +603,9 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
         off_u[sl], frac_u[sl], off_v[sl], frac_v[sl] = ou, fu, ov, fv
         fr_u[sl] = frame_u[ou] + fu * (frame_u[ou + 1] - frame_u[ou])
         fr_v[sl] = frame_v[ov] + fv * (frame_v[ov + 1] - frame_v[ov])
+    irradiance[index] *= fr_u * fr_v
+    if not with_shading:
+        return _Render(truth=truth, shading=None, rig=rig, imaging=imaging, profiles=pg)
     shading = _Shading(index=index, A=A, B=B, off_u=off_u, frac_u=frac_u, off_v=off_v, frac_v=frac_v,
                        frame_u=fr_u, frame_v=fr_v, sigmas=levels)
     if coef is not None:
@@ -583,7 +613,8 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
                                                levels, pg)
     t3 = time.perf_counter()
     log.info("virtual rig: rays+cast %.2fs, shadow map %.2fs, shading %.2fs", t1 - t0, t2 - t1, t3 - t2)
-    return _Render(truth=truth, shading=shading, rig=rig, imaging=imaging, profiles=pg)
+    return _Render(truth=truth, shading=shading, rig=rig, imaging=imaging, profiles=pg,
+                   response_lut=response_table(imaging.response))
 
 
 def _interreflection_setup(scene: Scene, rig: Rig, imaging: ImagingParams, sm: _ShadowMap, sh: _Shading,
@@ -727,11 +758,8 @@ def _render_image(r: _Render, axis: str, bit: int, inverse: bool, noise_seed: in
         img = cv2.GaussianBlur(img, (0, 0), im.camera_blur)
         if img.ndim == 2:
             img = img[:, :, None]
-    if im.noise:
-        out = sensor_readout(img, im.full_well, im.read_noise, im.bits, noise_seed)
-    else:
-        maxval = (1 << im.bits) - 1
-        out = np.clip(np.floor(img * maxval + 0.5), 0, maxval).astype(np.uint8 if im.bits == 8 else np.uint16)
+    out = sensor_readout(img, im.full_well, im.read_noise, im.bits, noise_seed, response_lut=r.response_lut,
+                         noise=im.noise)
     if nc == 3:
         return np.ascontiguousarray(out[:, :, ::-1])  # RGB -> BGR for cv2.imwrite
     return out[:, :, 0]
@@ -808,6 +836,7 @@ def simulate_capture(
     imaging = imaging or ImagingParams()
     if imaging.bits not in (8, 16):
         raise InputError("bits", f"must be 8 or 16, got {imaging.bits}")
+    check_response(imaging.response)
     _check_size((rig.camera.width, rig.camera.height))
     out = Path(out_dir).absolute()
     if out.exists() and (not out.is_dir() or any(out.iterdir())):
