@@ -441,10 +441,10 @@ def _gauss(seed, i):
 
 
 @numba.njit(**_NJIT)
-def _sensor(img, seed, full_well, read_noise, maxval, lut, noise, out):
+def _sensor(img, seed, full_well, read_noise, maxval, codes, noise, out):
     scale = 1.0 / full_well
     useed = np.uint64(seed)
-    nl = lut.shape[0] - 1
+    nl = codes.shape[0] - 1
     for i in range(img.shape[0]):
         e = img[i] * full_well
         if e < 0.0:
@@ -458,15 +458,14 @@ def _sensor(img, seed, full_well, read_noise, maxval, lut, noise, out):
         elif x > 1.0:
             x = 1.0  # full well: the response curve sees a clipped signal
         if nl > 0:
-            # The camera's response curve, tabulated over 0..1, linearly interpolated.
-            f = x * nl
-            k = min(int(f), nl - 1)
-            x = lut[k] + (f - k) * (lut[k + 1] - lut[k])
-        out[i] = math.floor(x * maxval + 0.5)
+            # The camera's response curve: the stored code of the nearest fine linear step.
+            out[i] = codes[int(x * nl + 0.5)]
+        else:
+            out[i] = math.floor(x * maxval + 0.5)
 
 
 def sensor_readout(img: np.ndarray, full_well: float, read_noise: float, bits: int, seed: int,
-                   response_lut: np.ndarray | None = None, noise: bool = True) -> np.ndarray:
+                   response_codes: np.ndarray | None = None, noise: bool = True) -> np.ndarray:
     """Expose an image: shot and read noise, full-well clipping, the camera's response, quantisation.
 
     Parameters
@@ -476,8 +475,8 @@ def sensor_readout(img: np.ndarray, full_well: float, read_noise: float, bits: i
     read_noise : electrons RMS
     bits : 8 or 16
     seed : noise seed (deterministic)
-    response_lut : (K,) float64 response curve sampled at K even steps of 0..1
-        (:func:`shared.sim.response.response_table`); None or empty: linear
+    response_codes : (K,) uint16 stored value of each of K even steps of the linear signal over 0..1
+        for these ``bits`` (:func:`shared.sim.response.response_codes`); None or empty: linear
     noise : add shot and read noise
 
     Returns
@@ -487,8 +486,8 @@ def sensor_readout(img: np.ndarray, full_well: float, read_noise: float, bits: i
     maxval = float((1 << bits) - 1)
     flat = np.ascontiguousarray(img, np.float32).ravel()
     out = np.empty(flat.shape[0], np.uint8 if bits == 8 else np.uint16)
-    lut = np.zeros(0, np.float64) if response_lut is None else np.ascontiguousarray(response_lut, np.float64)
-    _sensor(flat, int(seed) & 0x7FFFFFFFFFFFFFFF, float(full_well), float(read_noise), maxval, lut, bool(noise), out)
+    codes = np.zeros(0, np.uint16) if response_codes is None else np.ascontiguousarray(response_codes, np.uint16)
+    _sensor(flat, int(seed) & 0x7FFFFFFFFFFFFFFF, float(full_well), float(read_noise), maxval, codes, bool(noise), out)
     return out.reshape(img.shape)
 
 

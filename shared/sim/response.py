@@ -10,7 +10,7 @@ and ``truth.npz`` (``response``).
 
     y = apply_response(x, "srgb")       # linear fraction -> encoded fraction, float64
     x = linearise(y, "srgb")            # its inverse
-    lut = response_table("srgb")        # (RESPONSE_TABLE_SIZE,) samples for the sensor kernel
+    codes = response_codes("srgb", 8)   # stored value of every fine linear step, for the sensor kernel
 """
 
 from __future__ import annotations
@@ -19,13 +19,10 @@ import numpy as np
 
 from shared.core.errors import InputError
 
-__all__ = ["RESPONSES", "RESPONSE_TABLE_SIZE", "apply_response", "check_response", "linearise", "response_table"]
+__all__ = ["RESPONSES", "apply_response", "check_response", "linearise", "response_codes"]
 
 #: The named responses (``"gamma:G"`` takes any G in 1..4 as well).
 RESPONSES = ("linear", "srgb")
-#: Samples of the tabulated curve over 0..1: fine enough that linear interpolation is exact to a
-#: small fraction of a 16-bit step even where sRGB bends most.
-RESPONSE_TABLE_SIZE = 65537
 
 
 def check_response(response: str) -> float | None:
@@ -64,9 +61,17 @@ def linearise(y: np.ndarray, response: str) -> np.ndarray:
     return np.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
 
 
-def response_table(response: str) -> np.ndarray:
-    """The curve sampled at ``RESPONSE_TABLE_SIZE`` even steps of 0..1 (float64); empty for linear."""
+def response_codes(response: str, bits: int) -> np.ndarray:
+    """The stored value (uint16) of each of K even steps of the linear signal over 0..1; empty for linear.
+
+    The sensor rounds its linear signal to the nearest step and reads the code: K is 2^16 for 8-bit
+    images and 2^20 for 16-bit ones, fine enough that the steepest part of the curve (sRGB's
+    12.92 near black) moves a value by at most 0.05 of an 8-bit step or 0.8 of a 16-bit one.
+    """
     check_response(response)
     if response == "linear":
-        return np.zeros(0, np.float64)
-    return apply_response(np.linspace(0.0, 1.0, RESPONSE_TABLE_SIZE), response)
+        return np.zeros(0, np.uint16)
+    k = 1 << (16 if bits <= 8 else 20)
+    maxval = (1 << bits) - 1
+    y = apply_response(np.linspace(0.0, 1.0, k), response)
+    return np.floor(y * maxval + 0.5).astype(np.uint16)

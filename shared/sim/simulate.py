@@ -87,7 +87,7 @@ from shared.sim.raycast import (
     shade_points,
     undistort_grid,
 )
-from shared.sim.response import check_response, response_table
+from shared.sim.response import check_response, response_codes
 from shared.sim.scenes import (
     LABEL_NONE,
     SCENES,
@@ -440,7 +440,7 @@ class _Render:
     rig: Rig
     imaging: ImagingParams
     profiles: _Profiles
-    response_lut: np.ndarray = field(default_factory=lambda: np.zeros(0))  # empty: linear camera
+    response_codes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint16))  # empty: linear camera
 
 
 def _albedo(scene: Scene, surf_ids: np.ndarray, P: np.ndarray, rays: tuple[np.ndarray, np.ndarray],
@@ -614,7 +614,7 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
     t3 = time.perf_counter()
     log.info("virtual rig: rays+cast %.2fs, shadow map %.2fs, shading %.2fs", t1 - t0, t2 - t1, t3 - t2)
     return _Render(truth=truth, shading=shading, rig=rig, imaging=imaging, profiles=pg,
-                   response_lut=response_table(imaging.response))
+                   response_codes=response_codes(imaging.response, imaging.bits))
 
 
 def _interreflection_setup(scene: Scene, rig: Rig, imaging: ImagingParams, sm: _ShadowMap, sh: _Shading,
@@ -758,7 +758,7 @@ def _render_image(r: _Render, axis: str, bit: int, inverse: bool, noise_seed: in
         img = cv2.GaussianBlur(img, (0, 0), im.camera_blur)
         if img.ndim == 2:
             img = img[:, :, None]
-    out = sensor_readout(img, im.full_well, im.read_noise, im.bits, noise_seed, response_lut=r.response_lut,
+    out = sensor_readout(img, im.full_well, im.read_noise, im.bits, noise_seed, response_codes=r.response_codes,
                          noise=im.noise)
     if nc == 3:
         return np.ascontiguousarray(out[:, :, ::-1])  # RGB -> BGR for cv2.imwrite
