@@ -39,26 +39,27 @@ def check_response(response: str) -> float | None:
     raise InputError("response", f"must be one of {', '.join(RESPONSES)} or gamma:G with G in 1..4, got {response!r}")
 
 
+def _curve(v: np.ndarray, response: str, inverse: bool) -> np.ndarray:
+    """The response (``inverse``: its inverse) applied to values ``v`` clipped to 0..1, float64."""
+    g = check_response(response)
+    v = np.clip(np.asarray(v, np.float64), 0.0, 1.0)
+    if response == "linear":
+        return v
+    if g is not None:
+        return v**g if inverse else v ** (1.0 / g)
+    if inverse:
+        return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4)
+    return np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1 / 2.4) - 0.055)
+
+
 def apply_response(x: np.ndarray, response: str) -> np.ndarray:
     """Encoded values (float64, 0..1) of linear signals ``x`` (any shape; clipped to 0..1)."""
-    g = check_response(response)
-    x = np.clip(np.asarray(x, np.float64), 0.0, 1.0)
-    if response == "linear":
-        return x
-    if g is not None:
-        return x ** (1.0 / g)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
+    return _curve(x, response, inverse=False)
 
 
 def linearise(y: np.ndarray, response: str) -> np.ndarray:
     """Linear signals (float64, 0..1) of encoded values ``y`` (fractions of full scale, 0..1)."""
-    g = check_response(response)
-    y = np.clip(np.asarray(y, np.float64), 0.0, 1.0)
-    if response == "linear":
-        return y
-    if g is not None:
-        return y**g
-    return np.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
+    return _curve(y, response, inverse=True)
 
 
 def response_codes(response: str, bits: int) -> np.ndarray:

@@ -137,3 +137,18 @@ def test_projector_falloff_inverse_square_cosine_and_vignetting() -> None:
     assert means[0.0, 1000.0][0] < 0.95 and means[0.3, 1000.0][0] < means[0.0, 1000.0][0] - 0.07, means
     # Inverse square: 1.6 times as far, about 1 / 1.6^2 of the signal near the projector's axis.
     assert means[0.0, 1600.0][1] / means[0.0, 1000.0][1] == pytest.approx(1 / 1.6**2, rel=0.05)
+
+
+def test_cli_response_option(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    from services.cli.main import main as cli_main
+    from shared.formats.capture import load_capture
+    from shared.sim.simulate import load_truth
+
+    args = ["simulate", "--scene", "plane", "--size", "64x48", "--projector", "64x48", "--no-rows"]
+    assert cli_main([*args, "--response", "gamma:2.2", "--out", str(tmp_path / "g")]) == 0
+    assert load_truth(tmp_path / "g").response == "gamma:2.2"
+    assert load_capture(tmp_path / "g").extra["simulated"]["imaging"]["response"] == "gamma:2.2"
+    assert cli_main([*args, "--response", "log", "--out", str(tmp_path / "bad")]) == 1
+    err = capsys.readouterr().err
+    assert "response" in err and "gamma:G" in err and err.count("\n") == 1
+    assert not (tmp_path / "bad").exists()
