@@ -7,9 +7,9 @@ __all__, __getattr__, __dir__ = lazy_exports(
     __name__,
     {
         "ImagingParams": "simulate",
-        "Truth": "simulate",
-        "load_truth": "simulate",
-        "make_rig": "simulate",
+        "Truth": "truth",
+        "load_truth": "truth",
+        "make_rig": "rigs",
         "compute_truth": "simulate",
         "simulate_capture": "simulate",
         "simulate_named": "simulate",

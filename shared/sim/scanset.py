@@ -57,6 +57,7 @@ from shared.sim.scenes import (
     rotation_about,
 )
 from shared.sim.simulate import ImagingParams, make_rig, simulate_capture
+from shared.sim.truth import truth_file
 
 log = logging.getLogger(__name__)
 
@@ -89,12 +90,7 @@ class ScanSetTruth:
 
 def load_scanset_truth(path: str | os.PathLike[str]) -> ScanSetTruth:
     """Read a scan set's ``truth.npz`` (or the folder holding it)."""
-    p = Path(path)
-    if p.is_dir():
-        p = p / TRUTH_FILE
-    if not p.is_file():
-        raise InputError(p, "scan set ground-truth file not found")
-    with np.load(p) as z:
+    with np.load(truth_file(path, "scan set ground-truth file")) as z:
         return ScanSetTruth(**{k: z[k] for k in ("poses", "axis_direction", "axis_point", "angles_deg",
                                                  "mesh_vertices", "mesh_faces")})
 

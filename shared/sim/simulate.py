@@ -75,7 +75,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from shared.core.errors import InputError
 from shared.formats.capture import Capture, load_capture, write_capture
-from shared.formats.rig import Device, Rig, save_rig
+from shared.formats.rig import Rig, save_rig
 from shared.scan.graycode import capture_for_names, pattern_sequence, stripe_bits
 from shared.sim.raycast import (
     cast_plane,
@@ -88,6 +88,7 @@ from shared.sim.raycast import (
     undistort_grid,
 )
 from shared.sim.response import check_response, response_codes
+from shared.sim.rigs import make_rig
 from shared.sim.scenes import (
     LABEL_NONE,
     SCENES,
@@ -97,11 +98,12 @@ from shared.sim.scenes import (
     Sphere,
     TexturedPlane,
     build_scene,
-    rotation_about,
 )
+from shared.sim.truth import TRUTH_FILE, Truth, load_truth
 
 __all__ = [
     "SCENES",
+    "TRUTH_FILE",
     "ImagingParams",
     "Material",
     "MeshObject",
@@ -120,7 +122,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-TRUTH_FILE = "truth.npz"
 RIG_FILE = "rig.json"
 
 
@@ -174,115 +175,6 @@ class ImagingParams:
     rows: bool = True
     inverses: bool = True
     shadow_map_scale: float | None = None
-
-
-@dataclass
-class Truth:
-    """Per-camera-pixel ground truth (see the module docstring for meanings and units).
-
-    ``labels``, ``albedo`` and ``irradiance`` are None only in truth files written before they existed.
-    """
-
-    depth: np.ndarray  # (H, W) float32
-    points: np.ndarray  # (H, W, 3) float32
-    normals: np.ndarray  # (H, W, 3) float32
-    proj_col: np.ndarray  # (H, W) float32
-    proj_row: np.ndarray  # (H, W) float32
-    lit: np.ndarray  # (H, W) bool
-    surface: np.ndarray  # (H, W) int16
-    labels: np.ndarray | None = None  # (H, W) int8, LABEL_* codes of shared.sim.scenes
-    albedo: np.ndarray | None = None  # (H, W, 3) float32 linear RGB, NaN where no surface
-    irradiance: np.ndarray | None = None  # (H, W) float32 full-scale fractions per unit albedo
-    response: str = "linear"  # the camera response the images went through (see camera_response)
-
-    def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write ``truth.npz`` (uncompressed: it is written fast and read with ``np.load``)."""
-        p = Path(path)
-        extra = {k: v for k, v in (("labels", self.labels), ("albedo", self.albedo),
-                                   ("irradiance", self.irradiance)) if v is not None}
-        np.savez(p, depth=self.depth, points=self.points, normals=self.normals, proj_col=self.proj_col,
-                 proj_row=self.proj_row, lit=self.lit, surface=self.surface, response=np.array(self.response),
-                 **extra)
-        return p
-
-
-_TRUTH_KEYS = ("depth", "points", "normals", "proj_col", "proj_row", "lit", "surface")
-
-
-def load_truth(path: str | os.PathLike[str]) -> Truth:
-    """Read a ``truth.npz`` (or the capture folder holding one)."""
-    p = Path(path)
-    if p.is_dir():
-        p = p / TRUTH_FILE
-    if not p.is_file():
-        raise InputError(p, "ground-truth file not found")
-    with np.load(p) as z:
-        missing = [k for k in _TRUTH_KEYS if k not in z.files]
-        if missing:
-            raise InputError(p, f"not a ground-truth file: no {', '.join(missing)}")
-        extra = {k: z[k] for k in ("labels", "albedo", "irradiance") if k in z.files}
-        response = str(z["response"]) if "response" in z.files else "linear"
-        return Truth(**{k: z[k] for k in _TRUTH_KEYS}, **extra, response=response)
-
-
-# ---------------------------------------------------------------------------------------------
-# The rig
-
-
-def make_rig(
-    camera_size: tuple[int, int] = (2048, 1536),
-    projector_size: tuple[int, int] = (1024, 768),
-    seed: int = 0,
-    working_distance: float = 1000.0,
-    baseline: float = 220.0,
-    distortion: bool = True,
-    camera_fov_width: float = 490.0,
-    projector_throw: float = 1.55,
-) -> Rig:
-    """A realistic camera + projector rig in mm; ``seed`` perturbs every parameter slightly.
-
-    The camera sits at the origin looking down +Z; its focal length gives ``camera_fov_width`` mm of
-    view at ``working_distance`` whatever its resolution (so a 15 MP camera sees the same scene,
-    finer). The projector (throw ratio ``projector_throw``) sits ``baseline`` mm to the camera's
-    right, toed in so that its axis crosses the camera's at ``working_distance``. Both have small
-    lens distortion ``(k1, k2, p1, p2, k3)`` unless ``distortion`` is False.
-    """
-    rng = np.random.default_rng(seed)
-    cw, ch = camera_size
-    pw, ph = projector_size
-    fc = cw * working_distance / camera_fov_width * (1 + rng.uniform(-0.01, 0.01))
-    Kc = np.array([[fc, 0.0, cw / 2 - 0.5 + rng.uniform(-0.015, 0.015) * cw],
-                   [0.0, fc * (1 + rng.uniform(-0.001, 0.001)), ch / 2 - 0.5 + rng.uniform(-0.015, 0.015) * ch],
-                   [0.0, 0.0, 1.0]])
-    fp = pw * projector_throw * (1 + rng.uniform(-0.01, 0.01))
-    # Office projectors throw upwards: principal point below the image centre.
-    Kp = np.array([[fp, 0.0, pw / 2 - 0.5 + rng.uniform(-0.01, 0.01) * pw],
-                   [0.0, fp * (1 + rng.uniform(-0.001, 0.001)), ph * 0.58 + rng.uniform(-0.01, 0.01) * ph],
-                   [0.0, 0.0, 1.0]])
-    if distortion:
-        dc = np.array([-0.07, 0.11, 4e-4, -3e-4, -0.03]) * (1 + rng.uniform(-0.2, 0.2, 5))
-        dp = np.array([0.04, -0.05, -2e-4, 3e-4, 0.0]) * (1 + rng.uniform(-0.2, 0.2, 5))
-    else:
-        dc = np.zeros(5)
-        dp = np.zeros(5)
-    # Projector centre in the camera frame, and its orientation: toe-in towards the camera axis at
-    # the working distance, the principal point's offset taken into account so the projected
-    # image's centre lands there.
-    C = np.array([baseline, rng.uniform(-8, 8), rng.uniform(-10, 10)])
-    target = np.array([0.0, 0.0, working_distance])
-    z = target - C
-    z /= np.linalg.norm(z)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R_cam_from_proj = np.column_stack([x, y, z])
-    # Tilt so the projector's image centre (not its principal point) aims at the target.
-    tilt = np.degrees(np.arctan2(Kp[1, 2] - (ph / 2 - 0.5), fp))
-    R_cam_from_proj = R_cam_from_proj @ rotation_about([1, 0, 0], -tilt)
-    R_cam_from_proj = R_cam_from_proj @ rotation_about(rng.normal(size=3), rng.uniform(0.1, 0.4))
-    R = R_cam_from_proj.T
-    T = -R @ C
-    return Rig(camera=Device(cw, ch, Kc, dc), projector=Device(pw, ph, Kp, dp), R=R, T=T)
 
 
 # ---------------------------------------------------------------------------------------------

@@ -44,6 +44,7 @@ _SIMULATOR_SOURCES = (
     "sim/scenes.py",
     "sim/raycast.py",
     "sim/response.py",
+    "sim/rigs.py",
     "sim/calibration.py",
     "scan/graycode.py",
     "formats/capture.py",
