@@ -28,5 +28,13 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "decode_stage": "pipeline",
         "triangulate_stage": "pipeline",
         "scan": "pipeline",
+        "view_albedo": "pipeline",
+        "AlbedoParams": "albedo",
+        "CameraResponse": "albedo",
+        "SampleAlbedo": "albedo",
+        "estimate_albedo": "albedo",
+        "parse_response": "albedo",
+        "projector_geometry": "albedo",
+        "smooth_normals": "albedo",
     },
 )
