@@ -46,6 +46,7 @@ __all__ = [
     "encode_srgb",
     "estimate_albedo",
     "linear_from_srgb",
+    "params_for_rig",
     "parse_response",
     "projector_geometry",
     "smooth_normals",
@@ -153,6 +154,24 @@ class AlbedoParams:
     min_cos: float = 0.26
     min_valid_share: float = 0.05
     normal_radius: int = 4
+
+
+def params_for_rig(rig: Rig, **overrides) -> AlbedoParams:
+    """The albedo parameters a rig's ``radiometry`` (:mod:`shared.formats.rig`) implies; without
+    it the defaults (an sRGB camera, no falloff). ``overrides`` replace fields."""
+    r = rig.radiometry or {}
+    resp = r.get("camera_response", "srgb")
+    if isinstance(resp, str):
+        response = CameraResponse("gamma", gamma=float(resp[6:])) if resp.startswith("gamma:") else CameraResponse(resp)
+    else:
+        curve = np.asarray(resp, np.float64)
+        curve = (curve - curve[0]) / (curve[-1] - curve[0])
+        response = CameraResponse("table", table=tuple(float(c) for c in curve))
+    kw = {"response": response, "vignetting": tuple(r.get("projector_vignetting", ())),
+          "projector_cos_power": float(r.get("projector_falloff_cos_power", 0.0)),
+          "camera_cos_power": float(r.get("camera_falloff_cos_power", 0.0))}
+    kw.update(overrides)
+    return AlbedoParams(**kw)
 
 
 @dataclass

@@ -36,7 +36,7 @@ from shared.formats.capture import Capture, load_capture
 from shared.formats.images import probe_image, read_colour
 from shared.formats.ply import write_ply
 from shared.formats.rig import Rig, check_rig_matches, load_rig
-from shared.scan.albedo import AlbedoParams, SampleAlbedo, estimate_albedo, smooth_normals
+from shared.scan.albedo import AlbedoParams, SampleAlbedo, estimate_albedo, params_for_rig, smooth_normals
 from shared.scan.decode import Decoded, decode_capture, load_decoded, save_decoded
 from shared.scan.triangulate import Triangulated, rig_tables, triangulate
 from shared.scan.triangulate import load_kernels as load_triangulation_kernels
@@ -144,8 +144,9 @@ def view_albedo(capture: Capture, tri: Triangulated, rig: Rig, white: np.ndarray
     """The albedo of a triangulated view from its capture's white and black frames.
 
     white : (H, W, 3) uint8 RGB white frame when already read (the decode's ``colour``).
+    params : None: from the rig's ``radiometry`` (:func:`shared.scan.albedo.params_for_rig`).
     """
-    params = params or AlbedoParams()
+    params = params or params_for_rig(rig)
     size = (rig.camera.width, rig.camera.height)
     if white is None:
         white = read_colour(capture.white, size)

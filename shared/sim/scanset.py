@@ -36,7 +36,7 @@ from shared.formats.mesh import TriangleMesh
 from shared.formats.rig import save_rig
 from shared.formats.scanset import SCANSET_FILE, Roi, scanset_doc, write_scanset
 from shared.sim.scenes import Material, MeshObject, Scene, TexturedPlane, build_scene, rotation_about
-from shared.sim.simulate import ImagingParams, make_rig, simulate_capture
+from shared.sim.simulate import ImagingParams, make_rig, sim_radiometry, simulate_capture
 
 log = logging.getLogger(__name__)
 
@@ -185,7 +185,7 @@ def simulate_scanset(
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     tmp.chmod(0o755)
     try:
-        save_rig(rig, tmp / "rig.json")
+        save_rig(replace(rig, radiometry=rig.radiometry or sim_radiometry(imaging)), tmp / "rig.json")
         entries = []
         for i, sc in enumerate(scenes):
             name = f"view_{i:02d}"

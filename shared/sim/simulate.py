@@ -756,6 +756,15 @@ def compute_truth(scene: Scene, rig: Rig, imaging: ImagingParams | None = None) 
     return _render_setup(scene, rig, imaging or ImagingParams(), with_shading=False).truth
 
 
+def sim_radiometry(imaging: ImagingParams | None = None) -> dict[str, object]:
+    """The rig's ``radiometry`` (:mod:`shared.formats.rig`) as this simulator forms images: a
+    linear sensor, the projector's cos^3 falloff (:func:`shared.sim.raycast.shade_points`) and the
+    camera's cos^4 vignetting when it is on; a scan divides them out to recover the albedo."""
+    imaging = imaging or ImagingParams()
+    return {"camera_response": "linear", "projector_falloff_cos_power": 3.0,
+            "camera_falloff_cos_power": 4.0 if imaging.vignetting else 0.0}
+
+
 def _check_size(camera_size: tuple[int, int]) -> None:
     w, h = camera_size
     if not (16 <= w <= 20000 and 16 <= h <= 20000):
@@ -817,7 +826,7 @@ def simulate_capture(
             for f in pending:
                 f.result()
         t2 = time.perf_counter()
-        save_rig(rig, tmp / RIG_FILE)
+        save_rig(replace(rig, radiometry=rig.radiometry or sim_radiometry(imaging)), tmp / RIG_FILE)
         if write_truth:
             r.truth.save(tmp / TRUTH_FILE)
         capture = capture_for_names(tmp, rig.projector.width, rig.projector.height, rows=imaging.rows,

@@ -13,12 +13,14 @@ from shared.core.errors import InputError
 from shared.formats.capture import load_capture
 from shared.formats.images import read_colour
 from shared.formats.ply import read_header, read_ply, write_ply
+from shared.formats.rig import load_rig, parse_rig
 from shared.scan.albedo import (
     REASONS,
     AlbedoParams,
     CameraResponse,
     estimate_albedo,
     linear_from_srgb,
+    params_for_rig,
     parse_response,
     smooth_normals,
 )
@@ -62,7 +64,9 @@ def _mae_up_to_scale(estimate: np.ndarray, truth: np.ndarray, mask: np.ndarray) 
 
 def test_albedo_matches_the_simulators_albedo_far_better_than_the_shaded_colour(spheres) -> None:
     cap, rig, decoded, tri, true_albedo = spheres
-    alb = view_albedo(cap, tri, rig, white=decoded.colour, params=SIM)
+    rig = load_rig(Path(cap.root) / "rig.json")  # the simulator writes how it forms images there
+    alb = view_albedo(cap, tri, rig, white=decoded.colour)
+    assert alb.stats["response"] == "linear" and alb.stats["projector_cos_power"] == SIM.projector_cos_power
     assert alb.trusted and alb.stats["valid_share"] > 0.8
     ok = (alb.weight > 0) & np.isfinite(true_albedo).all(axis=1)
     shaded = tri.rgb.astype(np.float32) / 255.0  # linear sensor: the white frame's colour as it is today
@@ -204,3 +208,18 @@ def test_scan_writes_the_albedo_and_falls_back_on_a_saturated_white_frame(tmp_pa
     report = scan(cap.root, tmp_path / "sat")
     assert report["albedo"]["status"] == "fallback" and "saturated" in report["albedo"]["fallback"]
     assert "albedo_red" not in read_header(tmp_path / "sat" / "cloud.ply").dtype.names
+
+
+def test_rig_radiometry_is_validated_and_drives_the_albedo_parameters() -> None:
+    rig = make_rig((320, 240))
+    doc = rig.to_json()
+    doc["radiometry"] = {"camera_response": "gamma:2.2", "projector_falloff_cos_power": 3,
+                         "projector_vignetting": [-0.2]}
+    params = params_for_rig(parse_rig(doc))
+    assert params.response.kind == "gamma" and params.response.gamma == 2.2
+    assert params.projector_cos_power == 3 and params.vignetting == (-0.2,) and params.camera_cos_power == 0
+    assert params_for_rig(rig).response.kind == "srgb"  # no radiometry: an sRGB camera
+    for bad, field in (({"camera_response": "log"}, "camera_response"), ({"camera_response": [0, 1]}, "camera_response"),
+                       ({"projector_falloff_cos_power": 12}, "projector_falloff_cos_power"), ({"flash": 1}, "flash")):
+        with pytest.raises(InputError, match=f"radiometry.{field}"):
+            parse_rig({**doc, "radiometry": bad})
