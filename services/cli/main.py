@@ -24,6 +24,7 @@ COMMAND_MODULES = [
     "services.cli.rig",
     "services.cli.compress",
     "services.cli.merge",
+    "services.cli.derive",
 ]
 
 #: The commands each of :data:`COMMAND_MODULES` registers (a test keeps the two in step). A
@@ -42,6 +43,7 @@ COMMANDS = {
     "rig": "services.cli.rig",
     "compress": "services.cli.compress", "decompress": "services.cli.compress",
     "merge": "services.cli.merge",
+    "derivatives": "services.cli.derive",
 }  # fmt: skip
 
 

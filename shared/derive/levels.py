@@ -101,7 +101,7 @@ def parse_levels(spec: str | list | None) -> list[Level]:
             except ValueError:
                 raise InputError(f"levels.{parts[0]}", f"{item!r}: faces and texture size must be integers") from None
             base = LEVELS.get(parts[0])
-            level = Level(parts[0], faces, px, base.jpeg_quality if base else 79, None)
+            level = Level(parts[0], faces, px, base.jpeg_quality if base else 79, base.max_bytes if base else None)
         elif isinstance(item, str) and item in LEVELS:
             level = LEVELS[item]
         else:

@@ -164,3 +164,14 @@ def test_colour_fallbacks_and_bad_input(scene: Path, tmp_path: Path) -> None:
     with pytest.raises(InputError, match="too few to unwrap"):
         make_derivatives(tiny, tmp_path / "o5", levels="t:500:128")
     assert not list((tmp_path / "o5").iterdir())
+
+
+def test_command_line(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from services.cli.main import main
+
+    assert main(["derivatives", str(scene), "--out", str(tmp_path / "cli"), "--levels", "thumb:2000:256"]) == 0
+    out = capsys.readouterr().out
+    assert "thumb" in out and "budget 200 kB: within" in out and (tmp_path / "cli" / "mesh_thumb.glb").is_file()
+    assert main(["derivatives", str(scene), "--out", str(tmp_path / "bad"), "--levels", "thumb:0:256"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "levels.thumb.faces" in err[0]
