@@ -167,6 +167,10 @@ class StageSpec:
 #: default ``MeshParams.lods``, 1/4, 1/16 and 1/64 of the faces), published by their names.
 MESH_LOD_FILES: tuple[str, ...] = ("mesh_lod1.glb", "mesh_lod2.glb", "mesh_lod3.glb")
 
+#: The derivative GLBs a ``derivatives`` stage may write (shared.derive.levels: the job parameter
+#: accepts these level names only, so that every file it writes is published by its name).
+DERIVATIVE_FILES: tuple[str, ...] = tuple(f"mesh_{n}.glb" for n in ("thumb", "low", "medium", "high", "highest"))
+
 GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     "scan": (
         StageSpec("ingest", "cpu", (CAPTURE,), 600, publish=("capture.json",), params=("rig",)),
@@ -206,6 +210,10 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
                   publish=("merged.ply", "registration.json", "mesh.glb", "mesh.ply", "report.json",
                            *MESH_LOD_FILES),
                   params=("drop_unregistered",)),
+        # Textured web derivatives of the merge (shared.derive): one Draco GLB per level;
+        # {"derivatives": false} leaves them out, an object chooses levels and colour.
+        StageSpec("derivatives", "cpu", ("mv_merge",), 7200, publish=(*DERIVATIVE_FILES, "derivatives.json"),
+                  params=("derivatives",), switch="derivatives"),
         # The object compressed: the merged cloud (merged.glo) or the views' range images
         # (ranges/*.glr), whichever is smaller.
         StageSpec("mv_compress", "cpu", ("mv_merge",), 3600, publish=("merged.glo", "compress.json"), params=("compress",)),
