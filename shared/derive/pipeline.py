@@ -26,9 +26,11 @@ from typing import Any
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from shared.core.errors import InputError
 from shared.core.files import write_json_atomic
+from shared.core.threads import cpu_budget
 from shared.derive.bake import BakeParams, ColourSource, bake_maps, unwrap, vertex_normals
 from shared.derive.gltf import encode_jpeg, write_textured_glb
 from shared.derive.levels import Level, parse_levels
@@ -164,8 +166,12 @@ def make_derivatives(merge_dir: Path, out_dir: Path | None = None, levels: str |
         # Each level from the master, largest first (a coarser level from a finer one would be
         # faster, but each level's own quadric error is measured against the master this way).
         results = [_level(lv, mv, mf, source, mv, mn, staging, params, colour) for lv in plan]
+        # The master's own vertices where no sample is near: surface Poisson bridged without data.
+        d, nb = cKDTree(source.xyz).query(mv, workers=cpu_budget())
+        bridged = d > params.bridge_factor * np.maximum(source.size[nb], 1e-6)
         report: dict[str, Any] = {
-            "master": {"faces": int(len(mf)), "vertices": int(len(mv))},
+            "master": {"faces": int(len(mf)), "vertices": int(len(mv)),
+                       "bridged_vertex_share": round(float(bridged.mean()), 5)},
             "colour": colour, "colour_baked": source.kind, "warnings": warnings, "levels": results,
             "seconds": round(time.perf_counter() - t0, 3),
         }

@@ -175,3 +175,19 @@ def test_command_line(scene: Path, tmp_path: Path, capsys: pytest.CaptureFixture
     assert main(["derivatives", str(scene), "--out", str(tmp_path / "bad"), "--levels", "thumb:0:256"]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "levels.thumb.faces" in err[0]
+
+
+def test_surface_bridged_without_data_is_marked(tmp_path: Path) -> None:
+    from shared.formats.ply import write_ply
+
+    folder = write_scene(tmp_path / "holed", faces_subdiv=4, points=60_000)
+    pc = read_ply(folder / "merged.ply")
+    keep = pc.xyz[:, 2] < 25.0  # no sample on the top cap: the master bridges it
+    write_ply(folder / "merged.ply", pc.xyz[keep], rgb=pc.rgb[keep], normals=pc.normals[keep], size=pc.size[keep],
+              albedo=pc.albedo[keep], albedo_weight=pc.albedo_weight[keep])
+    report = make_derivatives(folder, tmp_path / "out", levels="t:3000:256")
+    cap_share = float(np.mean(load_master(folder / "mesh.ply")[0][:, 2] >= 25.0))
+    assert 0.5 * cap_share < report["master"]["bridged_vertex_share"] <= cap_share
+    mask = cv2.imread(str(tmp_path / "out" / "mesh_t_bridged.png"), cv2.IMREAD_UNCHANGED)
+    marked = report["levels"][0]["bake"]["bridged_share"]
+    assert 0.02 < marked < 0.2 and (mask == 255).any()
