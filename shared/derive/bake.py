@@ -269,7 +269,10 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
         sign = np.sign(np.einsum("ij,ij->i", np.cross(n, T), B_f[fid[sl]]))
         B = np.cross(n, T) * np.where(sign == 0, 1.0, sign)[:, None]
         ts = np.stack([np.einsum("ij,ij->i", hi, T), np.einsum("ij,ij->i", hi, B), np.einsum("ij,ij->i", hi, n)], 1)
-        ts[:, 2] = np.maximum(ts[:, 2], 0.0)  # a master normal behind the level's surface is noise
+        # A master normal more than about 80 degrees off the level's comes from another sheet of
+        # the surface (a thin ear, the far side of a fold the decimation closed): flat there,
+        # rather than a texel that lights as if seen edge-on.
+        ts[ts[:, 2] < 0.17] = (0.0, 0.0, 1.0)
         ts /= np.maximum(np.linalg.norm(ts, axis=1, keepdims=True), 1e-30)
         nmap[sl] = np.clip(np.rint((ts * 0.5 + 0.5) * 255), 0, 255).astype(np.uint8)
     t3 = time.perf_counter()
