@@ -208,11 +208,12 @@ def _occlusion(m: UVMesh, rays: int, reach: float) -> np.ndarray:
 
 
 def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices: np.ndarray,
-              master_normals: np.ndarray, params: BakeParams | None = None) -> Maps:
+              master_normals: np.ndarray, params: BakeParams | None = None, chunk: int = 1 << 20) -> Maps:
     """Bake base colour, normal, occlusion and bridged maps of a level (see the module docstring).
 
     m : the level with its atlas; colours : the samples; master_vertices (M, 3), master_normals
-    (M, 3): the master mesh the normal map carries the detail of.
+    (M, 3): the master mesh the normal map carries the detail of. Texels are baked ``chunk`` at a
+    time, so the memory beyond the maps themselves stays bounded at any texture size.
     """
     params = params or BakeParams()
     t0 = time.perf_counter()
@@ -224,62 +225,60 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
     idx = np.flatnonzero(covered.ravel())
     if len(idx) == 0:
         raise InputError("mesh", "the atlas covers no texel")
-    fid = face_id.ravel()[idx]
-    b = bary.reshape(-1, 3)[idx].astype(np.float64)
-    del bary
-    corners = m.faces[fid]
-    P = np.einsum("nk,nkj->nj", b, m.vertices[corners])
-    N = np.einsum("nk,nkj->nj", b, m.normals[corners].astype(np.float64))
-    N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-30)
     t1 = time.perf_counter()
     workers = cpu_budget()
-    # Base colour: Gaussian-weighted mean of the nearest samples facing the same way, in linear light.
     tree = cKDTree(colours.xyz)
+    mtree = cKDTree(master_vertices)
+    T_f, B_f = _tangent_frames(m)
+    ao_v = _occlusion(m, params.ao_rays, params.ao_reach)
+    t2 = time.perf_counter()
     lut = linear_from_srgb(np.arange(256, dtype=np.float32) / 255.0)
     colour = np.empty((len(idx), 3), np.uint8)
+    nmap = np.empty((len(idx), 3), np.uint8)
+    ao8 = np.empty(len(idx), np.uint8)
     bridged = np.zeros(len(idx), bool)
+    occlusion_sum = 0.0
     k = max(1, params.neighbours)
-    chunk = 1 << 20
     for s in range(0, len(idx), chunk):
         sl = slice(s, min(len(idx), s + chunk))
-        d, nb = tree.query(P[sl], k=k, workers=workers)
+        fid = face_id.ravel()[idx[sl]]
+        b = bary.reshape(-1, 3)[idx[sl]].astype(np.float64)
+        corners = m.faces[fid]
+        P = np.einsum("nk,nkj->nj", b, m.vertices[corners])
+        N = np.einsum("nk,nkj->nj", b, m.normals[corners].astype(np.float64))
+        N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-30)
+        # Base colour: Gaussian-weighted mean of the nearest samples facing the same way, in linear light.
+        d, nb = tree.query(P, k=k, workers=workers)
         d = d.reshape(len(d), k)
         nb = nb.reshape(len(nb), k)
         sigma = np.maximum(colours.size[nb[:, 0]].astype(np.float64), 1e-6)
-        facing = np.einsum("nkj,nj->nk", colours.normals[nb].astype(np.float64), N[sl]) > 0.2
+        facing = np.einsum("nkj,nj->nk", colours.normals[nb].astype(np.float64), N) > 0.2
         w = np.exp(-0.5 * (d / sigma[:, None]) ** 2) * facing
         w[:, 0] += 1e-6  # never all zero: the nearest sample stands in
         lin = np.einsum("nk,nkc->nc", w, lut[colours.rgb[nb]]) / w.sum(axis=1, keepdims=True)
         colour[sl] = encode_srgb(lin)
         bridged[sl] = d[:, 0] > params.bridge_factor * sigma
-    t2 = time.perf_counter()
-    # Normal map: the master's normals in the level's tangent frame.
-    mtree = cKDTree(master_vertices)
-    T_f, B_f = _tangent_frames(m)
-    nmap = np.empty((len(idx), 3), np.uint8)
-    for s in range(0, len(idx), chunk):
-        sl = slice(s, min(len(idx), s + chunk))
-        d, nb = mtree.query(P[sl], k=4, workers=workers)
+        # Normal map: the master's normals in the level's tangent frame.
+        d, nb = mtree.query(P, k=4, workers=workers)
         w = 1.0 / np.maximum(d, 1e-9)
         hi = np.einsum("nk,nkj->nj", w, master_normals[nb].astype(np.float64))
         hi /= np.maximum(np.linalg.norm(hi, axis=1, keepdims=True), 1e-30)
-        n = N[sl]
-        T = T_f[fid[sl]] - n * np.einsum("ij,ij->i", T_f[fid[sl]], n)[:, None]
+        T = T_f[fid] - N * np.einsum("ij,ij->i", T_f[fid], N)[:, None]
         T /= np.maximum(np.linalg.norm(T, axis=1, keepdims=True), 1e-30)
-        sign = np.sign(np.einsum("ij,ij->i", np.cross(n, T), B_f[fid[sl]]))
-        B = np.cross(n, T) * np.where(sign == 0, 1.0, sign)[:, None]
-        ts = np.stack([np.einsum("ij,ij->i", hi, T), np.einsum("ij,ij->i", hi, B), np.einsum("ij,ij->i", hi, n)], 1)
+        sign = np.sign(np.einsum("ij,ij->i", np.cross(N, T), B_f[fid]))
+        B = np.cross(N, T) * np.where(sign == 0, 1.0, sign)[:, None]
+        ts = np.stack([np.einsum("ij,ij->i", hi, T), np.einsum("ij,ij->i", hi, B), np.einsum("ij,ij->i", hi, N)], 1)
         # A master normal more than about 80 degrees off the level's comes from another sheet of
         # the surface (a thin ear, the far side of a fold the decimation closed): flat there,
         # rather than a texel that lights as if seen edge-on.
         ts[ts[:, 2] < 0.17] = (0.0, 0.0, 1.0)
         ts /= np.maximum(np.linalg.norm(ts, axis=1, keepdims=True), 1e-30)
         nmap[sl] = np.clip(np.rint((ts * 0.5 + 0.5) * 255), 0, 255).astype(np.uint8)
+        ao = np.einsum("nk,nk->n", b, ao_v[corners])
+        occlusion_sum += float(ao.sum())
+        ao8[sl] = np.clip(np.rint(ao * 255), 0, 255).astype(np.uint8)
+    del bary
     t3 = time.perf_counter()
-    ao_v = _occlusion(m, params.ao_rays, params.ao_reach)
-    ao = np.einsum("nk,nk->n", b, ao_v[corners])
-    ao8 = np.clip(np.rint(ao * 255), 0, 255).astype(np.uint8)
-    t4 = time.perf_counter()
 
     def image(values: np.ndarray, fill: int) -> np.ndarray:
         img = np.full((S * S, values.shape[1] if values.ndim == 2 else 1), fill, np.uint8)
@@ -294,9 +293,9 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
         "texture_px": S,
         "texels_covered_share": round(len(idx) / (S * S), 4),
         "bridged_share": round(float(bridged.mean()), 4),
-        "mean_occlusion": round(float(1 - ao.mean()), 4),
+        "mean_occlusion": round(1 - occlusion_sum / len(idx), 4),
         "colour": colours.kind,
-        "seconds": {"raster": round(t1 - t0, 3), "colour": round(t2 - t1, 3), "normal": round(t3 - t2, 3),
-                    "occlusion": round(t4 - t3, 3), "fill": round(time.perf_counter() - t4, 3)},
+        "seconds": {"raster": round(t1 - t0, 3), "occlusion": round(t2 - t1, 3), "texels": round(t3 - t2, 3),
+                    "fill": round(time.perf_counter() - t3, 3)},
     }
     return Maps(base_colour=base, normal=normal, occlusion=occl, bridged=bmask, covered=covered, stats=stats)
