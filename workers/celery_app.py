@@ -21,8 +21,15 @@ from celery.signals import worker_process_init
 from shared.service.config import Settings, get_settings
 from shared.service.jobs import all_stage_specs
 from shared.service.jobstore import dispose_engines
-from shared.service.queue import RECONCILE_TASK, RERENDER_TASK, celery_config, task_name
-from workers.reconciler import enqueue_preview_rerender, reconcile_once
+from shared.service.queue import (
+    RECONCILE_TASK,
+    RERENDER_PREVIEW_TASK,
+    RERENDER_TASK,
+    celery_config,
+    task_name,
+)
+from workers.reconciler import reconcile_once
+from workers.rerender import enqueue_rerenders, run_rerender
 from workers.runner import TRANSIENT, run_stage
 from workers.warmup import load_kernels_in_background
 
@@ -64,11 +71,20 @@ def make_app(settings: Settings) -> Celery:
     def reconcile_task() -> dict[str, int]:
         return reconcile_once(settings).as_dict()
 
-    def rerender_task() -> int:
-        return enqueue_preview_rerender(settings, settings.rerender_mode)
+    def rerender_task(mode: str = "changed") -> int:
+        # The mode comes in the message from beat (its GRAYLIGHT_RERENDER_MODE): the worker's
+        # own environment does not decide it.
+        return enqueue_rerenders(settings, mode)
+
+    def rerender_preview_task(rerender_id: str) -> str:
+        return run_rerender(str(rerender_id), settings)
 
     app.task(reconcile_task, name=RECONCILE_TASK, queue=settings.queue("control"), time_limit=300, shared=False)
     app.task(rerender_task, name=RERENDER_TASK, queue=settings.queue("control"), time_limit=3600, shared=False)
+    preview = all_stage_specs()["preview"]
+    app.task(rerender_preview_task, name=RERENDER_PREVIEW_TASK, queue=settings.queue("render"), shared=False,
+             time_limit=preview.time_limit, soft_time_limit=int(preview.time_limit * 0.9),
+             autoretry_for=TRANSIENT, retry_backoff=2, retry_backoff_max=120, retry_jitter=True, max_retries=4)  # fmt: skip
     return app
 
 

@@ -15,21 +15,24 @@ Run by beat every ``GRAYLIGHT_RECONCILE_SECONDS`` (on the ``control`` queue). It
    chunks: abandoned uploads would otherwise fill the storage (a finished one has already
    become a capture object and lost its chunks).
 
-:func:`enqueue_preview_rerender` is what the nightly beat entry calls.
+5. queues again the preview re-renders (:mod:`shared.service.rerenders`) whose worker died
+   (no heartbeat for a lease) or whose message was lost (queued for a lease), and publishes them.
+
+The nightly re-render itself is :func:`workers.rerender.enqueue_rerenders`.
 """
 
 from __future__ import annotations
 
-import datetime as dt
 import logging
 import time
 from dataclasses import asdict, dataclass
 
 from shared.service.artifacts import ArtifactError, ArtifactStore
 from shared.service.config import Settings
-from shared.service.jobs import JobState, StageState, row_key
+from shared.service.jobs import StageState
 from shared.service.jobstore import JobStore, Stage
-from shared.service.queue import publish_stages
+from shared.service.queue import publish_rerender, publish_stages
+from shared.service.rerenders import RerenderStore
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +44,7 @@ class ReconcileReport:
     failed: int = 0
     settled: int = 0
     uploads_deleted: int = 0
+    rerenders_requeued: int = 0
 
     def as_dict(self) -> dict[str, int]:
         return asdict(self)
@@ -109,7 +113,30 @@ def reconcile_once(settings: Settings, store: JobStore | None = None, now: float
     if to_publish:
         report.republished = publish_stages(to_publish, settings)
     report.uploads_deleted = _delete_expired_uploads(settings, store, now, arts)
+    report.rerenders_requeued = _repair_rerenders(settings, store, now)
     return report
+
+
+def _repair_rerenders(settings: Settings, store: JobStore, now: float) -> int:
+    """Step 5: a running re-render whose lease expired is queued again; a queued one's message
+    is sent again when the render queue is empty (it was lost) or after ten leases (as for
+    stages: a nightly run of many re-renders waits in the queue without being re-sent)."""
+    lease = settings.lease_seconds
+    rr = RerenderStore(store)
+    stale = rr.stale_rerenders(now - lease)
+    if not stale:
+        return 0
+    lengths = _queue_lengths(settings, {"render"}) if any(r.state == StageState.QUEUED for r in stale) else None
+    count = 0
+    for rec in stale:
+        if rec.state == StageState.QUEUED:
+            queue_empty = lengths is not None and lengths.get("render", 1) == 0
+            if not (queue_empty or rec.queued_at < now - 10 * lease):
+                continue
+        if rr.requeue_rerender(rec):
+            publish_rerender(rec.id, settings)
+            count += 1
+    return count
 
 
 def _delete_expired_uploads(settings: Settings, store: JobStore, now: float, arts: ArtifactStore | None) -> int:
@@ -128,42 +155,4 @@ def _delete_expired_uploads(settings: Settings, store: JobStore, now: float, art
         count += store.delete_upload(upload_id)
     if count:
         log.info("reconciler: deleted %d upload sessions older than %g h", count, settings.upload_ttl_hours)
-    return count
-
-
-def enqueue_preview_rerender(settings: Settings, mode: str = "changed", store: JobStore | None = None) -> int:
-    """Re-render the previews of finished scan jobs, on the render queue; returns how many.
-
-    ``mode="all"`` re-renders every preview (a new ``preview_epoch`` parameter changes the
-    stage's key, so the stored video is not simply reused); ``"changed"`` only those whose
-    preview key differs from the stored one (the preview stage's version or its parameters
-    changed). Only the preview stage runs again; scan stages are untouched, and the cpu
-    queue is not used, so new scan jobs are not held up.
-    """
-    if mode not in ("changed", "all"):
-        raise ValueError(f"mode must be 'changed' or 'all', got {mode!r}")
-    store = store or JobStore(settings.database_url)
-    epoch = dt.datetime.now(dt.UTC).strftime("%Y-%m-%dT%H:%M")
-    # Collect first: resetting a job takes it out of the "succeeded" pages being walked.
-    finished = []
-    offset = 0
-    while True:
-        jobs, _total = store.list_jobs(state=JobState.SUCCEEDED, limit=200, offset=offset)
-        if not jobs:
-            break
-        offset += len(jobs)
-        finished.extend(j for j in jobs if any(s.name == "preview" for s in j.stages))
-    count = 0
-    for job in finished:
-        preview = job.stage("preview")
-        params = dict(job.params)
-        if mode == "all":
-            params["preview_epoch"] = epoch
-        upstream = {d: job.stage(d).output_key or "" for d in preview.depends_on}
-        if row_key(job.kind, "preview", job.capture_key, params, upstream) == preview.output_key:
-            continue
-        newly = store.reset_stages(job.id, ["preview"], params=params)
-        publish_stages(newly, settings)
-        count += 1
-    log.info("nightly re-render: %d previews queued (%s)", count, mode)
     return count

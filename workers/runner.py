@@ -29,16 +29,19 @@ from __future__ import annotations
 import json
 import logging
 import os
+import re
 import shutil
 import socket
 import tempfile
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from shared.core.errors import InputError
 from shared.service.archive import ArchiveLimits, extract_archive
 from shared.service.artifacts import ArtifactError, ArtifactStore, detached_key, sha256_file
+from shared.service.capture_cache import release_capture, sweep_captures
 from shared.service.config import Settings
 from shared.service.faults import storage_fault
 from shared.service.jobs import (
@@ -120,10 +123,14 @@ class Heartbeat(threading.Thread):
             raise LeaseLost(f"stage {self.stage_id} lost its lease")
         self.progress = fraction
 
+    def renew(self) -> bool:
+        """Renew the lease with the current progress; False when it is lost."""
+        return self.store.heartbeat(self.stage_id, self.token, self.progress)
+
     def run(self) -> None:
         while not self._stop_event.wait(self.interval):
             try:
-                if not self.store.heartbeat(self.stage_id, self.token, self.progress):
+                if not self.renew():
                     log.warning("stage %s: lease lost", self.stage_id)
                     self.lost.set()
                     return
@@ -170,6 +177,8 @@ def materialize_capture(job: Job, arts: ArtifactStore, settings: Settings) -> Pa
                 info = arts.ref_info(ref)
             except FileNotFoundError:
                 raise InputError(ref, "no such file or folder in storage") from None
+            except ArtifactError as exc:  # a link out of the store (made after intake), a FIFO
+                raise InputError("capture_ref", str(exc)) from None
             if info.get("type") == "directory":
                 staged = Path(tmp) / "dir"
                 try:
@@ -254,8 +263,11 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
         if retries_left:
             store.release_stage(stage_id, token, reason)
             raise
-        store.fail_stage(stage_id, token, f"gave up after retries; {reason}")
-        return Outcome("failed", stage_id, reason)
+        log.error("job %s stage %s: gave up after retries; %s", job.id, stage.name, reason)
+        msg = (f"stage {stage.name} gave up after retries: a connection to the broker, the database or the "
+               "store kept failing; the worker's log has the details")
+        store.fail_stage(stage_id, token, msg)
+        return Outcome("failed", stage_id, msg)
     except Exception as exc:
         from celery.exceptions import SoftTimeLimitExceeded
 
@@ -266,24 +278,77 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
             msg = fault
         else:
             log.exception("job %s stage %s failed", job.id, stage.name)
-            msg = f"{type(exc).__name__}: {exc}"
+            msg = unexpected_failure(exc, stage.name, _reading(job, spec.inputs, upstream))
         store.fail_stage(stage_id, token, msg)
         return Outcome("failed", stage_id, msg)
     finally:
         reset_log_context(log_ids)
         beat.stop()
+        _release_capture(settings, store, job.id)
+
+
+def _release_capture(settings: Settings, store: JobStore, job_id: str) -> None:
+    """Unpacked captures go when their last unfinished job has ended (issue 21: they count
+    against the key): this job's, and any other no unfinished job reads (cancelled while queued)."""
+    try:
+        release_capture(settings, store, job_id)
+        sweep_captures(settings, store)
+    except Exception as exc:  # a cache left behind is the next run's to reuse, never a failed stage
+        log.warning("job %s: could not remove its unpacked capture: %s", job_id, exc)
 
 
 def _user_facing(exc: InputError, job: Job, settings: Settings) -> str:
     """The error with a path inside this machine's capture cache replaced by the capture's
-    name and the file's path inside it (``scan7.zip:col_02.png: truncated PNG``)."""
+    name and the file's path inside it (``scan7.zip:col_02.png: truncated PNG``); any other
+    path of this machine's data folder (an upstream stage's output in the object cache) by its
+    file name. A failed stage's message never carries an internal worker path."""
     cache = settings.cache_dir / "captures" / job.capture_key
+    label = job.name or job.capture_ref
     where = Path(exc.where)
     if where.is_absolute() and where.is_relative_to(cache):
-        rel = where.relative_to(cache).as_posix()
-        label = job.name or job.capture_ref
-        return f"{label}:{rel}: {exc.problem}"
-    return str(exc)
+        head = f"{label}:{where.relative_to(cache).as_posix()}"
+    elif where.is_absolute() and where.is_relative_to(settings.data_dir):
+        head = where.name
+    else:
+        head = exc.where
+    return scrub_paths(f"{head}: {exc.problem}", {cache: f"{label}:", settings.data_dir: ""})
+
+
+def scrub_paths(text: str, roots: dict[Path, str]) -> str:
+    """``text`` with every path under one of ``roots`` rewritten: the root replaced by its label
+    (``scan7.zip:``) when the label is not empty, else the path reduced to its file name."""
+    for root, label in roots.items():
+        pattern = re.escape(str(root).rstrip("/")) + r"/[^\s:'\"]*"
+        text = re.sub(pattern, lambda m, r=root, lab=label: (lab + Path(m.group()).relative_to(r).as_posix()) if lab
+                      else Path(m.group()).name, text)
+    return text
+
+
+def _reading(job: Job, inputs: tuple[str, ...], upstream: dict[str, str]) -> str:
+    """What a stage reads, as its failure message names it: the capture (by the name it was
+    submitted under) or the outputs of the stages before it."""
+    parts = []
+    if CAPTURE in inputs and not job.capture_ref.startswith("none:"):
+        parts.append(f"the capture {job.name or job.capture_ref.partition(':')[2][:12]}")
+    if upstream:
+        names = sorted({base_name(n) for n in upstream})
+        parts.append(f"the output of {', '.join(names)}")
+    return " and ".join(parts) or "its parameters"
+
+
+def unexpected_failure(exc: BaseException, stage: str, reading: str) -> str:
+    """One line for a stage that failed on something no check foresaw: the stage and what it was
+    reading, never the bare exception (``MemoryError``, ``OverflowError: int too big ...``) nor a
+    path; the traceback is in the worker's log."""
+    if isinstance(exc, MemoryError):
+        what = "ran out of memory"
+    elif isinstance(exc, RecursionError):
+        what = "met input nested too deeply"
+    elif isinstance(exc, ArithmeticError):  # OverflowError among them
+        what = "met a number out of range"
+    else:
+        what = "failed unexpectedly"
+    return f"stage {stage} {what} while reading {reading}; the worker's log has the details"
 
 
 #: File in every stage object holding the stage's summary (hidden from artifact listings);
@@ -339,7 +404,8 @@ def _execute(
                                                         arts, settings, beat, tmp / "inputs" / producer)  # fmt: skip
         out = tmp / "out"
         out.mkdir()
-        summary = _run_adapter(job, stage.name, inputs, local_inputs, arts, settings, beat, out)
+        summary = public_summary(_run_adapter(job, stage.name, inputs, local_inputs, arts, settings, beat, out), out, work)
+        summary["published"] = [n for n in spec.publish if (out / n).is_file()]  # the links the API gives
         if beat.lost.is_set():
             # Someone else holds the stage now; their run will store the same object.
             return None
@@ -355,6 +421,23 @@ def _execute(
         return summary
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def public_summary(doc: Any, out: Path, work: Path) -> Any:
+    """A stage's summary as the API shows it: a path inside its output folder ``out`` becomes the
+    published file's name (``preview.mp4``), and no other path of this worker's scratch folder
+    ``work`` is kept (it names nothing a client can reach)."""
+    if isinstance(doc, dict):
+        return {k: public_summary(v, out, work) for k, v in doc.items()}
+    if isinstance(doc, list):
+        return [public_summary(v, out, work) for v in doc]
+    if isinstance(doc, str) and doc.startswith("/"):
+        p = Path(doc)
+        if p.is_relative_to(out):
+            return p.relative_to(out).as_posix() or "."
+        if p.is_relative_to(work) or p.is_relative_to(work.parent):
+            return p.name
+    return doc
 
 
 def _run_adapter(job: Job, name: str, inputs: tuple[str, ...], local_inputs: dict[str, Path], arts: ArtifactStore,

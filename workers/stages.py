@@ -11,16 +11,18 @@ layers contract forbids one): a render worker never loads the decoder's kernels.
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import shutil
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
-from shared.core.errors import InputError
+from shared.core.errors import InputError, relative_message
 from shared.core.files import write_json_atomic
 from shared.formats.capture import load_capture
 from shared.render.options import PreviewOptions
@@ -145,15 +147,18 @@ def run_preview(ctx: StageContext) -> dict[str, Any]:
 
 
 def run_export(ctx: StageContext) -> dict[str, Any]:
-    """The cloud as LAZ and COPC (``cloud.laz``, ``cloud.copc.laz``)."""
+    """The cloud (a scan's, or a multi-view job's merged cloud) as LAZ, COPC and E57
+    (``cloud.laz``, ``cloud.copc.laz``, ``cloud.e57``)."""
     from shared.render.export import export_cloud
 
-    cloud = ctx.inputs["triangulate"] / "cloud.ply"
+    cloud = ctx.inputs["triangulate"] / "cloud.ply" if "triangulate" in ctx.inputs else ctx.inputs["mv_merge"] / "merged.ply"
     laz = export_cloud(cloud, ctx.out_dir / "cloud.laz", "laz")
     ctx.progress(0.3)
     copc = export_cloud(cloud, ctx.out_dir / "cloud.copc.laz", "copc", workers=1)
+    ctx.progress(0.8)
+    e57 = export_cloud(cloud, ctx.out_dir / "cloud.e57", "e57")
     return _jsonable({"points": laz["points"], "scale": laz["scale"], "laz_bytes": laz["bytes"],
-                      "copc_bytes": copc["bytes"], "copc_nodes": copc["nodes"]})  # fmt: skip
+                      "copc_bytes": copc["bytes"], "copc_nodes": copc["nodes"], "e57_bytes": e57["bytes"]})  # fmt: skip
 
 
 def run_compress(ctx: StageContext) -> dict[str, Any]:
@@ -196,8 +201,8 @@ def _in_view(spec: Any, step: Callable[[], dict[str, Any]]) -> dict[str, Any]:
     """Run ``step``; an input error names the view (``views[2] (view_02): ...``)."""
     try:
         return step()
-    except InputError as exc:
-        raise InputError(spec.where, str(exc)) from None
+    except InputError as exc:  # its file named as in the scan set, not where this worker unpacked it
+        raise InputError(spec.where, relative_message(exc, spec.path.parent)) from None
 
 
 def run_mv_ingest(ctx: StageContext) -> dict[str, Any]:
@@ -323,6 +328,53 @@ def run_probe(ctx: StageContext) -> dict[str, Any]:
     return doc
 
 
+def run_publish(ctx: StageContext) -> dict[str, Any]:
+    """The object as a museum publishes it (:func:`shared.publish.folder.publish_folder`): the Voyager
+    scene with its derivatives, qa.json and qa.html, from the merge (multiview) or the triangulated
+    cloud (scan); the job's paradata.json is written by :func:`_recorded`."""
+    import tempfile
+
+    from shared.publish.folder import ObjectMeta, publish_folder
+    from shared.publish.stages import scan_source
+
+    assert ctx.capture_dir is not None
+    meta = ObjectMeta(title=f"Job {ctx.job_id}", identifier=ctx.job_id)
+    if ctx.kind == "multiview":
+        from shared.formats.scanset import load_scanset
+
+        rig = load_scanset(ctx.capture_dir).rig
+        qa = publish_folder(ctx.inputs["mv_merge"], ctx.out_dir, meta, rig=rig, points_asset=False)
+    else:
+        with tempfile.TemporaryDirectory(prefix="publish-src-") as work:
+            rig = _rig_for(ctx)
+            source = scan_source(ctx.inputs["triangulate"], ctx.capture_dir, rig, Path(work) / "scan")
+            qa = publish_folder(source, ctx.out_dir, meta, rig=rig, points_asset=False)
+    return {"verdict": qa["verdict"]["line"], "publishable": qa["verdict"]["publishable"],
+            "derivatives": [d["file"] for d in qa["derivatives"]]}
+
+
+#: Stages whose record is their job's paradata.json (served): the last stage of each graph that has one.
+PUBLIC_PARADATA_STAGES = frozenset({"publish", "calibrate"})
+
+
+def _recorded(func: Callable[[StageContext], dict[str, Any]]) -> Callable[[StageContext], dict[str, Any]]:
+    """The adapter, leaving the stage's paradata in its output (shared.publish.stages.record_stage):
+    ``.paradata.json``, or the job's ``paradata.json`` for :data:`PUBLIC_PARADATA_STAGES`."""
+
+    @functools.wraps(func)
+    def run(ctx: StageContext) -> dict[str, Any]:
+        from shared.publish.stages import record_stage
+
+        started = datetime.now(UTC)
+        summary = func(ctx)
+        record_stage(stage=ctx.stage, job_id=ctx.job_id, kind=ctx.kind, params=ctx.params,
+                     capture_dir=ctx.capture_dir, inputs=ctx.inputs, out_dir=ctx.out_dir, started=started,
+                     ended=datetime.now(UTC), public=base_name(ctx.stage) in PUBLIC_PARADATA_STAGES)
+        return summary
+
+    return run
+
+
 STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
     "ingest": run_ingest,
     "decode": run_decode,
@@ -342,4 +394,6 @@ STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
     "mv_triangulate": run_mv_triangulate,
     "mv_merge": run_mv_merge,
     "derivatives": run_derivatives,
+    "publish": run_publish,
 }
+STAGE_FUNCS = {name: _recorded(func) for name, func in STAGE_FUNCS.items()}

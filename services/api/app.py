@@ -13,7 +13,7 @@ Layout: one router per resource in ``services/api/routers/`` (``health``, ``jobs
 Prometheus), the dependencies they share in
 :mod:`services.api.deps`, response models in :mod:`services.api.models`, HTTP plumbing
 (body limit, byte ranges, body parsing) in :mod:`services.api.http`, the documented request
-bodies in :mod:`services.api.schema`, the limits per key in :mod:`services.api.quota`, and
+bodies in :mod:`services.api.schema`, the limits per key in :mod:`shared.service.admission`, and
 intake (forms and bodies -> stored captures -> queued jobs) in :mod:`services.api.intake`. The viewer
 (``services.viewer.routes``) is mounted at ``/viewer/{job}``.
 """
@@ -26,7 +26,7 @@ from fastapi import FastAPI
 
 from services.api.deps import Service
 from services.api.errors import install_error_handlers
-from services.api.http import BodyLimit
+from services.api.http import BodyLimit, IgnoreOtherRanges
 from services.api.routers import ROUTERS
 from shared.service.config import Settings, get_settings
 
@@ -52,5 +52,6 @@ def create_app(settings: Settings | None = None) -> FastAPI:
         viewer = None
     if viewer is not None and hasattr(viewer, "router"):
         app.include_router(viewer.router)
-    app.add_middleware(BodyLimit, limit=settings.max_upload_bytes + (1 << 20))
+    app.add_middleware(IgnoreOtherRanges)
+    app.add_middleware(BodyLimit, upload_limit=settings.max_upload_bytes + (1 << 20), json_limit=settings.max_json_bytes)
     return app

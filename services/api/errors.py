@@ -9,22 +9,44 @@
 * Every other error is ``{"detail": "one line"}`` (:class:`services.api.models.ErrorOut`).
 * A 405 names in ``Allow`` every method of every route whose path matches, not only those of
   the first route Starlette tried.
+* A per-key limit refused at admission (:class:`~shared.service.usage.LimitReached`) is 429
+  (running jobs, with ``Retry-After``) or 507 (stored bytes), naming the limit.
+* A full data folder or database (``ENOSPC``, ``EDQUOT``, SQLite's ``database or disk is
+  full``) is 507 with the reason and ``Retry-After``: space may be freed; what the request
+  began to write was taken back by the store.
+* No answer quotes more than :data:`~services.api.http.EXCERPT_CHARS` characters of what the
+  client sent: messages and locations are cut to an excerpt (a 50 MB name is not echoed).
 """
 
 from __future__ import annotations
 
+import errno
+import logging
 import re
 from typing import Any
 
 from fastapi import FastAPI, Request
 from fastapi.exception_handlers import http_exception_handler
+from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse, Response
+from sqlalchemy.exc import OperationalError
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.routing import Match
 
-from services.api.http import BodyInvalid
+from services.api.http import BodyInvalid, excerpt
 from services.api.intake import NotInStorage
 from shared.core.errors import InputError
+from shared.service.usage import LimitReached
+
+log = logging.getLogger(__name__)
+
+#: Seconds a client refused for a full disk is told to wait (an operator or the upload
+#: expiry may free space meanwhile).
+DISK_FULL_RETRY_AFTER = 60
+#: Longest message of an error answer: the service's own words around an excerpt of the input.
+MESSAGE_CHARS = 400
+#: errno values that mean the storage is full.
+_FULL = (errno.ENOSPC, errno.EDQUOT)
 
 __all__ = ["install_error_handlers", "loc_of", "validation_item"]
 
@@ -32,7 +54,8 @@ _DOTTED = re.compile(r"^[A-Za-z_]\w*(\.\w+)*$")
 
 
 def loc_of(where: str) -> list[str | int]:
-    """The location (FastAPI's ``loc``) of a problem at ``where``."""
+    """The location (FastAPI's ``loc``) of a problem at ``where`` (an excerpt of it when long)."""
+    where = excerpt(where)
     if where == "body":
         return ["body"]
     if where.startswith("params.") and _DOTTED.match(where):  # the one nested field
@@ -41,7 +64,7 @@ def loc_of(where: str) -> list[str | int]:
 
 
 def validation_item(where: str, problem: str, kind: str = "value_error") -> dict[str, Any]:
-    return {"loc": loc_of(where), "msg": problem, "type": kind}
+    return {"loc": loc_of(where), "msg": excerpt(problem, MESSAGE_CHARS), "type": kind}
 
 
 def _invalid(items: list[dict[str, Any]]) -> JSONResponse:
@@ -68,8 +91,42 @@ def _allowed(app: Any, scope: dict[str, Any]) -> list[str]:
     return sorted(methods)
 
 
+def _loc_part(p: Any) -> str | int:
+    return p if isinstance(p, int) else excerpt(str(p))
+
+
+def disk_full(exc: BaseException) -> str | None:
+    """The reason to give when ``exc`` says the storage is full, else None."""
+    if isinstance(exc, OSError) and exc.errno in _FULL:
+        return "storage full: no space left on the service's data folder; nothing of this request was kept"
+    if isinstance(exc, OperationalError) and "disk is full" in str(exc.orig):
+        return "storage full: the job database has no space left; nothing of this request was kept"
+    return None
+
+
 def install_error_handlers(app: FastAPI) -> None:
     """Register the handlers described in the module docstring on ``app``."""
+
+    @app.exception_handler(LimitReached)
+    async def _limit(_request: Request, exc: LimitReached) -> JSONResponse:
+        headers = {"Retry-After": str(exc.retry_after)} if exc.retry_after else None
+        return JSONResponse({"detail": str(exc)}, exc.status, headers=headers)
+
+    async def _full(request: Request, exc: Exception) -> Response:
+        reason = disk_full(exc)
+        if reason is None:
+            raise exc
+        log.error("%s %s: %s (%s)", request.method, request.url.path, reason, exc)
+        return JSONResponse({"detail": reason}, 507, headers={"Retry-After": str(DISK_FULL_RETRY_AFTER)})
+
+    app.add_exception_handler(OSError, _full)
+    app.add_exception_handler(OperationalError, _full)
+
+    @app.exception_handler(RequestValidationError)
+    async def _request_invalid(_request: Request, exc: RequestValidationError) -> JSONResponse:
+        # FastAPI's own answer would carry each item's ``input``: the whole offending value.
+        return _invalid([{"loc": [_loc_part(p) for p in e.get("loc", ())], "msg": excerpt(str(e.get("msg", "invalid")), MESSAGE_CHARS),
+                          "type": str(e.get("type", "value_error"))} for e in exc.errors()])  # fmt: skip
 
     @app.exception_handler(NotInStorage)
     async def _not_in_storage(_request: Request, exc: NotInStorage) -> JSONResponse:
@@ -84,7 +141,7 @@ def install_error_handlers(app: FastAPI) -> None:
         items = []
         for e in exc.items:
             loc = ["body", *e.get("loc", ())]
-            items.append({"loc": [p if isinstance(p, int) else str(p) for p in loc], "msg": str(e.get("msg", "invalid")),
+            items.append({"loc": [_loc_part(p) for p in loc], "msg": excerpt(str(e.get("msg", "invalid")), MESSAGE_CHARS),
                           "type": str(e.get("type", "value_error"))})  # fmt: skip
         return _invalid(items)
 
@@ -96,4 +153,6 @@ def install_error_handlers(app: FastAPI) -> None:
         if exc.status_code == 405:
             allow = ", ".join(_allowed(request.app, request.scope))
             exc = StarletteHTTPException(405, exc.detail, headers={**(exc.headers or {}), "Allow": allow})
+        if isinstance(exc.detail, str):
+            exc = StarletteHTTPException(exc.status_code, excerpt(exc.detail, MESSAGE_CHARS), headers=exc.headers)
         return await http_exception_handler(request, exc)

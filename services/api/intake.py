@@ -15,26 +15,30 @@ The routers in :mod:`services.api.routers` only pick the form or the body and ha
 
 from __future__ import annotations
 
-import json
+import logging
 import os
 import re
 import tempfile
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Annotated, Any
 
 from fastapi import HTTPException
 from fastapi.concurrency import run_in_threadpool
 from pydantic import BaseModel, Field
+from sqlalchemy import String, cast, select
 from starlette.datastructures import FormData, UploadFile
 
-from services.api.quota import Quota
+from services.api.http import excerpt
 from shared.core.errors import InputError
-from shared.formats.rig import parse_rig
+from shared.core.jsonsafe import MAX_DOCUMENT_BYTES, loads_bounded
+from shared.formats.rig import parse_rig_bytes
+from shared.service.admission import Admission, UploadTaken
 from shared.service.archive import ArchiveLimits, inspect_archive
 from shared.service.artifacts import ArtifactError, ArtifactStore, sha256_file
 from shared.service.config import Settings
 from shared.service.jobs import GRAPHS, graph_for, root_file
-from shared.service.jobstore import ApiKey, Job, JobStore, NewJob
+from shared.service.jobstore import ApiKey, Job, JobRow, JobStore, NewJob
 from shared.service.params import check_job_params
 from shared.service.queue import publish_stages
 
@@ -50,6 +54,10 @@ _NAME = re.compile(NAME_PATTERN)
 _PRIVATE_PREFIXES = ("objects/", "uploads/")
 #: Most storage references in one batch.
 MAX_BATCH_REFS = 10000
+#: Longest storage reference (a path relative to the store root).
+MAX_REF_CHARS = 1024
+
+log = logging.getLogger(__name__)
 
 
 class JobCreate(BaseModel):
@@ -58,16 +66,19 @@ class JobCreate(BaseModel):
     kind: str = Field("scan", description="scan, calibrate or probe")
     name: str | None = Field(None, max_length=200, pattern=NAME_PATTERN)
     batch: str | None = Field(None, max_length=200, pattern=NAME_PATTERN)
-    upload_id: str | None = Field(None, description="a finished upload session")
-    capture_ref: str | None = Field(None, description="path of an archive or capture folder, relative to the storage root")
+    upload_id: str | None = Field(None, max_length=MAX_REF_CHARS, description="a finished upload session")
+    capture_ref: str | None = Field(None, max_length=MAX_REF_CHARS,
+                                    description="path of an archive or capture folder, relative to the storage root")
     params: dict[str, Any] = Field(default_factory=dict)
 
 
 class BatchCreate(BaseModel):
     name: str = Field(..., min_length=1, max_length=200, pattern=NAME_PATTERN)
     kind: str = Field("scan", description="scan, calibrate or probe")
-    captures: list[str] = Field(default_factory=list, description="storage references, one capture each")
-    manifest: str | None = Field(None, description="storage reference of a text file listing one reference per line")
+    captures: list[Annotated[str, Field(max_length=MAX_REF_CHARS)]] = Field(default_factory=list, max_length=MAX_BATCH_REFS,
+                                description="storage references, one capture each")
+    manifest: str | None = Field(None, max_length=MAX_REF_CHARS,
+                                 description="storage reference of a text file listing one reference per line")
     params: dict[str, Any] = Field(default_factory=dict)
 
 
@@ -119,10 +130,7 @@ def form_text(value: Any) -> str | None:
 
 
 def _form_params(form: FormData, kind: str) -> dict[str, Any]:
-    try:
-        return check_params(json.loads(form_text(form.get("params")) or "{}"), kind)
-    except json.JSONDecodeError as exc:
-        raise InputError("params", f"not JSON ({exc})") from None
+    return check_params(loads_bounded(form_text(form.get("params")) or "{}", "params"), kind)
 
 
 def _label(f: UploadFile) -> str:
@@ -139,6 +147,15 @@ async def _save(f: UploadFile, dest: Path) -> None:
             out.write(block)
 
 
+@dataclass
+class _Stored:
+    """What one request put into the store: object key -> whether this request created it,
+    and capture key -> bytes its archive unpacks to."""
+
+    objects: dict[str, bool] = field(default_factory=dict)
+    unpacked: dict[str, int] = field(default_factory=dict)
+
+
 class Intake:
     """Turns submissions into stored captures and queued jobs, for one service."""
 
@@ -147,94 +164,118 @@ class Intake:
         self.store = store
         self.arts = arts
         self.limits = ArchiveLimits.from_settings(settings)
-        self.quota = Quota(settings, store, arts)
+        self.quota = Admission(settings, store, arts)
 
     # ---- captures (blocking: run in the thread pool) ------------------------------------
-    def store_archive(self, path: Path, label: str, kind: str) -> tuple[str, str]:
+    def _put(self, key: str, files: dict[str, Path], stored: _Stored) -> None:
+        existed = self.arts.exists(key)
+        self.arts.put_files(key, files)
+        stored.objects.setdefault(key, not existed)
+
+    def store_archive(self, path: Path, label: str, kind: str, stored: _Stored) -> tuple[str, str]:
         """Inspect an archive, then store it as a capture object: (capture_ref, capture_key)."""
         report = inspect_archive(path, self.limits, label=label, require=root_file(kind))
         key = sha256_file(path)
         suffix = ".zip" if report.kind == "zip" else ".tar"
-        self.arts.put_files(key, {f"capture{suffix}": path})
+        self._put(key, {f"capture{suffix}": path}, stored)
+        stored.unpacked[key] = report.total_bytes
         return f"object:{key}", key
 
-    def store_rig(self, data: bytes, label: str) -> str:
-        try:
-            doc = json.loads(data.decode("utf-8"))
-        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-            raise InputError(label, f"not a JSON rig file ({exc})") from None
-        parse_rig(doc, label)
+    def store_rig(self, data: bytes, label: str, stored: _Stored) -> str:
+        parse_rig_bytes(data, label)  # bounded: size, depth, numbers, strict keys
         with tempfile.TemporaryDirectory() as tmp:
             p = Path(tmp) / "rig.json"
             p.write_bytes(data)
             key = sha256_file(p)
-            self.arts.put_files(key, {"rig.json": p})
+            self._put(key, {"rig.json": p}, stored)
         return key
+
+    def _referenced(self, key: str) -> bool:
+        """Whether any job holds object ``key`` (as its capture or its rig)."""
+        with self.store.session() as s:
+            q = select(JobRow.id).where(
+                (JobRow.capture_ref == f"object:{key}") | cast(JobRow.params, String).contains(key)
+            ).limit(1)
+            return s.scalar(q) is not None
+
+    def forget(self, stored: _Stored) -> None:
+        """Take back the objects a refused request created (those no job holds meanwhile)."""
+        for key, created in stored.objects.items():
+            if created and not self._referenced(key):
+                try:
+                    self.arts.delete(key)
+                except Exception as exc:  # the refusal is what the client must hear
+                    log.warning("could not remove object %s of a refused request: %s", key[:12], exc)
 
     def resolve_ref(self, ref: str) -> tuple[str, str]:
         """A reference to a capture already in storage: (capture_ref, capture_key)."""
         clean = ref.strip().strip("/")
         if not clean or any(clean.startswith(p) for p in _PRIVATE_PREFIXES) or clean in ("objects", "uploads"):
-            raise InputError("capture_ref", f"{ref!r} is not a reference to a capture in storage")
+            raise InputError("capture_ref", f"{excerpt(repr(ref))} is not a reference to a capture in storage")
         try:
             self.arts.ref_path(clean)
             key = self.arts.ref_fingerprint(clean)
         except ArtifactError as exc:
             raise InputError("capture_ref", str(exc)) from None
         except FileNotFoundError:
-            raise NotInStorage("capture_ref", f"{ref!r}: no such file or folder in storage") from None
+            raise NotInStorage("capture_ref", f"{excerpt(repr(ref))}: no such file or folder in storage") from None
         return f"ref:{clean}", key
 
     def read_manifest(self, ref: str) -> list[str]:
         """The storage references listed in a manifest file (one a line, ``#`` comments)."""
         clean = ref.strip().strip("/")
         if not clean or any(clean.startswith(p) for p in _PRIVATE_PREFIXES):
-            raise InputError("manifest", f"{ref!r} is not a reference to a file in storage")
+            raise InputError("manifest", f"{excerpt(repr(ref))} is not a reference to a file in storage")
         try:
             with self.arts.fs.open(self.arts.ref_path(clean), "rb") as f:
                 data = f.read(4 << 20)
         except (FileNotFoundError, ArtifactError, IsADirectoryError):
-            raise NotInStorage("manifest", f"{ref!r}: no such file in storage") from None
+            raise NotInStorage("manifest", f"{excerpt(repr(ref))}: no such file in storage") from None
         try:
             text = data.decode("utf-8")
         except UnicodeDecodeError:
-            raise InputError(ref, "manifest is not UTF-8 text") from None
+            raise InputError("manifest", "manifest is not UTF-8 text") from None
         return [ln.strip() for ln in text.splitlines() if ln.strip() and not ln.lstrip().startswith("#")]
 
-    def make_job(self, key: ApiKey, kind: str, capture_ref: str, capture_key: str, name: str,
-                 params: dict[str, Any], batch: str | None) -> Job:  # fmt: skip
-        """Record the job and publish its ready stages."""
-        batch_id = self.store.batch_for(key.id, batch) if batch else None
-        job, ready = self.store.create_job(
-            key.id,
-            NewJob(kind=kind, capture_ref=capture_ref, capture_key=capture_key, graph=graph_for(kind, params), name=name,
-                   params=params, batch_id=batch_id),  # fmt: skip
-        )
-        publish_stages(ready, self.settings)
-        return job
+    def make_jobs(self, key: ApiKey, news: list[NewJob], batch: str | None, stored: _Stored,
+                  upload_id: str | None = None) -> list[Job]:  # fmt: skip
+        """Admit and record the jobs (one transaction under the key's limits; the upload
+        session ``upload_id`` is used up in it), then publish their ready stages. A refusal
+        takes back what the request stored."""
+        try:
+            made = self.quota.create_jobs(key, news, batch, objects=stored.objects, unpacked=stored.unpacked,
+                                          upload_id=upload_id)  # fmt: skip
+        except BaseException:
+            self.forget(stored)
+            raise
+        for _job, ready in made:
+            publish_stages(ready, self.settings)
+        return [job for job, _ready in made]
+
+    @staticmethod
+    def new_job(kind: str, capture_ref: str, capture_key: str, name: str, params: dict[str, Any]) -> NewJob:
+        return NewJob(kind=kind, capture_ref=capture_ref, capture_key=capture_key, graph=graph_for(kind, params),
+                      name=name, params=params)  # fmt: skip
 
     # ---- submissions --------------------------------------------------------------------
-    async def _archive(self, f: UploadFile, kind: str) -> tuple[str, str]:
+    async def _archive(self, f: UploadFile, kind: str, stored: _Stored) -> tuple[str, str]:
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "upload"
             await _save(f, path)
-            return await run_in_threadpool(self.store_archive, path, _label(f), kind)
+            return await run_in_threadpool(self.store_archive, path, _label(f), kind, stored)
 
-    async def _finished_upload(self, upload_id: str, key: ApiKey, kind: str) -> tuple[str, str, str]:
+    async def _finished_upload(self, upload_id: str, key: ApiKey, kind: str, stored: _Stored) -> tuple[str, str, str]:
         """The capture of an upload session, stored as an object: (capture_ref, capture_key, label)."""
         up = self.store.get_upload(upload_id, key.id) if ID.match(upload_id) else None
         if up is None:
-            raise HTTPException(404, f"upload {upload_id} not found")
+            raise HTTPException(404, f"upload {excerpt(upload_id)} not found")
         if up.finished:
             raise HTTPException(409, f"upload {up.id} was already used")
         label = Path(up.filename).name or "upload"
         with tempfile.TemporaryDirectory() as tmp:
             path = Path(tmp) / "upload"
             await run_in_threadpool(self.arts.assemble_upload, up.id, up.chunks, path)
-            cref, ckey = await run_in_threadpool(self.store_archive, path, label, kind)
-        if not self.store.finish_upload(up.id):
-            raise HTTPException(409, f"upload {up.id} was already used")
-        await run_in_threadpool(self.arts.drop_upload, up.id)
+            cref, ckey = await run_in_threadpool(self.store_archive, path, label, kind, stored)
         return cref, ckey, label
 
     async def job_from_form(self, form: FormData, key: ApiKey) -> Job:
@@ -247,23 +288,37 @@ class Intake:
         capture, rig = form.get("capture"), form.get("rig")
         ref = None if isinstance(capture, UploadFile) else form_text(form.get("capture_ref"))
         incoming = sum(f.size or 0 for f in (capture, rig) if isinstance(f, UploadFile))
-        await run_in_threadpool(self.quota.admit, key, 1, incoming)
-        if isinstance(rig, UploadFile):
-            params["rig"] = await run_in_threadpool(self.store_rig, await rig.read(1 << 20), rig.filename or "rig")
-        elif rig is not None:
-            raise InputError("rig", "must be a file")
-        if kind == "probe":
-            cref, ckey = "none:", os.urandom(32).hex()
-            name = name or "probe"
-        elif isinstance(capture, UploadFile):
-            cref, ckey = await self._archive(capture, kind)
-            name = name or _label(capture)
-        elif ref:
-            cref, ckey = await run_in_threadpool(self.resolve_ref, ref)
-            name = name or _ref_name(ref)
-        else:
-            raise InputError("capture", "a zip or tar file is required in this multipart field")
-        return await run_in_threadpool(self.make_job, key, kind, cref, ckey, name or "", params, batch)
+        await run_in_threadpool(self.quota.admit, key, 1, incoming)  # early: before anything is stored
+        stored = _Stored()
+        try:
+            if isinstance(rig, UploadFile):
+                # One byte past the bound, so an over-long rig is refused as such, never cut.
+                data = await rig.read(MAX_DOCUMENT_BYTES + 1)
+                if len(data) > MAX_DOCUMENT_BYTES:
+                    size = rig.size if rig.size is not None else f"more than {MAX_DOCUMENT_BYTES}"
+                    raise InputError(rig.filename or "rig", f"rig file of {size} bytes is too large "
+                                                           f"(at most {MAX_DOCUMENT_BYTES})")  # fmt: skip
+                params["rig"] = await run_in_threadpool(self.store_rig, data, rig.filename or "rig", stored)
+            elif rig is not None:
+                raise InputError("rig", "must be a file")
+            if kind == "probe":
+                cref, ckey = "none:", os.urandom(32).hex()
+                name = name or "probe"
+            elif isinstance(capture, UploadFile):
+                cref, ckey = await self._archive(capture, kind, stored)
+                name = name or _label(capture)
+            elif ref:
+                if len(ref) > MAX_REF_CHARS:
+                    raise InputError("capture_ref", f"longer than {MAX_REF_CHARS} characters")
+                cref, ckey = await run_in_threadpool(self.resolve_ref, ref)
+                name = name or _ref_name(ref)
+            else:
+                raise InputError("capture", "a zip or tar file is required in this multipart field")
+        except BaseException:
+            await run_in_threadpool(self.forget, stored)
+            raise
+        new = self.new_job(kind, cref, ckey, name or "", params)
+        return (await run_in_threadpool(self.make_jobs, key, [new], batch, stored))[0]
 
     async def job_from_json(self, body: JobCreate, key: ApiKey) -> Job:
         """``POST /v1/jobs`` as JSON: ``upload_id`` of an upload session, or ``capture_ref``."""
@@ -272,18 +327,32 @@ class Intake:
         batch = check_name(body.batch, "batch")
         params = check_params(body.params, kind)
         await run_in_threadpool(self.quota.admit, key, 1, 0)  # an upload's bytes are counted as it arrives
-        if kind == "probe":
-            cref, ckey = "none:", os.urandom(32).hex()
-            name = name or "probe"
-        elif body.upload_id:
-            cref, ckey, label = await self._finished_upload(body.upload_id, key, kind)
-            name = name or label
-        elif body.capture_ref:
-            cref, ckey = await run_in_threadpool(self.resolve_ref, body.capture_ref)
-            name = name or _ref_name(body.capture_ref)
-        else:
-            raise InputError("body", "give upload_id or capture_ref (or send multipart with a capture file)")
-        return await run_in_threadpool(self.make_job, key, kind, cref, ckey, name or "", params, batch)
+        stored = _Stored()
+        upload = None
+        try:
+            if kind == "probe":
+                cref, ckey = "none:", os.urandom(32).hex()
+                name = name or "probe"
+            elif body.upload_id:
+                upload = body.upload_id
+                cref, ckey, label = await self._finished_upload(body.upload_id, key, kind, stored)
+                name = name or label
+            elif body.capture_ref:
+                cref, ckey = await run_in_threadpool(self.resolve_ref, body.capture_ref)
+                name = name or _ref_name(body.capture_ref)
+            else:
+                raise InputError("body", "give upload_id or capture_ref (or send multipart with a capture file)")
+        except BaseException:
+            await run_in_threadpool(self.forget, stored)
+            raise
+        new = self.new_job(kind, cref, ckey, name or "", params)
+        try:
+            job = (await run_in_threadpool(self.make_jobs, key, [new], batch, stored, upload))[0]
+        except UploadTaken:
+            raise HTTPException(409, f"upload {upload} was already used") from None
+        if upload is not None:
+            await run_in_threadpool(self.arts.drop_upload, upload)
+        return job
 
     async def batch_from_form(self, form: FormData, key: ApiKey) -> tuple[str, list[str], list[dict[str, str]]]:
         """``POST /v1/batches`` as multipart: files in ``captures``, ``name``, ``kind``, ``params``.
@@ -298,17 +367,22 @@ class Intake:
             raise InputError("captures", "must be files")
         # The whole batch is admitted, or none of it.
         await run_in_threadpool(self.quota.admit, key, len(files), sum(f.size or 0 for f in files))
-        jobs: list[str] = []
+        news: list[NewJob] = []
         rejected: list[dict[str, str]] = []
-        for f in files:
-            try:
-                cref, ckey = await self._archive(f, kind)
-            except InputError as exc:
-                rejected.append({"capture": _label(f), "error": str(exc)})
-                continue
-            job = await run_in_threadpool(self.make_job, key, kind, cref, ckey, _label(f), params, name)
-            jobs.append(job.id)
-        return name, jobs, rejected
+        stored = _Stored()
+        try:
+            for f in files:
+                try:
+                    cref, ckey = await self._archive(f, kind, stored)
+                except InputError as exc:
+                    rejected.append({"capture": excerpt(_label(f)), "error": excerpt(str(exc), 400)})
+                    continue
+                news.append(self.new_job(kind, cref, ckey, _label(f), params))
+        except BaseException:
+            await run_in_threadpool(self.forget, stored)
+            raise
+        jobs = await run_in_threadpool(self.make_jobs, key, news, name, stored)
+        return name, [j.id for j in jobs], rejected
 
     async def batch_from_json(self, body: BatchCreate, key: ApiKey) -> tuple[str, list[str], list[dict[str, str]]]:
         """``POST /v1/batches`` as JSON: storage references in ``captures`` and/or a ``manifest``."""
@@ -322,15 +396,18 @@ class Intake:
             refs += await run_in_threadpool(self.read_manifest, body.manifest)
         if len(refs) > MAX_BATCH_REFS:
             raise InputError("captures", f"more than {MAX_BATCH_REFS} in one batch")
-        await run_in_threadpool(self.quota.admit, key, len(refs), 0)  # the whole batch, or none of it
-        jobs: list[str] = []
+        await run_in_threadpool(self.quota.admit, key, len(refs), 0)  # early refusal
+        news: list[NewJob] = []
         rejected: list[dict[str, str]] = []
         for ref in refs:
             try:
+                if len(ref) > MAX_REF_CHARS:
+                    raise InputError("capture_ref", f"longer than {MAX_REF_CHARS} characters")
                 cref, ckey = await run_in_threadpool(self.resolve_ref, ref)
             except InputError as exc:
-                rejected.append({"capture": ref, "error": str(exc)})
+                # The reference is quoted once, as an excerpt; the error says what is wrong with it.
+                rejected.append({"capture": excerpt(ref), "error": excerpt(exc.problem, 400)})
                 continue
-            job = await run_in_threadpool(self.make_job, key, kind, cref, ckey, ref.strip(), params, name)
-            jobs.append(job.id)
-        return name, jobs, rejected
+            news.append(self.new_job(kind, cref, ckey, ref.strip()[:300], params))
+        jobs = await run_in_threadpool(self.make_jobs, key, news, name, _Stored())
+        return name, [j.id for j in jobs], rejected

@@ -14,7 +14,7 @@ from __future__ import annotations
 
 from typing import Any
 
-from services.api.intake import NAME_PATTERN
+from services.api.intake import MAX_BATCH_REFS, MAX_REF_CHARS, NAME_PATTERN
 from shared.service.jobs import GRAPHS
 from shared.service.params import params_schema
 
@@ -52,8 +52,9 @@ def _with_kinds(properties: dict[str, Any], build: Any, required: list[str] | No
 
 
 _OPTIONAL_NAME = {"type": ["string", "null"], "pattern": NAME_PATTERN}
-_REF = {"type": "string", "minLength": 1, "description": "path of an archive or capture folder, relative to the storage root"}
-_UPLOAD = {"type": "string", "minLength": 1, "description": "a finished upload session"}
+_REF = {"type": "string", "minLength": 1, "maxLength": MAX_REF_CHARS,
+        "description": "path of an archive or capture folder, relative to the storage root"}
+_UPLOAD = {"type": "string", "minLength": 1, "maxLength": MAX_REF_CHARS, "description": "a finished upload session"}
 
 
 def _job_json(kind: str) -> dict[str, Any]:
@@ -108,8 +109,10 @@ def batch_body() -> dict[str, Any]:
     }, _batch_params, required=["name"], title="batch (multipart)")  # fmt: skip
     body = _with_kinds({
         "name": _NAME,
-        "captures": {"type": "array", "items": {"type": "string"}, "description": "storage references, one capture each"},
-        "manifest": {"type": ["string", "null"], "description": "storage reference of a text file listing one reference per line"},
+        "captures": {"type": "array", "items": {"type": "string", "maxLength": MAX_REF_CHARS}, "maxItems": MAX_BATCH_REFS,
+                     "description": "storage references, one capture each"},
+        "manifest": {"type": ["string", "null"], "maxLength": MAX_REF_CHARS,
+                     "description": "storage reference of a text file listing one reference per line"},
     }, _batch_params, required=["name"], title="batch")  # fmt: skip
     return {
         "requestBody": {

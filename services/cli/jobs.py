@@ -4,8 +4,10 @@
 cpu,render] [--concurrency N]`` a Celery worker (the ``control`` queue, where the
 reconciler runs, is added unless ``--no-control``); ``graylight beat`` the one beat
 scheduler. ``graylight submit CAPTURE_DIR_OR_ARCHIVE... [--wait] [--batch NAME]`` sends
-captures to ``GRAYLIGHT_API_URL`` with ``GRAYLIGHT_API_KEY`` and prints one job id per
-line; ``--wait`` follows them with a progress bar (on stderr) and exits 1 if any failed.
+captures, scan sets and calibration sessions (the kind detected from the folder or archive) to
+``GRAYLIGHT_API_URL`` with ``GRAYLIGHT_API_KEY`` and prints one job id per line (the batch's id
+on stderr); ``--wait`` follows them with a progress bar (on stderr), then prints each job's
+viewer and artifact links, and exits 1 if any failed.
 ``graylight keys create NAME`` prints a new API key (stored hashed in the job database).
 """
 
@@ -23,7 +25,7 @@ from typing import Any
 
 from shared.core.errors import GraylightError, InputError
 from shared.service.config import get_settings
-from shared.service.jobs import QUEUES
+from shared.service.jobs import GRAPHS, QUEUES, ROOT_FILES
 
 log = logging.getLogger(__name__)
 
@@ -57,8 +59,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("submit", help="submit captures (folders or zip/tar archives) to the job service")
     p.add_argument("captures", nargs="+", metavar="CAPTURE_DIR_OR_ARCHIVE")
     p.add_argument("--wait", action="store_true", help="follow the jobs; exit 1 if any failed")
-    p.add_argument("--batch", default=None, metavar="NAME", help="put the jobs in this batch")
-    p.add_argument("--kind", default="scan", help="job kind (scan, calibrate)")
+    p.add_argument("--batch", default=None, metavar="NAME", help="put the jobs in this batch (its id is printed on stderr)")
+    p.add_argument("--kind", default=None, choices=sorted(GRAPHS),
+                   help="job kind: scan (a capture), multiview (a scan set), calibrate (a board session), probe "
+                        "(a self-test); default: detected, scanset.json at the top is a scan set, board.json a "
+                        "calibration session, anything else a capture")  # fmt: skip
     p.add_argument("--rig", type=Path, default=None, help="rig.json to use instead of the capture's")
     p.add_argument("--params", default=None, metavar="JSON",
                    help='job parameters, e.g. \'{"render": false}\' or \'{"preview": {"seconds": 5}}\'')
@@ -67,23 +72,24 @@ def register(sub: argparse._SubParsersAction) -> None:
 
     p = sub.add_parser("jobs", help="list your jobs on the job service")
     p.add_argument("--state", default=None, choices=["queued", "running", "succeeded", "failed", "cancelled"])
-    p.add_argument("--batch", default=None)
-    p.add_argument("--limit", type=int, default=50)
+    p.add_argument("--batch", default=None, metavar="ID_OR_NAME", help="only this batch's jobs")
+    p.add_argument("--limit", type=int, default=50, help="jobs a page (newest first)")
+    p.add_argument("--offset", type=int, default=0, help="skip this many (the next page: the offset printed)")
     p.add_argument("--json", action="store_true", help="print the API's JSON")
     p.set_defaults(func=cmd_jobs)
 
     p = sub.add_parser("batch", help="follow a batch on the job service: status, report, retry-failed")
     bs = p.add_subparsers(dest="batch_command", required=True)
-    c = bs.add_parser("status", help="job counts by state and progress")
-    c.add_argument("batch_id", metavar="ID")
+    c = bs.add_parser("status", help="job counts by state, rejected files and progress")
+    c.add_argument("batch_id", metavar="ID_OR_NAME")
     c.set_defaults(func=cmd_batch_status)
     c = bs.add_parser("report", help="one row per capture: name, state, points, failure reason, artifact links")
-    c.add_argument("batch_id", metavar="ID")
+    c.add_argument("batch_id", metavar="ID_OR_NAME")
     c.add_argument("--format", choices=["csv", "json"], default="csv")
     c.add_argument("--out", type=Path, default=None, help="write the report here (default: standard output)")
     c.set_defaults(func=cmd_batch_report)
     c = bs.add_parser("retry-failed", help="re-run the failed and cancelled jobs (only what failed)")
-    c.add_argument("batch_id", metavar="ID")
+    c.add_argument("batch_id", metavar="ID_OR_NAME")
     c.set_defaults(func=cmd_batch_retry)
 
     p = sub.add_parser("keys", help="manage API keys (in the job database)")
@@ -192,6 +198,7 @@ class Client:
         # ``http``: any httpx.Client-like object (tests pass the API's TestClient).
         self.http = http or httpx.Client(base_url=self.url, timeout=timeout)
         self.http.headers["Authorization"] = f"Bearer {key}"
+        self.key = key
 
     def _send(self, method: str, path: str, **kw: Any) -> Any:
         """The ``httpx`` response of a request; :class:`ServiceError` when it fails or answers >= 400."""
@@ -307,19 +314,78 @@ def cmd_submit(args: argparse.Namespace) -> int:
             raise InputError("--params", "must be a JSON object")
     client = Client()
     ids: list[str] = []
+    batch_shown = False
     with tempfile.TemporaryDirectory(prefix="graylight-submit-") as tmp:
         for raw in args.captures:
             path = Path(raw)
+            kind = args.kind or detect_kind(path)
             archive = _as_archive(path, Path(tmp))
             label = path.name if path.is_dir() else archive.name
-            job = client.submit_archive(archive, label, kind=args.kind, batch=args.batch, rig=args.rig, params=params)
+            job = client.submit_archive(archive, label, kind=kind, batch=args.batch, rig=args.rig, params=params)
             print(job["id"], flush=True)
+            if job.get("batch") and not batch_shown:
+                # stdout stays one job id a line (scripts read it); the batch id goes to stderr.
+                print(f"batch {job['batch']} ({args.batch})", file=sys.stderr, flush=True)
+                batch_shown = True
             ids.append(job["id"])
             if archive.parent == Path(tmp):
                 archive.unlink()
     if not args.wait:
         return 0
-    return follow(client, ids, timeout=args.timeout)
+    status = follow(client, ids, timeout=args.timeout)
+    for j in ids:
+        print_links(client, client.job(j))
+    return status
+
+
+def print_links(client: Client, job: dict[str, Any], out: Any = None) -> None:
+    """Print a job's viewer URL (with the key in its fragment, which browsers never send) and
+    the absolute URLs of its published files."""
+    out = out or sys.stdout
+    print(f"{job['id']}  {job['state']}  {job.get('name', '')}", file=out)
+    if job.get("viewer"):
+        print(f"  viewer  {client.url}{job['viewer']}#key={client.key}", file=out)
+    for link in job.get("links", []):
+        print(f"  {link['name']:<16}{client.url}{link['url']}", file=out)
+
+
+def detect_kind(path: Path) -> str:
+    """The job kind of a folder or archive, from the file at its top (or in its one top
+    folder): ``scanset.json`` a multiview job, ``board.json`` a calibration, else a scan."""
+    names: list[str] = []
+    if path.is_dir():
+        names = [p.name for p in path.iterdir()]
+    elif path.is_file():
+        names = _top_names(path)
+    by_file = {f: k for k, f in ROOT_FILES.items()}
+    for marker in ("scanset.json", "board.json"):
+        if marker in names:
+            return by_file[marker]
+    return "scan"
+
+
+def _top_names(archive: Path) -> list[str]:
+    """Names at the top of a zip or tar archive, or inside its single top folder ([] when it
+    is neither: the service names the problem)."""
+    import tarfile
+    import zipfile
+
+    try:
+        if zipfile.is_zipfile(archive):
+            with zipfile.ZipFile(archive) as z:
+                members = z.namelist()
+        elif tarfile.is_tarfile(archive):
+            with tarfile.open(archive) as t:
+                members = t.getnames()
+        else:
+            return []
+    except (OSError, zipfile.BadZipFile, tarfile.TarError):
+        return []
+    parts = [m.strip("/").split("/") for m in members if m.strip("/") and not m.startswith("__MACOSX")]
+    tops = sorted({p[0] for p in parts})
+    if len(tops) == 1:  # one folder zipped whole: look inside it
+        return tops + sorted({p[1] for p in parts if len(p) > 1})
+    return tops
 
 
 def follow(client: Client, ids: list[str], timeout: float | None = None, interval: float = 0.5) -> int:
@@ -365,7 +431,7 @@ def follow(client: Client, ids: list[str], timeout: float | None = None, interva
 
 def cmd_jobs(args: argparse.Namespace) -> int:
     client = Client()
-    params: dict[str, Any] = {"limit": args.limit}
+    params: dict[str, Any] = {"limit": args.limit, "offset": args.offset}
     if args.state:
         params["state"] = args.state
     if args.batch:
@@ -381,24 +447,30 @@ def cmd_jobs(args: argparse.Namespace) -> int:
             line += f"  [{j['error']}]"
         print(line)
     if page["total"] > len(page["jobs"]):
-        print(f"({len(page['jobs'])} of {page['total']})", file=sys.stderr)
+        more = f"; next page: --offset {page['next_offset']}" if page.get("next_offset") is not None else ""
+        print(f"({len(page['jobs'])} of {page['total']} from {args.offset}{more})", file=sys.stderr)
     return 0
 
 
 # ---- batches ----------------------------------------------------------------------------------
-def _batch_id(raw: str) -> str:
+def batch_path(raw: str) -> str:
+    """A batch's id or name, percent-encoded for its URL path."""
+    from urllib.parse import quote
+
     value = raw.strip()
     if not value or "/" in value:
-        raise InputError("ID", f"not a batch id: {raw!r}")
-    return value
+        raise InputError("ID", f"not a batch id or name: {raw!r}")
+    return quote(value, safe="")
 
 
 def cmd_batch_status(args: argparse.Namespace) -> int:
     """Print a batch's counts by state and its progress; exit 1 when any job failed."""
-    b = Client().request("GET", f"/v1/batches/{_batch_id(args.batch_id)}")
+    b = Client().request("GET", f"/v1/batches/{batch_path(args.batch_id)}")
     counts = ", ".join(f"{n} {s}" for s, n in sorted(b["counts"].items())) or "no jobs"
     print(f"{b['id']}  {b['name']}: {b['total']} captures, {counts}, {b['progress'] * 100:.1f} % done")
-    return 1 if b["counts"].get("failed") else 0
+    for r in b.get("rejected", []):
+        print(f"  rejected  {r['capture']}: {r['error']}")
+    return 1 if b["counts"].get("failed") or b["counts"].get("rejected") else 0
 
 
 def cmd_batch_report(args: argparse.Namespace) -> int:
@@ -406,7 +478,7 @@ def cmd_batch_report(args: argparse.Namespace) -> int:
     from shared.core.files import atomic_file
 
     client = Client()
-    path = f"/v1/batches/{_batch_id(args.batch_id)}/report.{args.format}"
+    path = f"/v1/batches/{batch_path(args.batch_id)}/report.{args.format}"
     if args.format == "csv":
         text = client.text(path)
     else:
@@ -421,7 +493,7 @@ def cmd_batch_report(args: argparse.Namespace) -> int:
 
 def cmd_batch_retry(args: argparse.Namespace) -> int:
     """Re-run a batch's failed and cancelled jobs; print their ids, one a line."""
-    r = Client().request("POST", f"/v1/batches/{_batch_id(args.batch_id)}/retry")
+    r = Client().request("POST", f"/v1/batches/{batch_path(args.batch_id)}/retry")
     for job_id in r["retried"]:
         print(job_id)
     return 0

@@ -12,6 +12,7 @@ import importlib
 import logging
 import sys
 
+from services.cli.provenance import run_recorded
 from shared.core.errors import GraylightError
 
 COMMAND_MODULES = [
@@ -24,6 +25,8 @@ COMMAND_MODULES = [
     "services.cli.rig",
     "services.cli.compress",
     "services.cli.merge",
+    "services.cli.results",
+    "services.cli.publish",
     "services.cli.derive",
 ]
 
@@ -43,6 +46,8 @@ COMMANDS = {
     "rig": "services.cli.rig",
     "compress": "services.cli.compress", "decompress": "services.cli.compress",
     "merge": "services.cli.merge",
+    "job": "services.cli.results", "rerender": "services.cli.results", "view": "services.cli.results",
+    "publish": "services.cli.publish", "rerun": "services.cli.publish",
     "derivatives": "services.cli.derive",
 }  # fmt: skip
 
@@ -66,14 +71,16 @@ def build_parser(argv: list[str] | None = None) -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = build_parser(sys.argv[1:] if argv is None else argv)
+    argv = sys.argv[1:] if argv is None else argv
+    parser = build_parser(argv)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=logging.INFO if args.verbose else logging.WARNING,
         format="%(levelname)s %(name)s: %(message)s",
     )
     try:
-        return int(args.func(args) or 0)
+        # Commands that write outputs leave their paradata beside them (services/cli/provenance.py).
+        return int(run_recorded(args, argv, args.func) or 0)
     except GraylightError as exc:
         print(f"graylight {args.command}: error: {exc}", file=sys.stderr)
         return 1

@@ -1,7 +1,8 @@
 """``graylight merge SCANSET --out OUT [--drop-unregistered]``: the whole multi-view merge in-process.
 
 Registers the views of a ``graylight-scanset-v1`` scan set, fuses them and meshes the result
-(:func:`shared.merge.pipeline.merge_scanset`) with a progress bar on stderr, then prints where the
+(:func:`shared.merge.pipeline.merge_scanset`) with a progress bar on stderr (plain lines when
+stderr is not a terminal), then prints where the
 results are and how well the views fit. Bad input ends with a one-line error naming the view or
 field and exit status 1; nothing is left half-written in OUT.
 """
@@ -14,17 +15,12 @@ from pathlib import Path
 
 
 def _cmd_merge(args: argparse.Namespace) -> int:
-    from rich.console import Console
-    from rich.progress import BarColumn, Progress, TextColumn, TimeElapsedColumn
-
+    from services.cli.progress import progress_bar
     from shared.merge.pipeline import merge_scanset
 
-    console = Console(stderr=True)
-    with Progress(TextColumn("[bold]merging[/bold]"), BarColumn(), TextColumn("{task.percentage:>3.0f}%"),
-                  TimeElapsedColumn(), console=console, transient=not console.is_terminal) as bar:
-        task = bar.add_task("merge", total=1.0)
+    with progress_bar("merging") as progress:  # a bar on a terminal, plain lines in a log
         report = merge_scanset(Path(args.scanset), Path(args.out), drop_unregistered=args.drop_unregistered,
-                               progress=lambda f: bar.update(task, completed=f))
+                               progress=progress)
     files = report["files"]
     reg = report["registration"]
     print(f"{report['registered_views']} of {report['views']} views registered ({report['method']}), "

@@ -1,4 +1,5 @@
-"""``graylight tiles`` and ``graylight preview``: the render stages, in-process."""
+"""``graylight tiles`` and ``graylight preview``: the render stages, in-process, with their
+progress on stderr (a bar on a terminal, plain lines otherwise)."""
 
 from __future__ import annotations
 
@@ -30,10 +31,13 @@ def _tiles(args: argparse.Namespace) -> int:
     collecting = gc.isenabled()
     gc.disable()
     try:
+        from services.cli.progress import progress_bar
         from shared.render.stages import tiles_stage
 
-        report = tiles_stage(Path(args.cloud), Path(args.out), workers=args.workers,
-                             estimate_normals=args.estimate_normals, node_codec=args.node_codec)  # fmt: skip
+        with progress_bar("tiles") as progress:  # a bar on a terminal, plain lines in a log
+            report = tiles_stage(Path(args.cloud), Path(args.out), workers=args.workers,
+                                 estimate_normals=args.estimate_normals, node_codec=args.node_codec,
+                                 progress=progress)  # fmt: skip
     finally:
         if collecting:
             gc.enable()
@@ -46,10 +50,18 @@ def _tiles(args: argparse.Namespace) -> int:
 
 
 def _preview(args: argparse.Namespace) -> int:
+    from services.cli.progress import progress_bar
+    from shared.render.camera_path import NAMED_PATHS, parse_camera_doc, read_path_file
     from shared.render.stages import preview_stage
 
-    options = PreviewOptions(path=args.path, size=parse_size(args.size, "--size"), seconds=args.seconds, fps=args.fps)
-    report = preview_stage(Path(args.tiles), Path(args.out), options.checked("--"), renderer=args.renderer)
+    camera = None
+    if args.path not in NAMED_PATHS:  # a local keyframe file: the user names their own files
+        camera = parse_camera_doc(read_path_file(args.path), args.path)
+    options = PreviewOptions(path=args.path if camera is None else "auto", size=parse_size(args.size, "--size"),
+                             seconds=args.seconds, fps=args.fps, camera=camera, camera_where=args.path)
+    with progress_bar("preview") as progress:  # frames rendered
+        report = preview_stage(Path(args.tiles), Path(args.out), options.checked("--"), renderer=args.renderer,
+                               progress=progress)  # fmt: skip
     print(
         f"{report['frames']} frames {report['width']}x{report['height']} at {report['fps']} fps "
         f"({report['renderer']} renderer, {report['render_fps']:.1f} frames/s) in {report['elapsed_seconds']:.1f} s"

@@ -5,7 +5,7 @@ from the URL made by ``tiles_url_template`` (default ``/v1/jobs/{job}/artifacts/
 under the app's root path); the browser sends the API key it was given in the page URL's
 fragment (``/viewer/{job}#key=...``), the ``key`` query parameter or the ``graylight_key``
 cookie as ``Authorization: Bearer`` to that same-origin URL, and lists the job's artifacts
-(``artifacts_url_template``) for a ``mesh.glb`` to offer. ``/viewer/?tiles=URL`` shows any
+(``artifacts_url_template``) for a ``mesh.glb`` to offer and the job's ``name`` to title the page. ``/viewer/?tiles=URL`` shows any
 tiles folder (``&mesh=URL`` a mesh with it). Assets come from ``services/viewer/dist``
 (``make viewer`` builds them with npm).
 """
@@ -58,7 +58,7 @@ def render_page(dist: Path, config: dict[str, str] | None = None) -> str:
 def create_router(dist: Path = VIEWER_DIST, tiles_url_template: str = TILES_URL_TEMPLATE,
                   artifacts_url_template: str = ARTIFACTS_URL_TEMPLATE) -> APIRouter:
     """Routes serving the viewer from ``dist``, pointing job pages at ``tiles_url_template``
-    and ``artifacts_url_template``."""
+    and ``artifacts_url_template`` (whose ``name``, the job's, titles the page)."""
     router = APIRouter(tags=["viewer"])
     assets = (dist / "assets").resolve()
 

@@ -155,6 +155,12 @@ class Board:
         return img, to_board
 
 
+#: Most squares or corners along a board side, and the largest square (board units): beyond
+#: these a board.json is a typing error that would otherwise allocate or fail deep in OpenCV.
+MAX_BOARD_COUNT = 200
+MAX_BOARD_SIZE = 1e6
+
+
 def _positive_int_pair(doc: dict[str, Any], key: str, where: Path | str, minimum: int) -> tuple[int, int]:
     v = doc.get(key)
     if (
@@ -162,15 +168,17 @@ def _positive_int_pair(doc: dict[str, Any], key: str, where: Path | str, minimum
         or len(v) != 2
         or not all(isinstance(x, int) and not isinstance(x, bool) for x in v)
         or min(v) < minimum
+        or max(v) > MAX_BOARD_COUNT
     ):
-        raise InputError(where, f'field "{key}" must be two integers of at least {minimum} [width, height], got {v!r}')
+        raise InputError(where, f'field "{key}" must be two integers in {minimum}..{MAX_BOARD_COUNT} [width, height], '
+                                f"got {str(v)[:60]}")
     return (int(v[0]), int(v[1]))
 
 
 def _positive_number(doc: dict[str, Any], key: str, where: Path | str) -> float:
     v = doc.get(key)
-    if not isinstance(v, int | float) or isinstance(v, bool) or not np.isfinite(v) or v <= 0:
-        raise InputError(where, f'field "{key}" must be a positive number, got {v!r}')
+    if not isinstance(v, int | float) or isinstance(v, bool) or not np.isfinite(v) or not 0 < v <= MAX_BOARD_SIZE:
+        raise InputError(where, f'field "{key}" must be a positive number up to {MAX_BOARD_SIZE:g}, got {str(v)[:40]}')
     return float(v)
 
 

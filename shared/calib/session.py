@@ -44,6 +44,7 @@ from shared.calib.calibrate import (
 )
 from shared.core.errors import InputError
 from shared.core.files import atomic_file, write_json_atomic
+from shared.core.paths import confine
 from shared.formats.capture import CAPTURE_FILE, Capture, load_capture
 from shared.formats.images import read_grey
 from shared.formats.rig import Device, Rig, save_rig
@@ -87,6 +88,7 @@ def load_session(session_dir: str | os.PathLike[str]) -> Session:
             if any(sub.iterdir()):
                 log.warning("session %s: folder %s has no %s; not a pose", root, sub.name, CAPTURE_FILE)
             continue
+        confine(root, sub.name, where=sub, folder="session folder", kind="dir")  # a pose linked in from elsewhere
         capture = load_capture(sub)
         if not capture.rows:
             raise InputError(sub / CAPTURE_FILE, 'field "rows" is empty: projector calibration needs row patterns too')

@@ -11,8 +11,9 @@ from shared.core.datapaths import shared_data_dir
 from shared.core.errors import GraylightError, InputError
 from shared.core.files import atomic_file, read_json, write_json_atomic
 from shared.core.lazy import lazy_exports
+from shared.core.paths import confine, open_regular, read_bounded
 
 _, __getattr__, __dir__ = lazy_exports(__name__, {"cpu_budget": "threads"})
 
-__all__ = ["GraylightError", "InputError", "atomic_file", "cpu_budget", "lazy_exports", "read_json", "shared_data_dir",
+__all__ = ["GraylightError", "InputError", "atomic_file", "confine", "cpu_budget", "lazy_exports", "open_regular", "read_bounded", "read_json", "shared_data_dir",
            "write_json_atomic"]  # fmt: skip

@@ -26,3 +26,14 @@ class InputError(GraylightError):
     def __reduce__(self) -> tuple[type[InputError], tuple[str, str]]:
         # Process pools pickle exceptions raised in workers; the default would call __init__ with one argument.
         return (type(self), (self.where, self.problem))
+
+
+def relative_message(exc: InputError, root: str | Path) -> str:
+    """``exc``'s one line with its ``where`` made relative to ``root`` when it lies inside it, so
+    that a message nested into another (``views[2] (v2): bad capture: ...``) names the file as
+    the client wrote it, not where this machine unpacked it."""
+    where = Path(exc.where)
+    base = Path(root)
+    if where.is_absolute() and where.is_relative_to(base):
+        return f"{where.relative_to(base).as_posix()}: {exc.problem}"
+    return str(exc)

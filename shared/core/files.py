@@ -16,7 +16,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
-from shared.core.errors import InputError
+from shared.core.jsonsafe import read_json_bounded
 
 
 @contextmanager
@@ -49,16 +49,11 @@ def write_json_atomic(path: str | os.PathLike[str], doc: Any) -> Path:
 
 
 def read_json(path: str | os.PathLike[str], missing: str) -> Any:
-    """Parse a JSON input file; :class:`InputError` naming the file when it is absent or malformed.
+    """Parse a JSON input file with bounds (:func:`shared.core.jsonsafe.read_json_bounded`: size,
+    nesting depth, number length); :class:`InputError` naming the file when it is absent,
+    too large, too deep or malformed (never a ``RecursionError``).
 
     ``missing`` is the problem to report when the file does not exist (it says what the file is for).
+    Opened without blocking, regular files only: every JSON input may come from a client.
     """
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(p, missing)
-    try:
-        return json.loads(p.read_text(encoding="utf-8"))
-    except UnicodeDecodeError as exc:
-        raise InputError(p, f"not UTF-8 text ({exc.reason})") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(p, f"malformed JSON at line {exc.lineno} column {exc.colno}: {exc.msg}") from None
+    return read_json_bounded(path, str(Path(path)), missing=missing)

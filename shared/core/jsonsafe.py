@@ -23,6 +23,7 @@ from typing import Any
 import numpy as np
 
 from shared.core.errors import InputError
+from shared.core.paths import read_bounded
 
 __all__ = ["MAX_DEPTH", "MAX_DOCUMENT_BYTES", "MAX_NUMBER_CHARS", "json_depth", "loads_bounded", "read_json_bounded"]
 
@@ -108,11 +109,9 @@ def read_json_bounded(path: str | os.PathLike[str], what: str, *, missing: str,
     """Read and parse a JSON file with :func:`loads_bounded`, reading at most ``max_bytes + 1`` bytes.
 
     ``what`` names the file in errors (relative to the submission, never an absolute worker path);
-    ``missing`` is the problem reported when it is not a regular file.
+    ``missing`` is the problem reported when there is no file; a folder, device or FIFO is "not a
+    regular file" (opened without blocking, :func:`shared.core.paths.read_bounded`), a larger
+    file "too large" before any of it is parsed.
     """
-    p = Path(path)
-    if not p.is_file():
-        raise InputError(what, missing)
-    with open(p, "rb") as f:
-        raw = f.read(max_bytes + 1)
+    raw = read_bounded(Path(path), what, max_bytes, missing=missing)  # non-blocking, regular files only
     return loads_bounded(raw, what, max_bytes=max_bytes, max_depth=max_depth)

@@ -23,6 +23,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "Device": "rig",
         "Rig": "rig",
         "parse_rig": "rig",
+        "parse_rig_bytes": "rig",
         "load_rig": "rig",
         "save_rig": "rig",
         "check_rig_matches": "rig",

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import math
 import os
+import stat
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -31,6 +32,7 @@ from typing import Any
 
 from shared.core.errors import InputError
 from shared.core.files import read_json, write_json_atomic
+from shared.core.paths import confine
 
 FORMAT = "graycode-v1"
 CAPTURE_FILE = "capture.json"
@@ -131,21 +133,50 @@ class Capture:
         return doc
 
 
+#: The keys of each object of the contract; any other is an error naming it (a misspelt
+#: "inverse" silently ignored would decode without the inverse images). "simulated" holds what
+#: ``graylight simulate`` wrote about the scene (free-form; readers ignore it).
+_TOP_KEYS = ("format", "projector", "white", "black", "columns", "rows", "rig", "simulated")
+_PROJECTOR_KEYS = ("width", "height")
+_ENTRY_KEYS = ("bit", "pattern", "inverse")
+#: Most code entries a list may hold: the bits of the largest projector side.
+MAX_CODE_BITS = 14
+
+
+def _short(value: Any) -> str:
+    """``repr`` cut to a short excerpt: an error never echoes a client's whole value."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _no_unknown(obj: dict[str, Any], known: Sequence[str], where: Path, parent: str | None) -> None:
+    """:class:`InputError` naming the first key of ``obj`` that the contract does not know."""
+    for k in obj:
+        if k not in known:
+            at = f'in "{parent}"' if parent else "at the top level"
+            raise InputError(where, f'unknown field {_short(k)} {at} (allowed: {", ".join(known)})')
+
+
 def _require(doc: dict[str, Any], key: str, where: Path) -> Any:
     if key not in doc:
         raise InputError(where, f'missing field "{key}"')
     return doc[key]
 
 
+def _confined(root: Path, value: Any, where: Path, field_name: str) -> Path:
+    """``root / value`` under the one confinement rule (:func:`shared.core.paths.confine`): relative,
+    inside the capture folder with links followed. Whether the file is there is :func:`check_files`'s."""
+    try:
+        return confine(root, value, where=where, folder="capture folder", check=False)
+    except InputError as exc:
+        raise InputError(where, f'field "{field_name}" {exc.problem}') from None
+
+
 def _image_path(root: Path, value: Any, where: Path, field_name: str) -> Path:
-    if not isinstance(value, str) or not value:
-        raise InputError(where, f'field "{field_name}" must be a file name, got {value!r}')
-    p = Path(value)
-    if p.is_absolute() or ".." in p.parts:
-        raise InputError(where, f'field "{field_name}" must be a path inside the capture folder, got {value!r}')
+    p = _confined(root, value, where, field_name)
     if p.suffix.lower() not in IMAGE_SUFFIXES:
         raise InputError(where, f'field "{field_name}": {value!r} is not a PNG, TIFF, JPEG or BMP file name')
-    return root / p
+    return p
 
 
 def _code_entries(
@@ -155,15 +186,18 @@ def _code_entries(
     if not isinstance(raw, list):
         raise InputError(where, f'field "{key}" must be a list')
     out: list[CodeImage] = []
+    if len(raw) > MAX_CODE_BITS:
+        raise InputError(where, f'field "{key}" lists {len(raw)} patterns (a projector of this size has {nbits} bits)')
     for i, e in enumerate(raw):
         name = f"{key}[{i}]"
         if not isinstance(e, dict):
             raise InputError(where, f'field "{name}" must be an object')
+        _no_unknown(e, _ENTRY_KEYS, where, name)
         bit = _require(e, "bit", where)
         if not isinstance(bit, int) or isinstance(bit, bool) or not 0 <= bit < nbits:
             raise InputError(
                 where,
-                f'field "{name}.bit" is {bit!r}, but a projector of this size has {nbits} bits (0..{nbits - 1})',
+                f'field "{name}.bit" is {_short(bit)}, but a projector of this size has {nbits} bits (0..{nbits - 1})',
             )
         pattern = _image_path(root, _require(e, "pattern", where), where, f"{name}.pattern")
         inverse = e.get("inverse")
@@ -195,28 +229,25 @@ def parse_capture(doc: Any, root: Path, where: Path | None = None) -> Capture:
         raise InputError(where, "must be a JSON object")
     fmt = doc.get("format")
     if fmt != FORMAT:
-        raise InputError(where, f'field "format" is {fmt!r}, expected "{FORMAT}"')
+        raise InputError(where, f'field "format" is {_short(fmt)}, expected "{FORMAT}"')
+    _no_unknown(doc, _TOP_KEYS, where, None)
     proj = _require(doc, "projector", where)
     if not isinstance(proj, dict):
         raise InputError(where, 'field "projector" must be an object with "width" and "height"')
+    _no_unknown(proj, _PROJECTOR_KEYS, where, "projector")
     w, h = proj.get("width"), proj.get("height")
     for name, v in (("width", w), ("height", h)):
         if not isinstance(v, int) or isinstance(v, bool) or not 2 <= v <= MAX_PROJECTOR_SIDE:
-            raise InputError(where, f'field "projector.{name}" must be an integer in 2..{MAX_PROJECTOR_SIDE}, got {v!r}')
+            raise InputError(where, f'field "projector.{name}" must be an integer in 2..{MAX_PROJECTOR_SIDE}, got {_short(v)}')
     columns = _code_entries(root, doc, "columns", code_bits(w), where)
     if not columns:
         raise InputError(where, 'field "columns" must list at least one pattern')
     rows = _code_entries(root, doc, "rows", code_bits(h), where)
     rig_value = doc.get("rig")
-    rig = None
-    if rig_value is not None:
-        if not isinstance(rig_value, str) or not rig_value:
-            raise InputError(where, f'field "rig" must be a file name, got {rig_value!r}')
-        rp = Path(rig_value)
-        if rp.is_absolute() or ".." in rp.parts:
-            raise InputError(where, f'field "rig" must be a path inside the capture folder, got {rig_value!r}')
-        rig = root / rp
-    known = {"format", "projector", "white", "black", "columns", "rows", "rig"}
+    rig = _confined(root, rig_value, where, "rig") if rig_value is not None else None
+    simulated = doc.get("simulated")
+    if simulated is not None and not isinstance(simulated, dict):
+        raise InputError(where, 'field "simulated" must be an object (what graylight simulate wrote)')
     return Capture(
         root=root,
         projector_width=w,
@@ -226,16 +257,21 @@ def parse_capture(doc: Any, root: Path, where: Path | None = None) -> Capture:
         columns=columns,
         rows=rows,
         rig=rig,
-        extra={k: v for k, v in doc.items() if k not in known},
+        extra={"simulated": simulated} if simulated is not None else {},
     )
 
 
 def check_files(capture: Capture) -> None:
-    """Raise :class:`InputError` naming the first image file that is missing or empty."""
+    """Raise :class:`InputError` naming the first image file that is missing, not a regular file
+    (a FIFO or device would block or never end a read) or empty."""
     for p in capture.image_paths():
-        if not p.is_file():
-            raise InputError(p, "image file is missing")
-        if p.stat().st_size == 0:
+        try:
+            st = p.stat()
+        except OSError:
+            raise InputError(p, "image file is missing") from None
+        if not stat.S_ISREG(st.st_mode):
+            raise InputError(p, "image is not a regular file")
+        if st.st_size == 0:
             raise InputError(p, "image file is empty")
 
 

@@ -21,6 +21,7 @@ import cv2
 import numpy as np
 
 from shared.core.errors import InputError
+from shared.core.paths import open_regular, read_bounded
 
 #: Bytes read by :func:`probe_image`; JPEG headers can sit behind large EXIF blocks.
 _PROBE_BYTES = 1 << 16
@@ -108,7 +109,7 @@ def _probe_tiff(head: bytes, path: Path) -> ImageInfo:
         else:
             (ifd,) = struct.unpack(order + "I", head[4:8])
             count_fmt, entry_size, count_size = "H", 12, 2
-        with open(path, "rb") as f:
+        with open_regular(path, path, missing="image file is missing") as f:
             f.seek(ifd)
             (count,) = struct.unpack(order + count_fmt, f.read(count_size))
             if count > 4096:
@@ -152,10 +153,14 @@ def _probe_tiff(head: bytes, path: Path) -> ImageInfo:
     return ImageInfo(width, height, channels, bits, "tiff")
 
 
+#: Largest image file read: a 16-bit colour frame of 12000 x 9000 pixels is 648 MB uncompressed;
+#: a file beyond this is refused before it is read, not decoded into the worker's memory.
+MAX_IMAGE_BYTES = 1 << 30
+
+
 def _open_head(path: Path) -> bytes:
-    if not path.is_file():
-        raise InputError(path, "image file is missing")
-    with open(path, "rb") as f:
+    # Without blocking and regular files only: an image path may come from a client's capture.
+    with open_regular(path, path, missing="image file is missing") as f:
         head = f.read(_PROBE_BYTES)
     if not head:
         raise InputError(path, "image file is empty")
@@ -189,9 +194,7 @@ def probe_image(path: str | os.PathLike[str]) -> ImageInfo:
 
 
 def _read_bytes(path: Path) -> np.ndarray:
-    if not path.is_file():
-        raise InputError(path, "image file is missing")
-    data = np.fromfile(path, dtype=np.uint8)
+    data = np.frombuffer(read_bounded(path, path, MAX_IMAGE_BYTES, missing="image file is missing"), dtype=np.uint8)
     if data.size == 0:
         raise InputError(path, "image file is empty")
     # Decoders fill a cut-off image with grey and only warn, so check the end marker first.

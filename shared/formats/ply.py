@@ -28,6 +28,7 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
+from shared.core.paths import open_regular
 
 #: Field layout of the clouds Graylight writes (31 bytes per point, packed).
 CLOUD_DTYPE = np.dtype(
@@ -143,10 +144,10 @@ def write_ply(
 def read_header(path: str | os.PathLike[str]) -> PlyHeader:
     """Parse a PLY header; raises :class:`InputError` naming the file for anything we cannot read."""
     path = Path(path)
-    if not path.is_file():
-        raise InputError(path, "point cloud file not found")
-    with open(path, "rb") as f:
+    # Without blocking, regular files only (a FIFO or device named by a client never hangs a read).
+    with open_regular(path, path, missing="point cloud file not found") as f:
         head = f.read(1 << 16)
+        size = os.fstat(f.fileno()).st_size
     if not head.startswith(b"ply"):
         raise InputError(path, "not a PLY file (no 'ply' magic)")
     end = head.find(b"end_header")
@@ -177,10 +178,9 @@ def read_header(path: str | os.PathLike[str]) -> PlyHeader:
             if current == "vertex":
                 if seen_vertex_done or count is not None:
                     raise InputError(path, "PLY has more than one vertex element")
-                try:
-                    count = int(parts[2])
-                except ValueError:
-                    raise InputError(path, f"bad vertex count {parts[2]!r}") from None
+                if not parts[2].isdigit() or len(parts[2]) > 18:
+                    raise InputError(path, f"bad vertex count {parts[2][:20]!r}")
+                count = int(parts[2])
             elif count is None:
                 raise InputError(path, f"element {current!r} before the vertex element is not supported")
         elif parts[0] == "property" and current == "vertex":
@@ -199,7 +199,23 @@ def read_header(path: str | os.PathLike[str]) -> PlyHeader:
             raise InputError(path, f"PLY vertex element has no '{axis}' property")
     order = ">" if fmt == "binary_big_endian" else "<"
     dtype = np.dtype([(name, order + t if t[1] != "1" else t) for name, t in props])
+    _check_count(path, fmt, count, dtype, size - (nl + 1))
     return PlyHeader(fmt=fmt, count=count, dtype=dtype, data_offset=nl + 1, comments=tuple(comments))
+
+
+def _check_count(path: Path, fmt: str, count: int, dtype: np.dtype, data_bytes: int) -> None:
+    """The header's vertex count against the bytes that follow the header, before anything is
+    allocated: a binary vertex takes ``dtype.itemsize`` bytes, an ASCII one at least two a
+    property (a digit and a separator). A header claiming 10^12 vertices is refused here, not
+    by a failed allocation of terabytes."""
+    if fmt == "ascii":
+        least = 2 * len(dtype.names or ())
+        if count > data_bytes // least:
+            raise InputError(path, f"PLY header claims {count} vertices, but the {data_bytes} bytes after it "
+                                   f"hold at most {data_bytes // least} ASCII vertices of {len(dtype.names or ())} properties")
+    elif count * dtype.itemsize > data_bytes:
+        raise InputError(path, f"PLY is truncated: the header claims {count} vertices of {dtype.itemsize} bytes, "
+                               f"{data_bytes} bytes follow it")
 
 
 def _records(path: Path, header: PlyHeader) -> np.ndarray:

@@ -30,6 +30,7 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.core.files import read_json, write_json_atomic
+from shared.core.jsonsafe import loads_bounded
 
 
 @dataclass(frozen=True)
@@ -93,6 +94,37 @@ class Rig:
         }
 
 
+#: The keys of each object of the contract; any other is an error naming it. "radiometry" (the
+#: camera response and fall-off, written by the simulator and calibration) is validated by its own
+#: parser (issue 23's branch adds it).
+_TOP_KEYS = ("units", "camera", "projector", "R", "T", "radiometry")
+_DEVICE_KEYS = ("width", "height", "K", "dist")
+#: Largest device side in pixels, and the range of focal lengths (pixels) and principal points
+#: (within this many image sides of the image) a real lens gives: a focal length of 1e308 parses
+#: but overflows the triangulation and fails only at export.
+MAX_DEVICE_SIDE = 65536
+MAX_FOCAL_PX = 1e6
+MAX_PRINCIPAL_SIDES = 4.0
+#: Largest magnitude of a distortion coefficient (OpenCV's rational terms reach hundreds).
+MAX_DISTORTION = 1e4
+#: Largest camera-projector distance in the rig's units (10 km in mm).
+MAX_BASELINE = 1e7
+#: Largest rig file accepted.
+MAX_RIG_BYTES = 1 << 20
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _no_unknown(obj: dict[str, Any], known: tuple[str, ...], where: Path | str, parent: str | None) -> None:
+    for k in obj:
+        if k not in known:
+            at = f'in "{parent}"' if parent else "at the top level"
+            raise InputError(where, f'unknown field {_short(k)} {at} (allowed: {", ".join(known)})')
+
+
 def _matrix(value: Any, shape: tuple[int, ...], where: Path | str, name: str) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=np.float64)
@@ -108,19 +140,30 @@ def _matrix(value: Any, shape: tuple[int, ...], where: Path | str, name: str) ->
 def _device(doc: Any, where: Path | str, name: str) -> Device:
     if not isinstance(doc, dict):
         raise InputError(where, f'field "{name}" must be an object')
+    _no_unknown(doc, _DEVICE_KEYS, where, name)
     for key in ("width", "height"):
         v = doc.get(key)
-        if not isinstance(v, int) or isinstance(v, bool) or v < 1:
-            raise InputError(where, f'field "{name}.{key}" must be a positive integer, got {v!r}')
+        if not isinstance(v, int) or isinstance(v, bool) or not 2 <= v <= MAX_DEVICE_SIDE:
+            raise InputError(where, f'field "{name}.{key}" must be an integer in 2..{MAX_DEVICE_SIDE}, got {_short(v)}')
     if "K" not in doc:
         raise InputError(where, f'missing field "{name}.K"')
     K = _matrix(doc["K"], (3, 3), where, f"{name}.K")
     if K[0, 0] <= 0 or K[1, 1] <= 0 or K[2, 2] != 1 or K[1, 0] != 0 or K[2, 0] != 0 or K[2, 1] != 0:
         raise InputError(where, f'field "{name}.K" is not a camera matrix [[fx,s,cx],[0,fy,cy],[0,0,1]] with fx, fy > 0')
+    if max(K[0, 0], K[1, 1], abs(K[0, 1])) > MAX_FOCAL_PX:
+        raise InputError(where, f'field "{name}.K": focal length and skew must be at most {MAX_FOCAL_PX:g} pixels, '
+                                f"got fx {K[0, 0]:.6g}, fy {K[1, 1]:.6g}, s {K[0, 1]:.6g}")
+    side = max(doc["width"], doc["height"])
+    if max(abs(K[0, 2]), abs(K[1, 2])) > MAX_PRINCIPAL_SIDES * side:
+        raise InputError(where, f'field "{name}.K": principal point ({K[0, 2]:.6g}, {K[1, 2]:.6g}) lies more than '
+                                f"{MAX_PRINCIPAL_SIDES:g} image sides from the image")
     dist_raw = doc.get("dist", [0, 0, 0, 0, 0])
-    dist = np.asarray(dist_raw, dtype=np.float64).ravel() if isinstance(dist_raw, list) else None
+    dist = np.asarray(dist_raw, dtype=np.float64).ravel() if isinstance(dist_raw, list) and all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in dist_raw) else None
     if dist is None or dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
         raise InputError(where, f'field "{name}.dist" must be OpenCV distortion coefficients [k1, k2, p1, p2, k3]')
+    if np.abs(dist).max(initial=0.0) > MAX_DISTORTION:
+        raise InputError(where, f'field "{name}.dist": coefficients must be at most {MAX_DISTORTION:g} in magnitude')
     if dist.size == 4:
         dist = np.append(dist, 0.0)
     return Device(width=doc["width"], height=doc["height"], K=K, dist=dist)
@@ -166,9 +209,10 @@ def parse_rig(doc: Any, where: Path | str = "rig.json") -> Rig:
     """Validate a rig document; raises :class:`InputError` naming ``where`` and the field."""
     if not isinstance(doc, dict):
         raise InputError(where, "must be a JSON object")
+    _no_unknown(doc, _TOP_KEYS, where, None)
     units = doc.get("units", "mm")
-    if not isinstance(units, str) or not units:
-        raise InputError(where, f'field "units" must be a string such as "mm", got {units!r}')
+    if not isinstance(units, str) or not units or len(units) > 16:
+        raise InputError(where, f'field "units" must be a string such as "mm", got {_short(units)}')
     for key in ("camera", "projector", "R", "T"):
         if key not in doc:
             raise InputError(where, f'missing field "{key}"')
@@ -176,6 +220,8 @@ def parse_rig(doc: Any, where: Path | str = "rig.json") -> Rig:
     if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise InputError(where, 'field "R" is not a rotation matrix')
     T = _matrix(doc["T"], (3,), where, "T")
+    if np.abs(T).max() > MAX_BASELINE:  # before the norm, which would overflow
+        raise InputError(where, f'field "T": a baseline of {np.abs(T).max():.6g} {units} or more is more than {MAX_BASELINE:g}')
     if np.linalg.norm(T) == 0:
         raise InputError(where, 'field "T" is zero: camera and projector cannot share an optical centre')
     return Rig(
@@ -189,10 +235,16 @@ def parse_rig(doc: Any, where: Path | str = "rig.json") -> Rig:
 
 
 def load_rig(path: str | os.PathLike[str]) -> Rig:
-    """Read and validate ``rig.json``."""
+    """Read and validate ``rig.json`` (bounded, without blocking: :func:`shared.core.files.read_json`)."""
     p = Path(path)
     doc = read_json(p, "rig file not found")
     return parse_rig(doc, p)
+
+
+def parse_rig_bytes(data: bytes, where: str) -> Rig:
+    """A rig from the bytes of an uploaded file: :func:`~shared.core.jsonsafe.loads_bounded` (more
+    than :data:`MAX_RIG_BYTES` is "too large", never cut and called malformed), then :func:`parse_rig`."""
+    return parse_rig(loads_bounded(data, where, max_bytes=MAX_RIG_BYTES), where)
 
 
 def save_rig(rig: Rig, path: str | os.PathLike[str]) -> Path:

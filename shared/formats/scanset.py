@@ -36,8 +36,9 @@ from typing import Any
 
 import numpy as np
 
-from shared.core.errors import InputError
+from shared.core.errors import InputError, relative_message
 from shared.core.files import read_json, write_json_atomic
+from shared.core.paths import confine
 from shared.formats.capture import CAPTURE_FILE, load_capture
 from shared.formats.images import probe_image
 from shared.formats.ply import read_header
@@ -52,6 +53,25 @@ FORMAT = "graylight-scanset-v1"
 SCANSET_FILE = "scanset.json"
 #: Millimetres per unit of each accepted ``units`` value.
 UNITS = {"mm": 1.0, "m": 1000.0}
+#: Most views a scan set may hold, the longest view name, and the largest coordinate (mm, or
+#: the view's units) a pose, roi or angle may give: values past these are typing errors that
+#: would otherwise fail late, inside the registration.
+MAX_VIEWS = 1000
+MAX_NAME_CHARS = 128
+MAX_COORDINATE = 1e7
+MAX_ANGLE_DEG = 3600.0
+#: The keys of each object of the contract; any other is an error naming it and, for the
+#: misplacements seen in practice, where it belongs.
+_TOP_KEYS = ("format", "rig", "views", "turntable", "roi", "simulated")
+_CAPTURE_VIEW_KEYS = ("capture", "name", "pose")
+_CLOUD_VIEW_KEYS = ("cloud", "name", "units", "pose")
+_BELONGS = {
+    "units": 'goes in each cloud view ({"cloud": "scan.ply", "units": "m"}); a captured view\'s units are its rig\'s',
+    "pose": "goes in a view",
+    "angles_deg": 'goes in "turntable" ({"turntable": {"angles_deg": [...]}})',
+    "center": 'goes in "roi"',
+    "radius": 'goes in "roi"',
+}
 #: How far ``R @ R.T`` may be from the identity (and det(R) from 1) for a pose to count as a rotation.
 ROTATION_TOLERANCE = 1e-4
 
@@ -116,7 +136,7 @@ class ScanSet:
         return self.root / SCANSET_FILE
 
 
-def _number_list(value: Any, n: int | None, where: str) -> np.ndarray:
+def _number_list(value: Any, n: int | None, where: str, limit: float = MAX_COORDINATE) -> np.ndarray:
     if not isinstance(value, list) or (n is not None and len(value) != n):
         want = f"a list of {n} numbers" if n is not None else "a list of numbers"
         raise InputError(where, f"must be {want}, got {_short(value)}")
@@ -126,7 +146,18 @@ def _number_list(value: Any, n: int | None, where: str) -> np.ndarray:
         raise InputError(where, f"must hold numbers only, got {_short(value)}") from None
     if arr.ndim != 1 or not np.all(np.isfinite(arr)):
         raise InputError(where, f"must hold finite numbers, got {_short(value)}")
+    if np.abs(arr).max(initial=0.0) > limit:
+        raise InputError(where, f"must hold numbers of magnitude at most {limit:g}, got {_short(value)}")
     return arr
+
+
+def _no_unknown(obj: dict[str, Any], known: tuple[str, ...], where: str) -> None:
+    """:class:`InputError` naming the first key the contract does not know, and where it belongs."""
+    for k in obj:
+        if k not in known:
+            hint = _BELONGS.get(k) if isinstance(k, str) else None
+            hint = hint or f"allowed here: {', '.join(known)}"
+            raise InputError(f"{where}.{k}" if where else str(k)[:60], f"unknown field: {hint}")
 
 
 def _short(value: Any) -> str:
@@ -137,6 +168,7 @@ def _short(value: Any) -> str:
 def _pose(value: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
     if not isinstance(value, dict) or "R" not in value or "T" not in value:
         raise InputError(where, 'must be an object with "R" (3x3) and "T" (3)')
+    _no_unknown(value, ("R", "T"), where)
     R_rows = value["R"]
     if not isinstance(R_rows, list) or len(R_rows) != 3:
         raise InputError(f"{where}.R", f"must be a 3x3 matrix, got {_short(R_rows)}")
@@ -149,42 +181,52 @@ def _pose(value: Any, where: str) -> tuple[np.ndarray, np.ndarray]:
     return R, T
 
 
-def _resolve(root: Path, value: Any, where: str) -> Path:
-    if not isinstance(value, str) or not value:
-        raise InputError(where, f"must be a non-empty path string, got {_short(value)}")
-    p = Path(value)
-    return (p if p.is_absolute() else root / p).absolute()
+def _resolve(root: Path, value: Any, where: str, kind: str, check: bool) -> Path:
+    """``root / value`` under the one confinement rule (:func:`shared.core.paths.confine`): a path
+    leading out of the scan set's folder is refused with a text that says nothing of its target."""
+    return confine(root, value, where=where, folder="scan set folder", kind=kind, check=check)
+
+
+def _view_name(doc: dict[str, Any], default: str, where: str) -> str:
+    name = doc.get("name")
+    if name is None:
+        return default
+    if not isinstance(name, str) or not name or len(name) > MAX_NAME_CHARS:
+        raise InputError(f"{where}.name", f"must be a string of 1..{MAX_NAME_CHARS} characters, got {_short(name)}")
+    return name
 
 
 def _capture_view(root: Path, i: int, doc: dict[str, Any], set_rig: Path | None, check: bool) -> ViewSpec:
-    path = _resolve(root, doc["capture"], f"views[{i}].capture")
-    name = str(doc.get("name") or path.name)
-    where = f"views[{i}] ({name})"
     if "units" in doc:
-        raise InputError(f"{where}.units", "applies to cloud views only (a capture's units are its rig's)")
+        raise InputError(f"views[{i}].units", "applies to cloud views only (a capture's units are its rig's)")
+    _no_unknown(doc, _CAPTURE_VIEW_KEYS, f"views[{i}]")
+    path = _resolve(root, doc["capture"], f"views[{i}].capture", "dir", check)
+    name = _view_name(doc, path.name, f"views[{i}]")
+    where = f"views[{i}] ({name})"
     if not check:
         return ViewSpec(index=i, name=name, kind="capture", path=path, rig=set_rig)
     if not (path / CAPTURE_FILE).is_file():
-        raise InputError(where, f"capture not found: {path / CAPTURE_FILE} does not exist")
+        raise InputError(where, f"capture not found: {doc['capture']}/{CAPTURE_FILE} does not exist")
     try:
         capture = load_capture(path, check=check)
     except InputError as exc:
-        raise InputError(where, f"bad capture: {exc}") from None
+        raise InputError(where, f"bad capture: {relative_message(exc, root)}") from None
     rig = capture.rig or set_rig
     units = "mm"
     if rig is not None:
         try:
             units = load_rig(rig).units
         except InputError as exc:
-            raise InputError(where, f"bad rig: {exc}") from None
+            raise InputError(where, f"bad rig: {relative_message(exc, root)}") from None
         if units not in UNITS:
             raise InputError(where, f"rig units {units!r} are not one of {', '.join(UNITS)}")
     return ViewSpec(index=i, name=name, kind="capture", path=path, units=units, rig=rig)
 
 
 def _cloud_view(root: Path, i: int, doc: dict[str, Any], check: bool) -> ViewSpec:
-    path = _resolve(root, doc["cloud"], f"views[{i}].cloud")
-    name = str(doc.get("name") or path.stem)
+    _no_unknown(doc, _CLOUD_VIEW_KEYS, f"views[{i}]")
+    path = _resolve(root, doc["cloud"], f"views[{i}].cloud", "file", check)
+    name = _view_name(doc, path.stem, f"views[{i}]")
     where = f"views[{i}] ({name})"
     units = doc.get("units", "mm")
     if units not in UNITS:
@@ -193,13 +235,13 @@ def _cloud_view(root: Path, i: int, doc: dict[str, Any], check: bool) -> ViewSpe
         try:
             header = read_header(path)
         except InputError as exc:
-            raise InputError(where, f"bad point cloud: {exc}") from None
+            raise InputError(where, f"bad point cloud: {relative_message(exc, root)}") from None
         if header.count < 3:
-            raise InputError(where, f"point cloud {path.name} holds {header.count} points")
+            raise InputError(where, f"point cloud {doc['cloud']} holds {header.count} points")
     return ViewSpec(index=i, name=name, kind="cloud", path=path, units=units)
 
 
-def _check_capture_sizes(views: list[ViewSpec], set_rig: Path | None) -> None:
+def _check_capture_sizes(root: Path, views: list[ViewSpec], set_rig: Path | None) -> None:
     """A captured view without a rig of its own must have the image size of the others (and of the rig)."""
     first: tuple[ViewSpec, tuple[int, int]] | None = None
     for v in views:
@@ -209,7 +251,7 @@ def _check_capture_sizes(views: list[ViewSpec], set_rig: Path | None) -> None:
         try:
             info = probe_image(capture.white)
         except InputError as exc:
-            raise InputError(v.where, f"bad capture: {exc}") from None
+            raise InputError(v.where, f"bad capture: {relative_message(exc, root)}") from None
         size = (info.width, info.height)
         if v.rig is None:
             raise InputError(v.where, 'no rig: the capture names none and scanset.json has no "rig" field')
@@ -226,7 +268,7 @@ def _check_capture_sizes(views: list[ViewSpec], set_rig: Path | None) -> None:
         try:
             check_rig_matches(load_rig(v.rig), size, (capture.projector_width, capture.projector_height), v.rig)
         except InputError as exc:
-            raise InputError(v.where, f"rig does not fit: {exc}") from None
+            raise InputError(v.where, f"rig does not fit: {relative_message(exc, root)}") from None
 
 
 def parse_scanset(doc: Any, root: Path, check: bool = True) -> ScanSet:
@@ -236,16 +278,17 @@ def parse_scanset(doc: Any, root: Path, check: bool = True) -> ScanSet:
         raise InputError(where, "must hold a JSON object")
     if doc.get("format") != FORMAT:
         raise InputError(f"{where}: format", f"must be {FORMAT!r}, got {_short(doc.get('format'))}")
+    _no_unknown(doc, _TOP_KEYS, "")
+    if doc.get("simulated") is not None and not isinstance(doc["simulated"], dict):
+        raise InputError("simulated", "must be an object (what graylight simulate wrote)")
     set_rig = None
     if doc.get("rig") is not None:
-        set_rig = _resolve(root, doc["rig"], "rig")
-        if check and not set_rig.is_file():
-            raise InputError("rig", f"rig file not found: {set_rig}")
+        set_rig = _resolve(root, doc["rig"], "rig", "file", check)
     views_doc = doc.get("views")
     if not isinstance(views_doc, list):
         raise InputError("views", "missing or not a list")
-    if len(views_doc) < 2:
-        raise InputError("views", f"a scan set needs at least two views, got {len(views_doc)}")
+    if not 2 <= len(views_doc) <= MAX_VIEWS:
+        raise InputError("views", f"a scan set needs 2..{MAX_VIEWS} views, got {len(views_doc)}")
     views: list[ViewSpec] = []
     for i, vd in enumerate(views_doc):
         if not isinstance(vd, dict):
@@ -262,29 +305,30 @@ def parse_scanset(doc: Any, root: Path, check: bool = True) -> ScanSet:
         if n in names[:i]:
             raise InputError(views[i].where, f"view name {n!r} is used twice (set a \"name\")")
     if check:
-        _check_capture_sizes(views, set_rig)
+        _check_capture_sizes(root, views, set_rig)
     angles = None
     if doc.get("turntable") is not None:
         tt = doc["turntable"]
         if not isinstance(tt, dict) or "angles_deg" not in tt:
             raise InputError("turntable", 'must be an object with "angles_deg"')
+        _no_unknown(tt, ("angles_deg",), "turntable")
         a = tt["angles_deg"]
         if not isinstance(a, list) or len(a) != len(views):
             got = len(a) if isinstance(a, list) else _short(a)
             raise InputError("turntable.angles_deg", f"must give one angle per view ({len(views)}), got {got}")
-        angles = _number_list(a, len(views), "turntable.angles_deg")
+        angles = _number_list(a, len(views), "turntable.angles_deg", MAX_ANGLE_DEG)
     roi = None
     if doc.get("roi") is not None:
         r = doc["roi"]
         if not isinstance(r, dict) or "center" not in r or "radius" not in r:
             raise InputError("roi", 'must be an object with "center" (3 numbers, mm) and "radius" (mm)')
+        _no_unknown(r, ("center", "radius"), "roi")
         centre = _number_list(r["center"], 3, "roi.center")
         radius = r["radius"]
-        if not isinstance(radius, (int, float)) or isinstance(radius, bool) or not math.isfinite(radius) or radius <= 0:
-            raise InputError("roi.radius", f"must be a positive number of mm, got {_short(radius)}")
+        if not isinstance(radius, (int, float)) or isinstance(radius, bool) or not math.isfinite(radius) or not 0 < radius <= MAX_COORDINATE:
+            raise InputError("roi.radius", f"must be a positive number of mm up to {MAX_COORDINATE:g}, got {_short(radius)}")
         roi = Roi(center=centre, radius=float(radius))
-    known = {"format", "rig", "views", "turntable", "roi"}
-    extra = {k: v for k, v in doc.items() if k not in known}
+    extra = {"simulated": doc["simulated"]} if doc.get("simulated") is not None else {}
     return ScanSet(root=root, views=tuple(views), rig=set_rig, turntable_deg=angles, roi=roi, extra=extra)
 
 

@@ -21,18 +21,26 @@ A path file is JSON::
 ``t`` (optional, increasing, 0..1) places a keyframe in time; without it keyframes are evenly
 spaced. Poses between keyframes are interpolated linearly. A path whose eye wanders farther
 than :data:`MAX_DISTANCE_FACTOR` scene diagonals from the scene is rejected (InputError).
+A keyframe whose target is its eye looks at the scene's centre.
+
+Only the CLI reads a file (``--path FILE``, a local user's own; bounded and without blocking,
+:func:`read_path_file`). A job names no file: its keyframes come inline in
+``params.preview.camera`` (``fov`` and at most :data:`MAX_INLINE_KEYFRAMES` keyframes of ``eye``
+and ``target``), validated at intake by :func:`parse_camera_doc`, so a path on the worker (a
+FIFO, ``/dev/zero``, another tenant's file) is never opened.
 """
 
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from shared.core.errors import InputError
+from shared.core.jsonsafe import read_json_bounded
 
 DEFAULT_UP = (0.0, -1.0, 0.0)
 DEFAULT_FOV = 50.0
@@ -45,6 +53,15 @@ ARC_ELEVATION = 12.0
 SCANNER = (0.0, 0.0, 0.0)
 #: How far (in scene diagonals, from the box) a path file's eye may go.
 MAX_DISTANCE_FACTOR = 5.0
+#: Keyframes a path may hold: a file, and the inline form of a job's parameters (whose JSON
+#: must stay under the parameters' 16 KiB).
+MAX_KEYFRAMES = 10000
+MAX_INLINE_KEYFRAMES = 64
+#: Largest coordinate magnitude of an eye, a target or ``up``.
+MAX_COORDINATE = 1e9
+#: The path names a job may give in ``params.preview.path`` (a keyframe path goes inline in
+#: ``params.preview.camera``: a job never names a file on the worker).
+NAMED_PATHS = ("auto", "arc", "orbit", "dolly")
 
 
 @dataclass(frozen=True)
@@ -279,57 +296,99 @@ def dolly_path(
 
 
 def _vec3(value, where: str) -> np.ndarray:
-    try:
-        v = np.asarray(value, np.float64)
-    except (TypeError, ValueError):
-        raise InputError(where, "must be a list of 3 numbers") from None
-    if v.shape != (3,) or not np.isfinite(v).all():
-        raise InputError(where, "must be a list of 3 finite numbers")
+    ok = isinstance(value, list) and len(value) == 3 and all(
+        isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    v = np.asarray(value, np.float64) if ok else None
+    if v is None or not np.isfinite(v).all() or np.abs(v).max() > MAX_COORDINATE:
+        raise InputError(where, f"must be a list of 3 finite numbers of magnitude at most {MAX_COORDINATE:g}")
     return v
 
 
-def load_path_file(path: Path, frames: int, box_min, box_max) -> list[CameraPose]:
-    """Poses from a JSON keyframe file (format in the module docstring); InputError when the
-    file is malformed or its eye leaves the scene by far."""
-    path = Path(path)
-    try:
-        doc = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise InputError(path, "camera path file not found") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise InputError(path, f"camera path is not valid JSON: {exc}") from None
+@dataclass(frozen=True)
+class KeyframePath:
+    """A validated keyframe camera path: ``eyes``/``targets`` (K, 3) float64 world, ``times`` (K,)
+    increasing, ``up`` (3,), ``fov_y`` degrees. A keyframe whose target is its eye has NaN targets:
+    it looks at the scene's centre (known only when rendering)."""
+
+    eyes: np.ndarray
+    targets: np.ndarray
+    times: np.ndarray
+    up: np.ndarray
+    fov_y: float
+
+
+def _unknown(obj: dict, known: tuple[str, ...], where: str) -> None:
+    for k in obj:
+        if k not in known:
+            raise InputError(f"{where}.{str(k)[:40]}", f"unknown field (allowed: {', '.join(known)})")
+
+
+def parse_camera_doc(doc: Any, where: str, *, inline: bool = False) -> KeyframePath:
+    """Validate a keyframe camera path document without the scene; :class:`InputError` names
+    ``where`` and the field. ``inline`` is the job parameter's form (``params.preview.camera``):
+    ``fov`` and at most :data:`MAX_INLINE_KEYFRAMES` keyframes of ``eye`` and ``target``, evenly
+    spaced, up the scanner's; every value its JSON Schema allows is accepted. A file (the CLI's
+    ``--path FILE``) may also give ``up`` and each keyframe's time ``t``."""
+    keys = ("fov", "keyframes") if inline else ("fov", "up", "keyframes")
+    kf_keys = ("eye", "target") if inline else ("t", "eye", "target")
+    limit = MAX_INLINE_KEYFRAMES if inline else MAX_KEYFRAMES
     if not isinstance(doc, dict) or not isinstance(doc.get("keyframes"), list) or not doc["keyframes"]:
-        raise InputError(path, "camera path needs a non-empty 'keyframes' list")
+        raise InputError(where, "camera path needs a non-empty 'keyframes' list")
+    _unknown(doc, keys, where)
     fov = doc.get("fov", DEFAULT_FOV)
-    if not isinstance(fov, int | float) or not 1 <= fov <= 170:
-        raise InputError(f"{path}: fov", f"must be a number of degrees in [1, 170], got {fov!r}")
-    up = _vec3(doc.get("up", DEFAULT_UP), f"{path}: up")
+    if not isinstance(fov, int | float) or isinstance(fov, bool) or not 1 <= fov <= 170:
+        raise InputError(f"{where}.fov", f"must be a number of degrees in [1, 170], got {str(fov)[:40]}")
+    up = _vec3(doc.get("up", list(DEFAULT_UP)), f"{where}.up")
     if np.linalg.norm(up) == 0:
-        raise InputError(f"{path}: up", "must not be zero")
-    keys = doc["keyframes"]
+        raise InputError(f"{where}.up", "must not be zero")
+    frames = doc["keyframes"]
+    if len(frames) > limit:
+        raise InputError(f"{where}.keyframes", f"{len(frames)} keyframes, at most {limit}")
     eyes, targets, times = [], [], []
-    for i, kf in enumerate(keys):
-        if not isinstance(kf, dict):
-            raise InputError(f"{path}: keyframes[{i}]", "must be an object with 'eye' and 'target'")
-        eyes.append(_vec3(kf.get("eye"), f"{path}: keyframes[{i}].eye"))
-        targets.append(_vec3(kf.get("target"), f"{path}: keyframes[{i}].target"))
-        if np.allclose(eyes[-1], targets[-1]):
-            raise InputError(f"{path}: keyframes[{i}]", "eye and target coincide")
-        times.append(kf.get("t", i / max(len(keys) - 1, 1)))
+    for i, kf in enumerate(frames):
+        at = f"{where}.keyframes[{i}]"
+        if not isinstance(kf, dict) or "eye" not in kf or "target" not in kf:
+            raise InputError(at, "must be an object with 'eye' and 'target'")
+        _unknown(kf, kf_keys, at)
+        eyes.append(_vec3(kf["eye"], f"{at}.eye"))
+        target = _vec3(kf["target"], f"{at}.target")
+        targets.append(np.full(3, np.nan) if np.allclose(eyes[-1], target) else target)
+        t = kf.get("t", i / max(len(frames) - 1, 1))
+        if not isinstance(t, int | float) or isinstance(t, bool):
+            raise InputError(f"{at}.t", f"must be a number, got {str(t)[:40]}")
+        times.append(t)
     t = np.asarray(times, np.float64)
     if not np.isfinite(t).all() or np.any(np.diff(t) < 0):
-        raise InputError(f"{path}: keyframes", "times 't' must be finite and increasing")
+        raise InputError(f"{where}.keyframes", "times 't' must be finite and increasing")
+    return KeyframePath(eyes=np.stack(eyes), targets=np.stack(targets), times=t, up=up, fov_y=float(fov))
+
+
+def read_path_file(path: str | Path) -> dict:
+    """A local keyframe file's JSON (the CLI's ``--path FILE``): read without blocking, bounded in
+    size, depth and number length (:func:`shared.core.jsonsafe.read_json_bounded`)."""
+    return read_json_bounded(Path(path), str(path), missing="camera path file not found")
+
+
+def poses_from_keyframes(kp: KeyframePath, frames: int, box_min, box_max, where: str) -> list[CameraPose]:
+    """``frames`` poses interpolated linearly along ``kp``; :class:`InputError` naming ``where``
+    when an eye wanders more than :data:`MAX_DISTANCE_FACTOR` scene diagonals from the scene."""
     lo, hi, diag = _box(box_min, box_max)
     limit = MAX_DISTANCE_FACTOR * diag
-    for i, e in enumerate(eyes):
+    for i, e in enumerate(kp.eyes):
         outside = float(np.linalg.norm(np.maximum(0, np.maximum(lo - e, e - hi))))
         if outside > limit:
             raise InputError(
-                f"{path}: keyframes[{i}].eye",
+                f"{where}.keyframes[{i}].eye",
                 f"is {outside:.4g} units outside the scene's bounds (allowed {limit:.4g}: {MAX_DISTANCE_FACTOR:g} diagonals)",
             )
-    E = np.stack(eyes)
-    T = np.stack(targets)
+    centre = (lo + hi) / 2
+    E = kp.eyes
+    # A keyframe whose target was its eye looks at the scene's centre (along +z, as the scanner
+    # did, when it stands there itself).
+    T = np.where(np.isnan(kp.targets), centre, kp.targets)
+    same = np.all(np.isclose(E, T), axis=1)
+    T[same] = E[same] + np.array([0.0, 0.0, diag])
+    t = kp.times
     span = t[-1] - t[0]
     poses = []
     for k in range(frames):
@@ -338,8 +397,15 @@ def load_path_file(path: Path, frames: int, box_min, box_max) -> list[CameraPose
         g = np.array([np.interp(s, t, T[:, a]) for a in range(3)])
         if np.allclose(e, g):
             g = e + (T[-1] - E[-1])
-        poses.append(CameraPose(eye=e, target=g, up=up, fov_y=float(fov)))
+        poses.append(CameraPose(eye=e, target=g, up=kp.up, fov_y=kp.fov_y))
     return poses
+
+
+def load_path_file(path: Path, frames: int, box_min, box_max) -> list[CameraPose]:
+    """Poses from a local JSON keyframe file (format in the module docstring); InputError when
+    the file is malformed or its eye leaves the scene by far."""
+    where = str(path)
+    return poses_from_keyframes(parse_camera_doc(read_path_file(path), where), frames, box_min, box_max, where)
 
 
 def make_path(
@@ -350,12 +416,18 @@ def make_path(
     *,
     points: np.ndarray | None = None,
     aspect: float = 16 / 9,
+    camera: KeyframePath | None = None,
+    camera_where: str = "params.preview.camera",
 ) -> list[CameraPose]:
-    """``"auto"``, ``"arc"``, ``"orbit"``, ``"dolly"`` or the path of a JSON keyframe file.
+    """``"auto"``, ``"arc"``, ``"orbit"``, ``"dolly"`` or the path of a local JSON keyframe file;
+    ``camera`` (validated keyframes, :func:`parse_camera_doc`), when given, wins, and its errors
+    name ``camera_where``.
 
     ``points`` (N, 3) world, a sample of the cloud, frames the arc and the orbit and lets
     ``"auto"`` choose between them (:func:`is_single_view`); ``aspect`` = width / height.
     Without points, ``"auto"`` and ``"arc"`` use the box's corners as the sample."""
+    if camera is not None:
+        return poses_from_keyframes(camera, frames, box_min, box_max, camera_where)
     name = str(spec)
     if name in ("auto", "arc") and points is None:
         lo, hi = np.asarray(box_min, np.float64), np.asarray(box_max, np.float64)

@@ -62,6 +62,7 @@ import os
 import shutil
 import tempfile
 import time
+from collections.abc import Callable
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -562,12 +563,23 @@ def _parts(path: Path, pool: Executor | None, workers: int) -> list[tuple[int, i
     return [(a, min(a + step, header.count)) for a in range(0, header.count, step)]
 
 
-def _run_parts(pool: Executor | None, fn, calls: list[tuple]) -> list:
-    """``[fn(*args) for args in calls]``, in ``pool`` when there is one and more than one call."""
+def _run_parts(pool: Executor | None, fn, calls: list[tuple], done: Callable[[int], None] | None = None) -> list:
+    """``[fn(*args) for args in calls]``, in ``pool`` when there is one and more than one call;
+    ``done(k)`` after the k-th call's result is in (in order), for progress."""
     if pool is None or len(calls) == 1:
-        return [fn(*args) for args in calls]
+        out = []
+        for k, args in enumerate(calls):
+            out.append(fn(*args))
+            if done is not None:
+                done(k)
+        return out
     futures = [pool.submit(fn, *args) for args in calls]
-    return [f.result() for f in futures]
+    results = []
+    for k, f in enumerate(futures):
+        results.append(f.result())
+        if done is not None:
+            done(k)
+    return results
 
 
 def plan_tiles(
@@ -1296,6 +1308,7 @@ def build_tiles(
     scale: float | None = None,
     estimate_normals: bool = False,
     node_codec: str = "plain",
+    progress: Callable[[float], None] | None = None,
 ) -> dict:
     """Build Potree 2.0 tiles from ``cloud_ply`` into ``out_dir`` (all passes, in-process).
 
@@ -1303,12 +1316,15 @@ def build_tiles(
     :func:`~shared.core.threads.cpu_budget`; 1 runs in the calling thread). Temporary chunk
     files (none for a cloud of at most :data:`KEEP_POINTS` points) live beside ``out_dir`` and
     are removed. ``scale``, ``estimate_normals`` and ``node_codec`` as :func:`plan_tiles`.
+    ``progress`` gets the fraction done: 0.2 once the cloud is distributed into chunks, then by
+    points of the chunks laid out (to 0.6) and written (to 1.0).
     Returns a report with points, nodes, depth, bytes, chunks, seconds and points_per_second.
     """
     t0 = time.perf_counter()
     out_dir = Path(out_dir)
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     workers = max(1, workers or cpu_budget())
+    report_progress = progress or (lambda f: None)
     work = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.work.", dir=out_dir.parent))
     try:
         _warm_kernels()
@@ -1331,13 +1347,16 @@ def build_tiles(
                 del records  # the chunks' views hold it, and free it once written
             # Largest chunks first keeps the pool busy to the end.
             order = sorted(range(nchunks), key=lambda i: -plan.chunks[i]["points"])
+            report_progress(0.2)
+            share = np.cumsum([plan.chunks[i]["points"] for i in order]) / max(plan.points, 1)
             chunk_pool = pool if nchunks > 1 else None
             # Chunks deriving attributes are sampled one at a time: their neighbour queries and
             # normals kernel already use every core, and numba's workqueue layer (where neither
             # TBB nor OpenMP loads) refuses launches from two threads at once.
             table_pool = None if any(plan.derived.values()) else chunk_pool
             tables: list[list[list]] = [[] for _ in range(nchunks)]
-            done = _run_parts(table_pool, _chunk_table_job, [(str(work), i, kept) for i in order])
+            done = _run_parts(table_pool, _chunk_table_job, [(str(work), i, kept) for i in order],
+                              done=lambda k: report_progress(0.2 + 0.4 * float(share[k])))
             for i, table in zip(order, done, strict=True):
                 tables[i] = table
             nodes, copies, nbytes = _layout(tables, plan.point_dtype().itemsize)
@@ -1345,7 +1364,7 @@ def build_tiles(
 
             def fill(octree_bin: Path) -> None:
                 calls = [(str(work), i, str(octree_bin), copies[i], kept) for i in order]
-                _run_parts(chunk_pool, _chunk_write_job, calls)
+                _run_parts(chunk_pool, _chunk_write_job, calls, done=lambda k: report_progress(0.6 + 0.4 * float(share[k])))
 
             report = _write_tiles(plan, nodes, nbytes, out_dir, fill, workers=workers)
     finally:

@@ -10,10 +10,11 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 from shared.core.errors import InputError
+from shared.render.camera_path import NAMED_PATHS, KeyframePath, parse_camera_doc
 
 __all__ = ["MAX_FPS", "MAX_HEIGHT", "MAX_SECONDS", "MAX_WIDTH", "MIN_SIDE", "PREVIEW_DEFAULTS", "PreviewOptions"]
 
@@ -30,13 +31,18 @@ class PreviewOptions:
     ``path``: ``"auto"`` (an arc on the scanner's side for a single-view scan, a full orbit
     for a merged model), ``"arc"``, ``"orbit"``, ``"dolly"`` or the path of a JSON keyframe file; ``size``:
     (width, height) in pixels, even, 16..3840 x 16..2160; ``seconds`` in (0, 600];
-    ``fps`` frames per second in [1, 120].
+    ``fps`` frames per second in [1, 120]; ``camera``: validated keyframes
+    (:func:`~shared.render.camera_path.parse_camera_doc`), which win over ``path``, their errors
+    naming ``camera_where``. A job's options (:meth:`from_mapping`) name a path, never a file:
+    their keyframes come inline (``params.preview.camera``).
     """
 
     path: str = "auto"
     size: tuple[int, int] = (1280, 720)
     seconds: float = 10.0
     fps: float = 30.0
+    camera: KeyframePath | None = field(default=None, compare=False)
+    camera_where: str = field(default="params.preview.camera", compare=False)
 
     @property
     def frames(self) -> int:
@@ -73,16 +79,26 @@ class PreviewOptions:
             return PREVIEW_DEFAULTS
         if not isinstance(doc, Mapping):
             raise InputError(prefix.rstrip("."), f"must be an object of preview options, got {doc!r}")
-        known = {f.name for f in fields(cls)}
-        unknown = sorted(set(doc) - known)
+        known = {"path", "size", "seconds", "fps", "camera"}
+        unknown = sorted(str(k)[:40] for k in set(doc) - known)
         if unknown:
             raise InputError(prefix.rstrip("."), f"unknown option(s) {unknown} (allowed: {sorted(known)})")
+        path = doc.get("path", PREVIEW_DEFAULTS.path)
+        if path not in NAMED_PATHS:
+            # A job names no file: a path on the worker could be a FIFO, /dev/zero or another
+            # tenant's file (issue 21). Keyframes travel inside the job.
+            raise InputError(f"{prefix}path", f"must be one of {', '.join(NAMED_PATHS)}, got {str(path)[:40]!r} "
+                                              f"(a keyframe path goes inline in {prefix}camera)")
+        camera = None
+        if doc.get("camera") is not None:  # it wins over path
+            camera = parse_camera_doc(doc["camera"], f"{prefix}camera", inline=True)
         size = doc.get("size", PREVIEW_DEFAULTS.size)
         if isinstance(size, list):
             size = tuple(size)
         if not (isinstance(size, tuple) and len(size) == 2 and all(isinstance(v, int) and not isinstance(v, bool) for v in size)):
             raise InputError(f"{prefix}size", f"must be [width, height] in pixels, got {doc.get('size')!r}")
-        return replace(PREVIEW_DEFAULTS, **{**doc, "size": size}).checked(prefix)
+        return replace(PREVIEW_DEFAULTS, **{**doc, "size": size, "camera": camera,
+                                            "camera_where": f"{prefix}camera"}).checked(prefix)
 
 
 #: The defaults every entry point uses.

@@ -29,7 +29,7 @@ from shared.compress import tilenode
 from shared.core.errors import InputError
 from shared.formats.potree import PotreeTiles, open_tiles, tight_bounds
 from shared.render._shading import shade_kernel
-from shared.render.camera_path import DEFAULT_UP, SCANNER, CameraPose, make_path
+from shared.render.camera_path import DEFAULT_UP, SCANNER, CameraPose, KeyframePath, make_path
 from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
 from shared.render.raster import Camera, GLRasterizer, NodeTable, Rasterizer, select_nodes
 
@@ -257,8 +257,12 @@ def render_preview(
     edl: float | None = None,
     renderer: str = "auto",
     progress: Callable[[float], None] | None = None,
+    camera: KeyframePath | None = None,
+    camera_where: str = "params.preview.camera",
 ) -> dict:
     """Render a flythrough of ``tiles_dir`` to ``out_path`` (MP4) and its poster PNG.
+
+    ``camera`` (validated keyframes) wins over ``path``; its errors name ``camera_where``.
 
     ``renderer`` is "auto" (OpenGL when a hardware GPU is there, else the CPU rasteriser),
     "cpu" or "gl". ``edl``: eye-dome lighting strength of the CPU frames (None: 0 when the
@@ -280,7 +284,7 @@ def render_preview(
     if edl is None:  # shading: the normals when the tiles have them, else eye-dome lighting
         edl = 0.0 if scene.lit else DEFAULT_EDL
     poses = make_path(path, scene.bounds_min, scene.bounds_max, frames, points=frame_sample(scene),
-                      aspect=width / height)  # fmt: skip
+                      aspect=width / height, camera=camera, camera_where=camera_where)  # fmt: skip
     out_path.parent.mkdir(parents=True, exist_ok=True)
     poster_path = out_path.with_suffix(".png")
     tmp_video = out_path.with_name(f".{out_path.stem}.{os.getpid()}.tmp.mp4")

@@ -23,13 +23,14 @@ from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
 
 def tiles_stage(
     cloud_ply: Path, out_dir: Path, *, workers: int | None = None, estimate_normals: bool = False,
-    node_codec: str = "plain",
+    node_codec: str = "plain", progress: Callable[[float], None] | None = None,
 ) -> dict:  # fmt: skip
     """Build tiles of ``cloud_ply`` into ``out_dir`` (``estimate_normals`` for a cloud without
     normals; ``node_codec`` "plain" or "octree", see :func:`shared.render.octree.plan_tiles`);
-    returns points, nodes, depth, bytes, chunks, seconds, points_per_second and the output folder."""
+    ``progress`` gets the fraction done (chunks laid out, nodes written); returns points, nodes,
+    depth, bytes, chunks, seconds, points_per_second and the output folder."""
     report = build_tiles(Path(cloud_ply), Path(out_dir), workers=workers, estimate_normals=estimate_normals,
-                         node_codec=node_codec)  # fmt: skip
+                         node_codec=node_codec, progress=progress)  # fmt: skip
     report["tiles"] = str(out_dir)
     return report
 
@@ -54,6 +55,6 @@ def preview_stage(
 
     return render_preview(
         Path(tiles_dir), Path(out_path), path=options.path, size=options.size, seconds=options.seconds,
-        fps=options.fps, renderer=renderer,
+        fps=options.fps, renderer=renderer, camera=options.camera, camera_where=options.camera_where,
         progress=progress,
     )  # fmt: skip

@@ -50,6 +50,11 @@ DECODED_FILE = "decoded.npz"
 TRIANGULATE_REPORT_FILE = "triangulate.json"
 
 
+#: Smallest and largest camera image side a capture may have: below 16 pixels nothing can be
+#: decoded or framed (a 1x1 capture would fail only at export), above 65536 no camera exists.
+MIN_IMAGE_SIDE, MAX_IMAGE_SIDE = 16, 65536
+
+
 def ingest_stage(capture_dir: Path, rig: Path | None = None) -> Capture:
     """Validate a capture completely without decoding pixels.
 
@@ -68,6 +73,9 @@ def ingest_stage(capture_dir: Path, rig: Path | None = None) -> Capture:
     """
     capture = load_capture(capture_dir)
     white = probe_image(capture.white)
+    if not (MIN_IMAGE_SIDE <= white.width <= MAX_IMAGE_SIDE and MIN_IMAGE_SIDE <= white.height <= MAX_IMAGE_SIDE):
+        raise InputError(capture.white, f"image is {white.width}x{white.height}; a capture's images must be "
+                                        f"{MIN_IMAGE_SIDE}..{MAX_IMAGE_SIDE} pixels a side")
     for path in capture.image_paths()[1:]:
         info = probe_image(path)
         if info.size != white.size:

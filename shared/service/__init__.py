@@ -1,5 +1,6 @@
 """The job service's own records: configuration, job states and graphs, job parameters, the
-job store, the artifact store, archive intake and the broker contract (the queue publisher).
+job store, the artifact store, archive intake, admission against each key's limits, the
+worker's capture cache and the broker contract (the queue publisher).
 
 The science packages never import this one."""
 
@@ -33,6 +34,9 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "inspect_archive": "archive",
         "extract_archive": "archive",
         "pack_folder": "archive",
+        "Admission": "admission",
+        "LimitReached": "usage",
+        "release_capture": "capture_cache",
         "publish_stages": "queue",
         "task_name": "queue",
         "celery_config": "queue",

@@ -6,10 +6,13 @@ inside), or a folder holding the unpacked capture.
 Everything is checked before a single byte is written: member names that escape the
 destination (absolute paths, ``..``, backslashes, drive letters), symbolic and hard links
 and device files, the member count, the total unpacked size, the compression ratio
-(decompression bombs) and, for every image, its header's dimensions (read with Pillow from
-the archive stream; no pixel is decoded). Extraction then streams each member, refuses one
-that grows past its declared size (a lying zip header), writes into a temporary folder and
-renames it into place, so a failure leaves nothing behind.
+(decompression bombs: the whole archive's unpacked/packed ratio, and each member's, with no
+exemption for small members: 4,095 members of 1 MiB of zeros are a 4 GiB bomb in a 4.6 MB zip)
+and, for every image, its header's dimensions (read with Pillow from the archive stream; no
+pixel is decoded). Extraction then streams each member and refuses one that grows past its
+declared size, or an archive whose members together grow past the checked total (lying
+headers), writes into a temporary folder and renames it into place, so a failure leaves
+nothing behind.
 
 Every problem raises :class:`~shared.core.errors.InputError` whose ``where`` is
 ``ARCHIVE:MEMBER`` (or the archive alone) and whose message says what is wrong.
@@ -39,8 +42,9 @@ from shared.formats.capture import CAPTURE_FILE, IMAGE_SUFFIXES
 log = logging.getLogger(__name__)
 
 _COPY = 1 << 20
-#: Members smaller than this are not held to the compression-ratio limit: tiny files
-#: (a 40-byte JSON of zeros) compress absurdly well and are harmless.
+#: An archive unpacking to less than this is not held to the compression-ratio limit: a
+#: capture of a few small text files compresses well and cannot hurt. The limit applies to
+#: the whole archive's total, so many small members cannot pass it one by one.
 _RATIO_FLOOR = 1 << 20
 
 
@@ -235,7 +239,7 @@ def inspect_archive(
             name = _safe_name(raw, where)
             count += 1
             if count > limits.max_files:
-                raise InputError(label, f"more than {limits.max_files} members (the file-count limit)")
+                raise InputError(label, f"more than {limits.max_files} members (the file-count limit, GRAYLIGHT_MAX_ARCHIVE_FILES)")
             if is_dir:
                 continue
             if name in seen:
@@ -243,16 +247,18 @@ def inspect_archive(
             seen.add(name)
             total += size
             if total > limits.max_unpacked_bytes:
-                raise InputError(label, f"unpacks to more than {limits.max_unpacked_bytes} bytes (the size limit)")
-            if reader.kind == "zip" and size > _RATIO_FLOOR and size > limits.max_compression_ratio * max(csize, 1):
+                raise InputError(label, f"unpacks to more than {limits.max_unpacked_bytes} bytes (the size limit, "
+                                        "GRAYLIGHT_MAX_UNPACKED_BYTES)")  # fmt: skip
+            if reader.kind == "zip" and size > limits.max_compression_ratio * max(csize, 1):
+                # Every member, however small (the archive's total below catches many moderate ones).
                 raise InputError(where, f"compression ratio {size / max(csize, 1):.0f}:1 exceeds "
-                                        f"{limits.max_compression_ratio}:1 (a decompression bomb?)")  # fmt: skip
+                                        f"{limits.max_compression_ratio}:1 (GRAYLIGHT_MAX_COMPRESSION_RATIO; a decompression bomb?)")  # fmt: skip
             if PurePosixPath(name).suffix.lower() in IMAGE_SUFFIXES:
                 images.append((name, handle, len(members)))
             members.append(ArchiveMember(name, size))
-        if reader.kind == "tar" and total > _RATIO_FLOOR and total > limits.max_compression_ratio * packed:
+        if total > _RATIO_FLOOR and total > limits.max_compression_ratio * packed:
             raise InputError(label, f"compression ratio {total / packed:.0f}:1 exceeds "
-                                    f"{limits.max_compression_ratio}:1 (a decompression bomb?)")  # fmt: skip
+                                    f"{limits.max_compression_ratio}:1 (GRAYLIGHT_MAX_COMPRESSION_RATIO; a decompression bomb?)")  # fmt: skip
         if not members:
             raise InputError(label, "archive holds no files")
         root = _find_root([m.name for m in members], label, require)
@@ -273,6 +279,7 @@ def extract_archive(
     label = label or path.name
     report = inspect_archive(path, limits, label, require)
     declared = {m.name: m.size for m in report.members}
+    budget = report.total_bytes  # what the headers declared, all members together
     dest.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{dest.name}.", dir=dest.parent))
     reader = _Reader(path, label)
@@ -295,8 +302,11 @@ def extract_archive(
                     if not block:
                         break
                     written += len(block)
+                    budget -= len(block)
                     if written > limit:
                         raise InputError(f"{label}:{raw}", "member unpacks to more bytes than its header declares")
+                    if budget < 0:
+                        raise InputError(label, f"unpacks to more than the {report.total_bytes} bytes its headers declare")
                     out.write(block)
             os.chmod(target, 0o644)
         try:

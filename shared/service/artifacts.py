@@ -24,6 +24,7 @@ object of its own under :func:`detached_key`, beside the stage's object.
 
 from __future__ import annotations
 
+import contextlib
 import hashlib
 import json
 import logging
@@ -40,7 +41,8 @@ from typing import IO, Any
 
 import fsspec
 
-from shared.core.errors import GraylightError
+from shared.core.errors import GraylightError, InputError
+from shared.core.paths import confine, open_regular
 from shared.service.config import get_settings
 
 log = logging.getLogger(__name__)
@@ -284,8 +286,10 @@ class ArtifactStore:
             manifest = Manifest(key, prefix, entries, time.time())
             self._write_manifest(key, manifest)
         except BaseException:
-            # A full disk, a failing store: no manifest, so no object; take the files back too.
+            # A full disk, a failing store: no manifest, so no object; take the files back too,
+            # and the object's folder when nothing else is in it.
             self._remove_quietly(base)
+            self._remove_empty(self._obj(key))
             raise
         won = self.manifest(key)
         if won is not None and won.prefix != prefix:
@@ -355,6 +359,12 @@ class ArtifactStore:
         except Exception as exc:
             log.warning("could not remove the partial object %s: %s", path, exc)
 
+    def _remove_empty(self, path: str) -> None:
+        """Remove the local folder ``path`` if it is empty (on S3 a folder is no object)."""
+        if self.is_local:
+            with contextlib.suppress(OSError):
+                os.rmdir(path)
+
     def _remove(self, path: str) -> None:
         try:
             self.fs.rm(path, recursive=True)
@@ -373,8 +383,17 @@ class ArtifactStore:
         return self._path("uploads", upload_id)
 
     def put_chunk(self, upload_id: str, index: int, src: Path) -> None:
-        """Store chunk number ``index`` of an upload (the database records the offset)."""
-        self.fs.put_file(str(src), f"{self._upload_dir(upload_id)}/{index:08d}")
+        """Store chunk number ``index`` of an upload (the database records the offset); a
+        failed write (a full disk) leaves no partial chunk."""
+        try:
+            self.fs.put_file(str(src), f"{self._upload_dir(upload_id)}/{index:08d}")
+        except BaseException:
+            self._remove_quietly(f"{self._upload_dir(upload_id)}/{index:08d}")
+            raise
+
+    def drop_chunk(self, upload_id: str, index: int) -> None:
+        """Remove chunk ``index`` of an upload (one the database did not record)."""
+        self._remove(f"{self._upload_dir(upload_id)}/{index:08d}")
 
     def assemble_upload(self, upload_id: str, chunks: int, dest: Path) -> None:
         """Concatenate an upload's chunks into the local file ``dest``."""
@@ -388,15 +407,31 @@ class ArtifactStore:
 
     # ---- references to objects placed in storage by others ---------------------------
     def ref_path(self, ref: str) -> str:
-        """The storage path of a reference relative to the store root (``inbox/cap1.zip``)."""
-        _check_name(ref.strip("/"))
-        return self._path(ref.strip("/"))
+        """The storage path of a reference relative to the store root (``inbox/cap1.zip``). On a
+        local store the reference follows the one confinement rule (:func:`shared.core.paths.confine`):
+        a symbolic link leading out of the store is refused (:class:`ArtifactError`), with one
+        text whatever lies at its target."""
+        clean = ref.strip("/")
+        _check_name(clean)
+        if self.is_local:
+            self._confine_local(clean, check=False)
+        return self._path(clean)
+
+    def _confine_local(self, rel: str, check: bool = True) -> None:
+        """:class:`ArtifactError` unless ``rel`` lies inside the local store, links followed, and
+        (``check``) is a regular file or a folder: never a device, FIFO or socket."""
+        try:
+            confine(self.root, rel, where=rel, folder="store", kind="any", check=check)
+        except InputError as exc:
+            raise ArtifactError(f"{exc.where}: {exc.problem}") from None
 
     def ref_info(self, ref: str) -> dict[str, Any]:
         """``fs.info`` of a referenced file or folder; FileNotFoundError when absent."""
         path = self.ref_path(ref)
         if not self.fs.exists(path):
             raise FileNotFoundError(ref)
+        if self.is_local:
+            self._confine_local(ref.strip("/"))
         return dict(self.fs.info(path))
 
     def ref_fingerprint(self, ref: str) -> str:
@@ -407,6 +442,10 @@ class ArtifactStore:
         h = hashlib.sha256(ref.encode())
         if info.get("type") == "directory":
             entries = sorted(self.fs.find(path, detail=True).items())
+            if self.is_local:  # refused at intake, not by the worker that would copy them
+                base = self.fs._strip_protocol(path).rstrip("/")
+                for p, _i in entries:
+                    self._confine_local(f"{ref.strip('/')}/{self.fs._strip_protocol(p)[len(base) + 1:]}")
         else:
             entries = [(path, info)]
         for p, i in entries:
@@ -430,6 +469,8 @@ class ArtifactStore:
             for p in found:
                 rel = self.fs._strip_protocol(p)[len(base) + 1 :]
                 _check_name(rel)
+                if self.is_local:  # a link inside the folder must not lead out of the store either
+                    self._confine_local(f"{ref.strip('/')}/{rel}")
                 target = dest / rel
                 target.parent.mkdir(parents=True, exist_ok=True)
                 self.fs.get_file(p, str(target))
@@ -437,6 +478,12 @@ class ArtifactStore:
         if int(info.get("size") or 0) > max_bytes:
             raise ArtifactError(f"{ref}: {info.get('size')} bytes, more than the limit of {max_bytes}")
         dest.parent.mkdir(parents=True, exist_ok=True)
+        if self.is_local:  # regular files only, opened without blocking, read within the limit
+            with open_regular(path, ref) as src, open(dest, "wb") as out:
+                copied = shutil.copyfileobj(src, out, _CHUNK) or out.tell()
+            if copied > max_bytes:
+                raise ArtifactError(f"{ref}: more than the limit of {max_bytes} bytes")
+            return dest
         self.fs.get_file(path, str(dest))
         return dest
 

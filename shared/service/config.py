@@ -21,7 +21,9 @@ Every variable has a working default, so ``graylight serve``, ``graylight worker
 ``GRAYLIGHT_UPLOAD_TTL_HOURS``            an upload session not used for a job by then is deleted (24)
 ``GRAYLIGHT_MAX_ARCHIVE_FILES``           most members in a capture archive (4096)
 ``GRAYLIGHT_MAX_UNPACKED_BYTES``          largest total unpacked size of an archive (32 GiB)
-``GRAYLIGHT_MAX_COMPRESSION_RATIO``       largest unpacked/packed ratio of a member (250)
+``GRAYLIGHT_MAX_COMPRESSION_RATIO``       largest unpacked/packed ratio of an archive and of a member (250)
+``GRAYLIGHT_MAX_JSON_BYTES``              largest JSON request body, read as it streams (4 MiB)
+``GRAYLIGHT_MIN_FREE_BYTES``              ``/health`` answers 503 when the data folder has less free (1 GiB)
 ``GRAYLIGHT_MAX_IMAGE_PIXELS``            largest image (pixels) accepted in a capture (50 MP)
 ``GRAYLIGHT_MAX_IMAGE_SIDE``              largest image side accepted in a capture (16384)
 ``GRAYLIGHT_WORKER_MAX_MEMORY_MB``        a worker child is replaced after it grows past this (4096)
@@ -102,6 +104,8 @@ class Settings:
     max_compression_ratio: int = 250
     max_image_pixels: int = 50_000_000
     max_image_side: int = 16384
+    max_json_bytes: int = 4 << 20
+    min_free_bytes: int = 1 << 30
     worker_max_memory_mb: int = 4096
     rerender_hour: int = 3
     rerender_mode: str = "changed"
@@ -174,6 +178,8 @@ def get_settings(env: dict[str, str] | None = None) -> Settings:
         max_compression_ratio=_int(env, "GRAYLIGHT_MAX_COMPRESSION_RATIO", 250, 1),
         max_image_pixels=_int(env, "GRAYLIGHT_MAX_IMAGE_PIXELS", 50_000_000, 1),
         max_image_side=_int(env, "GRAYLIGHT_MAX_IMAGE_SIDE", 16384, 1),
+        max_json_bytes=_int(env, "GRAYLIGHT_MAX_JSON_BYTES", 4 << 20, 1024),
+        min_free_bytes=_int(env, "GRAYLIGHT_MIN_FREE_BYTES", 1 << 30),
         worker_max_memory_mb=_int(env, "GRAYLIGHT_WORKER_MAX_MEMORY_MB", 4096, 64),
         rerender_hour=hour,
         rerender_mode=mode,

@@ -152,6 +152,16 @@ class StageSpec:
     detach: tuple[str, ...] = ()
     detached_inputs: tuple[str, ...] = ()
     release_unless: str | None = None
+    # Short names a published file is also served under, as (alias, file): a multi-view job's
+    # merged.ply is its cloud.ply, so every kind answers the same links.
+    aliases: tuple[tuple[str, str], ...] = ()
+    # The stage's share of a job's work, relative to the others (job progress weighs each
+    # stage's own fraction by it): its typical run time in units of a scan's triangulation, at
+    # full size (a 15 MP capture, an 8-view set, the default 1280x720 10 s preview: decode about
+    # 3x triangulation, a merge 27-76 s against 2-4 s, preview frames rendered on the CPU). Rough
+    # on purpose: it only has to keep the job's progress moving with the work. A map stage's
+    # weight is the share of all its instances together (a set's 8 views decoded: 8 x 3).
+    weight: float = 1.0
 
     @property
     def is_map(self) -> bool:
@@ -162,19 +172,43 @@ class StageSpec:
         """Upstream stages (inputs other than the capture)."""
         return tuple(i for i in self.inputs if i != CAPTURE)
 
+    def published_file(self, short: str) -> str | None:
+        """The file of this stage's output served under the short name ``short``, or None."""
+        if short in self.publish:
+            return short
+        return next((f for a, f in self.aliases if a == short and f in self.publish), None)
+
+    @property
+    def short_names(self) -> tuple[str, ...]:
+        """Every short name this stage publishes: its files, then its aliases."""
+        return (*self.publish, *(a for a, f in self.aliases if f in self.publish))
+
+    def published_names(self, summary: Mapping[str, Any] | None) -> tuple[str, ...]:
+        """The short names a finished row of this stage serves: those of the files its summary's
+        ``published`` list says it wrote (a stage may write only some of them: the merged cloud
+        or the views' range images), or all of :attr:`short_names` for an older summary."""
+        wrote = (summary or {}).get("published")
+        if not isinstance(wrote, list):
+            return self.short_names
+        return tuple(n for n in self.short_names if self.published_file(n) in wrote)
+
 
 #: The level-of-detail meshes a merge writes (shared.merge.pipeline: ``mesh_lod{k}.glb`` for the
 #: default ``MeshParams.lods``, 1/4, 1/16 and 1/64 of the faces), published by their names.
 MESH_LOD_FILES: tuple[str, ...] = ("mesh_lod1.glb", "mesh_lod2.glb", "mesh_lod3.glb")
 
+#: The interchange files the export stage writes of a job's cloud (a scan's, or the merged one).
+EXPORT_FILES: tuple[str, ...] = ("cloud.laz", "cloud.copc.laz", "cloud.e57")
+#: What the publish stage serves by name (shared.publish.folder; the scene's derivatives are in its folder).
+PUBLISH_FILES: tuple[str, ...] = ("scene.svx.json", "qa.json", "qa.html", "paradata.json")
 #: The derivative GLBs a ``derivatives`` stage may write (shared.derive.levels: the job parameter
 #: accepts these level names only, so that every file it writes is published by its name).
 DERIVATIVE_FILES: tuple[str, ...] = tuple(f"mesh_{n}.glb" for n in ("thumb", "low", "medium", "high", "highest"))
 
 GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     "scan": (
-        StageSpec("ingest", "cpu", (CAPTURE,), 600, publish=("capture.json",), params=("rig",)),
-        StageSpec("decode", "cpu", (CAPTURE, "ingest"), 3600, publish=("decoded.npz",)),
+        StageSpec("ingest", "cpu", (CAPTURE,), 600, publish=("capture.json",), params=("rig",), weight=0.5),
+        StageSpec("decode", "cpu", (CAPTURE, "ingest"), 3600, publish=("decoded.npz",), weight=3.0),
         StageSpec("triangulate", "cpu", (CAPTURE, "ingest", "decode"), 3600,
                   publish=("cloud.ply", "triangulate.json"), params=("rig",), detach=("range.npz",)),
         # The range image compressed (range.glr); the raw range.npz is published from here
@@ -182,34 +216,37 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         # range.glr is (triangulate's detached copy is deleted).
         StageSpec("compress", "cpu", ("triangulate",), 3600, publish=("range.glr", "range.npz", "compress.json"),
                   params=("compress",), detached_inputs=("triangulate/range.npz",),
-                  release_unless="compress.keep_range"),
+                  release_unless="compress.keep_range", weight=1.0),
         # Tiles fan out: a plan, one task per chunk (subtree), a merge (fan-in counted in the
         # database). The merge keeps the name "tiles": its folder is what viewers load.
-        StageSpec("tiles_plan", "render", ("triangulate",), 7200, switch="render", params=("tiles",)),
-        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan"),
+        StageSpec("tiles_plan", "render", ("triangulate",), 7200, switch="render", params=("tiles",), weight=0.5),
+        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan", weight=1.5),
         StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
         StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
-                  params=("preview", "preview_epoch"), switch="render"),
-        # The cloud in the formats GIS and survey software read (LAS 1.4 LAZ, COPC).
+                  params=("preview", "preview_epoch"), switch="render", weight=6.0),
+        # The cloud in the formats GIS and survey software read (LAS 1.4 LAZ, COPC, E57).
         # CPU work (LAZ compression), so it runs on the cpu queue; {"export": false} skips it.
-        StageSpec("export", "cpu", ("triangulate",), 7200, publish=("cloud.laz", "cloud.copc.laz"), switch="export"),
+        StageSpec("export", "cpu", ("triangulate",), 7200, publish=EXPORT_FILES, switch="export", version=2, weight=2.0),
+        # The object as a museum publishes it (shared.publish): Voyager scene, quality report, the job's paradata.
+        StageSpec("publish", "cpu", (CAPTURE, "triangulate"), 1800, publish=PUBLISH_FILES, weight=1.0),
     ),
     "calibrate": (
-        StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json")),
+        StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json", "paradata.json")),
     ),
     # A multi-view scan set (graylight-scanset-v1): a plan that validates it and fans out three
     # tasks per view, each its own task so that workers on several machines share one object:
     # ingest, decode, triangulate (instance i of each reads instance i of the one before), then
     # the merge (register, fuse, mesh) of all views, then tiles and preview of the merged cloud.
     "multiview": (
-        StageSpec("mv_plan", "cpu", (CAPTURE,), 600, publish=("scanset.json",)),
-        StageSpec("mv_ingest", "cpu", (CAPTURE, "mv_plan"), 600, fanout_from="mv_plan"),
-        StageSpec("mv_decode", "cpu", (CAPTURE, "mv_ingest"), 3600, fanout_from="mv_plan"),
-        StageSpec("mv_triangulate", "cpu", (CAPTURE, "mv_ingest", "mv_decode"), 3600, fanout_from="mv_plan"),
+        StageSpec("mv_plan", "cpu", (CAPTURE,), 600, publish=("scanset.json",), weight=0.5),
+        StageSpec("mv_ingest", "cpu", (CAPTURE, "mv_plan"), 600, fanout_from="mv_plan", weight=4.0),
+        StageSpec("mv_decode", "cpu", (CAPTURE, "mv_ingest"), 3600, fanout_from="mv_plan", weight=24.0),
+        StageSpec("mv_triangulate", "cpu", (CAPTURE, "mv_ingest", "mv_decode"), 3600, fanout_from="mv_plan",
+                  weight=8.0),
         StageSpec("mv_merge", "cpu", (CAPTURE, "mv_plan", "mv_decode", "mv_triangulate"), 7200,
                   publish=("merged.ply", "registration.json", "mesh.glb", "mesh.ply", "report.json",
                            *MESH_LOD_FILES),
-                  params=("drop_unregistered",)),
+                  params=("drop_unregistered",), aliases=(("cloud.ply", "merged.ply"),), weight=16.0),
         # Textured web derivatives of the merge (shared.derive): one Draco GLB per level;
         # {"derivatives": false} leaves them out, an object chooses levels and colour.
         StageSpec("derivatives", "cpu", ("mv_merge",), 7200, publish=(*DERIVATIVE_FILES, "derivatives.json"),
@@ -217,11 +254,14 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         # The object compressed: the merged cloud (merged.glo) or the views' range images
         # (ranges/*.glr), whichever is smaller.
         StageSpec("mv_compress", "cpu", ("mv_merge",), 3600, publish=("merged.glo", "compress.json"), params=("compress",)),
-        StageSpec("tiles_plan", "render", ("mv_merge",), 7200, switch="render", params=("tiles",)),
-        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan"),
+        StageSpec("tiles_plan", "render", ("mv_merge",), 7200, switch="render", params=("tiles",), weight=0.5),
+        StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan", weight=1.5),
         StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
         StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
-                  params=("preview", "preview_epoch"), switch="render"),
+                  params=("preview", "preview_epoch"), switch="render", weight=6.0),
+        # The merged cloud in the interchange formats, as a scan's cloud is.
+        StageSpec("export", "cpu", ("mv_merge",), 7200, publish=EXPORT_FILES, switch="export", version=2, weight=2.0),
+        StageSpec("publish", "cpu", (CAPTURE, "mv_merge"), 1800, publish=PUBLISH_FILES, weight=1.0),
     ),
     # A service self-test: one trivial stage that sleeps params["seconds"] (at most 60) and
     # writes probe.json. It measures queue overhead and proves the workers are alive.
@@ -387,6 +427,29 @@ def ready_to_queue(stages: Iterable[StageView]) -> list[str]:
     stages = list(stages)
     done = {s.name for s in stages if s.state == StageState.SUCCEEDED}
     return [s.name for s in stages if s.state == StageState.PENDING and all(d in done for d in s.depends_on)]
+
+
+def job_fraction(kind: str, stages: Iterable[tuple[str, str, float]]) -> float:
+    """The finished fraction of a ``kind`` job from its stage rows ``(name, state, progress)``:
+    each stage counts its own progress (1 when succeeded), weighed by its spec's ``weight``, so a
+    long merge moves the job as far as it does its own work, not one stage in twenty. A map
+    stage's weight is that of all its instances together (their mean progress), counted from
+    the moment its parent has a row, so the fraction does not fall when a stage fans out."""
+    groups: dict[str, list[float]] = {}
+    for name, state, progress in stages:
+        frac = 1.0 if state == StageState.SUCCEEDED else min(max(float(progress), 0.0), 1.0)
+        groups.setdefault(base_name(name), []).append(frac)
+    done = total = 0.0
+    for spec in GRAPHS.get(kind, ()):
+        members = groups.get(spec.name)
+        if members is None and not (spec.is_map and spec.fanout_from in groups):
+            continue  # switched off (or not part of this job)
+        total += spec.weight
+        if members:
+            done += spec.weight * sum(members) / len(members)
+        elif spec.fanout_from is not None and min(groups[spec.fanout_from]) >= 1.0:
+            done += spec.weight  # its parent counted nothing to fan out into
+    return done / total if total else 0.0
 
 
 def job_state_from_stages(states: Iterable[str], cancelled: bool = False) -> JobState:

@@ -24,6 +24,7 @@ from typing import Any
 
 from sqlalchemy import (
     JSON,
+    BigInteger,
     Boolean,
     Float,
     ForeignKey,
@@ -147,6 +148,18 @@ class EventRow(Base):
     detail: Mapped[str | None] = mapped_column(Text, nullable=True)
 
 
+class BatchRejectRow(Base):
+    """A file sent with a batch and refused at intake: kept so the batch accounts for it."""
+
+    __tablename__ = "batch_rejects"
+    __table_args__ = (Index("ix_batch_rejects_batch", "batch_id"),)
+    id: Mapped[int] = mapped_column(Integer, primary_key=True, autoincrement=True)
+    batch_id: Mapped[str] = mapped_column(ForeignKey("batches.id"))
+    capture: Mapped[str] = mapped_column(Text)  # its name as sent
+    error: Mapped[str] = mapped_column(Text)  # the one-line reason
+    at: Mapped[float] = mapped_column(Float)
+
+
 class UploadRow(Base):
     __tablename__ = "uploads"
     id: Mapped[str] = mapped_column(String(36), primary_key=True)
@@ -156,6 +169,16 @@ class UploadRow(Base):
     chunks: Mapped[int] = mapped_column(Integer, default=0)
     created_at: Mapped[float] = mapped_column(Float)
     finished: Mapped[bool] = mapped_column(Boolean, default=False)
+
+
+class CaptureSizeRow(Base):
+    """Bytes a capture archive unpacks to (its checked headers, enforced while inflating): its
+    unpacked copy in a worker's cache counts against the key's stored bytes while a job of the
+    capture is unfinished (:mod:`shared.service.usage`)."""
+
+    __tablename__ = "capture_sizes"
+    capture_key: Mapped[str] = mapped_column(String(64), primary_key=True)
+    unpacked_bytes: Mapped[int] = mapped_column(BigInteger)
 
 
 # ---------------------------------------------------------------------------------------
@@ -219,20 +242,42 @@ class Job:
 
 
 @dataclass(frozen=True)
+class Reject:
+    """A file of a batch refused at intake: its name as sent and the one-line reason."""
+
+    capture: str
+    error: str
+    at: float
+
+
+#: The count a batch gives its refused files under (beside the job states).
+REJECTED = "rejected"
+
+
+@dataclass(frozen=True)
 class Batch:
+    """A batch: ``counts`` of its jobs by state plus ``rejected`` files (refused at intake,
+    each listed in ``rejects``), so ``total`` is every file sent."""
+
     id: str
     owner_id: int
     name: str
     created_at: float
     counts: dict[str, int]
+    rejects: tuple[Reject, ...] = ()
 
     @property
     def total(self) -> int:
         return sum(self.counts.values())
 
     @property
+    def job_count(self) -> int:
+        """How many jobs the batch has (its files but the rejected ones)."""
+        return self.total - self.counts.get(REJECTED, 0)
+
+    @property
     def progress(self) -> float:
-        done = sum(self.counts.get(s, 0) for s in ("succeeded", "failed", "cancelled"))
+        done = sum(self.counts.get(s, 0) for s in ("succeeded", "failed", "cancelled", REJECTED))
         return done / self.total if self.total else 1.0
 
 
@@ -442,6 +487,7 @@ class JobStore:
             )
 
     def get_batch(self, batch_id: str, owner_id: int | None = None) -> Batch | None:
+        """A batch with its job counts by state and its refused files (count ``rejected``)."""
         with self.session() as s:
             row = s.get(BatchRow, batch_id)
             if row is None or (owner_id is not None and row.owner_id != owner_id):
@@ -449,7 +495,30 @@ class JobStore:
             counts = dict(
                 s.execute(select(JobRow.state, func.count()).where(JobRow.batch_id == batch_id).group_by(JobRow.state)).all()
             )
-            return Batch(row.id, row.owner_id, row.name, row.created_at, {k: int(v) for k, v in counts.items()})
+            rejects = tuple(
+                Reject(r.capture, r.error, r.at)
+                for r in s.scalars(select(BatchRejectRow).where(BatchRejectRow.batch_id == batch_id).order_by(BatchRejectRow.id))
+            )
+            counts = {k: int(v) for k, v in counts.items()}
+            if rejects:
+                counts[REJECTED] = len(rejects)
+            return Batch(row.id, row.owner_id, row.name, row.created_at, counts, rejects)
+
+    def add_rejects(self, batch_id: str, rejects: Iterable[tuple[str, str]]) -> None:
+        """Keep the files of a batch refused at intake, ``(name as sent, one-line reason)``."""
+        now = time.time()
+        with self.session() as s, s.begin():
+            for capture, error in rejects:
+                s.add(BatchRejectRow(batch_id=batch_id, capture=capture[:1000], error=" ".join(error.split())[:2000], at=now))
+
+    def batch_job_ids(self, batch_id: str, limit: int = 100, offset: int = 0) -> tuple[list[str], int]:
+        """A page of the ids of a batch's jobs, oldest first, and how many it has."""
+        with self.session() as s:
+            total = int(s.scalar(select(func.count()).select_from(JobRow).where(JobRow.batch_id == batch_id)) or 0)
+            ids = s.scalars(
+                select(JobRow.id).where(JobRow.batch_id == batch_id).order_by(JobRow.seq).limit(limit).offset(offset)
+            ).all()
+            return list(ids), total
 
     def list_batches(self, owner_id: int) -> list[Batch]:
         with self.session() as s:
@@ -460,32 +529,37 @@ class JobStore:
     def create_job(self, owner_id: int, new: NewJob) -> tuple[Job, list[Stage]]:
         """Insert a job and its stages; stages with no upstream start ``queued``. Returns the job
         and the stages to publish."""
+        with self.session() as s, s.begin():
+            return self.insert_job(s, owner_id, new)
+
+    def insert_job(self, s: Session, owner_id: int, new: NewJob) -> tuple[Job, list[Stage]]:
+        """:meth:`create_job` inside the caller's transaction ``s`` (admission checks the key's
+        limits and inserts in one, :mod:`shared.service.admission`)."""
         now = time.time()
         jid = str(uuid.uuid4())
-        with self.session() as s, s.begin():
-            seq = (s.scalar(select(func.max(JobRow.seq))) or 0) + 1
-            job = JobRow(
-                id=jid, owner_id=owner_id, batch_id=new.batch_id, kind=new.kind, name=new.name[:300],
-                state=JobState.QUEUED, capture_ref=new.capture_ref, capture_key=new.capture_key,
-                params=dict(new.params), created_at=now, seq=seq,
+        seq = (s.scalar(select(func.max(JobRow.seq))) or 0) + 1
+        job = JobRow(
+            id=jid, owner_id=owner_id, batch_id=new.batch_id, kind=new.kind, name=new.name[:300],
+            state=JobState.QUEUED, capture_ref=new.capture_ref, capture_key=new.capture_key,
+            params=dict(new.params), created_at=now, seq=seq,
+        )  # fmt: skip
+        s.add(job)
+        s.flush()
+        rows = []
+        for i, spec in enumerate(new.graph):
+            if spec.is_map:
+                continue  # its rows appear when the stage it fans out from finishes
+            st = StageState.QUEUED if not spec.depends_on else StageState.PENDING
+            row = StageRow(
+                job_id=jid, name=spec.name, position=i * FANOUT_SLOTS, queue=spec.queue,
+                depends_on=list(spec.depends_on),
+                state=st, queued_at=now if st == StageState.QUEUED else None,
             )  # fmt: skip
-            s.add(job)
-            s.flush()
-            rows = []
-            for i, spec in enumerate(new.graph):
-                if spec.is_map:
-                    continue  # its rows appear when the stage it fans out from finishes
-                st = StageState.QUEUED if not spec.depends_on else StageState.PENDING
-                row = StageRow(
-                    job_id=jid, name=spec.name, position=i * FANOUT_SLOTS, queue=spec.queue,
-                    depends_on=list(spec.depends_on),
-                    state=st, queued_at=now if st == StageState.QUEUED else None,
-                )  # fmt: skip
-                s.add(row)
-                rows.append(row)
-            s.flush()
-            self._event(s, jid, None, None, JobState.QUEUED, new.kind)
-            out = _job(job, rows)
+            s.add(row)
+            rows.append(row)
+        s.flush()
+        self._event(s, jid, None, None, JobState.QUEUED, new.kind)
+        out = _job(job, rows)
         return out, [st for st in out.stages if st.state == StageState.QUEUED]
 
     def get_job(self, job_id: str, owner_id: int | None = None) -> Job | None:

@@ -6,15 +6,20 @@
 and tiles have run. The stage adapters read the same checked values.
 
 ========================  =========  =============================================================
-key                       kinds      meaning
+key                       kinds      meaning (mv: multiview)
 ========================  =========  =============================================================
-``render``                scan       ``false`` leaves out tiles and preview (and what follows them)
-``export``                scan       ``false`` leaves out the LAZ / COPC export
-``tiles``                 scan       ``{"max_chunk": int >= 100, "max_leaf": int >= 100,
+``render``                scan, mv   ``false`` leaves out tiles and preview (and what follows them)
+``export``                scan, mv   ``false`` leaves out the LAZ / COPC / E57 export (of the
+                                     scan's cloud, or of a multiview job's merged cloud)
+``drop_unregistered``     mv         ``true`` leaves out views that register to nothing
+``tiles``                 scan, mv   ``{"max_chunk": 100..5e7, "max_leaf": 100..1e6,
                                      "node_codec": "plain" | "octree"}`` (octree-coded nodes: opt-in)
-``preview``               scan       ``{"path", "size": [w, h], "seconds", "fps"}``
-                                     (:class:`shared.render.options.PreviewOptions`)
-``compress``              scan       ``{"quantum": q}`` or ``{"max_error": e}`` (rig units, > 0; default
+``preview``               scan, mv   ``{"path": "auto"|"arc"|"orbit"|"dolly", "size": [w, h],
+                                     "seconds", "fps"}`` or, instead of ``path``, ``"camera":
+                                     {"fov", "keyframes": [{"eye", "target"}, ...]}`` inline
+                                     (:class:`shared.render.options.PreviewOptions`); never a file
+                                     on the worker
+``compress``              scan, mv   ``{"quantum": q}`` or ``{"max_error": e}`` (rig units, (0, 1000]; default
                                      lossless at 0.02 mm) and ``"keep_range"``: false publishes
                                      ``range.glr`` only, not the raw ``range.npz``, and deletes
                                      the raw image once ``range.glr`` is stored (default true)
@@ -35,6 +40,7 @@ from typing import Any
 
 from shared.core.errors import InputError
 from shared.derive.levels import parse_levels
+from shared.render.camera_path import MAX_COORDINATE, MAX_INLINE_KEYFRAMES, NAMED_PATHS
 from shared.render.options import MAX_FPS, MAX_HEIGHT, MAX_SECONDS, MAX_WIDTH, MIN_SIDE, PreviewOptions
 
 __all__ = ["MAX_PARAMS_BYTES", "MAX_PROBE_SECONDS", "PARAMS", "Param", "params_schema", "SERVICE_PARAMS", "check_job_params", "compress_options",
@@ -48,8 +54,20 @@ MAX_PROBE_SECONDS = 60.0
 SERVICE_PARAMS = frozenset({"rig", "preview_epoch"})
 
 _TILE_OPTIONS = ("max_chunk", "max_leaf")
+#: Upper bounds of the tiling options, points: a chunk is built in one worker's memory (50 M
+#: points is about 2 GB of records), a leaf is one node a viewer fetches whole. Past these a job
+#: would fail late (``max_chunk`` of 1e30 raised OverflowError after the job had run).
+_TILE_MAX = {"max_chunk": 50_000_000, "max_leaf": 1_000_000}
+#: Largest compression step or error bound, rig units (a metre in mm): coarser is no longer a scan.
+MAX_QUANTUM = 1000.0
 #: ``params.tiles.node_codec``: how octree.bin stores nodes (shared.render.octree.NODE_CODECS).
 _NODE_CODECS = ("plain", "octree")
+
+
+def _short(value: Any) -> str:
+    """``repr`` cut to a short excerpt: an error never echoes a client's whole value."""
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
 
 
 def tiles_options(value: Any, field: str = "params.tiles") -> dict[str, Any]:
@@ -58,14 +76,14 @@ def tiles_options(value: Any, field: str = "params.tiles") -> dict[str, Any]:
     if value is None:
         return {}
     if not isinstance(value, Mapping) or set(value) - {*_TILE_OPTIONS, "node_codec"}:
-        raise InputError(field, f"must be an object with max_chunk, max_leaf and/or node_codec, got {value!r}")
+        raise InputError(field, f"must be an object with max_chunk, max_leaf and/or node_codec, got {_short(value)}")
     for k, v in value.items():
         if k == "node_codec":
             if v not in _NODE_CODECS:
-                raise InputError(f"{field}.{k}", f"must be one of {', '.join(_NODE_CODECS)}, got {v!r}")
+                raise InputError(f"{field}.{k}", f"must be one of {', '.join(_NODE_CODECS)}, got {_short(v)}")
             continue
-        if not isinstance(v, int) or isinstance(v, bool) or v < 100:
-            raise InputError(f"{field}.{k}", f"must be an integer of at least 100, got {v!r}")
+        if not isinstance(v, int) or isinstance(v, bool) or not 100 <= v <= _TILE_MAX[k]:
+            raise InputError(f"{field}.{k}", f"must be an integer in 100..{_TILE_MAX[k]}, got {_short(v)}")
     return dict(value)
 
 
@@ -77,7 +95,7 @@ def _switch(value: Any, field: str) -> bool:
 
 def _preview(value: Any, field: str) -> dict[str, Any]:
     if not isinstance(value, Mapping):  # from_mapping takes None for the defaults; a job's params may not
-        raise InputError(field, f"must be an object of preview options, got {value!r}")
+        raise InputError(field, f"must be an object of preview options, got {_short(value)}")
     PreviewOptions.from_mapping(value, prefix=f"{field}.")
     return dict(value)
 
@@ -100,19 +118,36 @@ def compress_options(value: Any, field: str = "params.compress") -> dict[str, An
         raise InputError(field, "give quantum or max_error, not both")
     for k in ("quantum", "max_error"):
         v = value.get(k)
-        if k in value and (not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v) or v <= 0):
-            raise InputError(f"{field}.{k}", f"must be a positive number, got {v!r}")
+        if k in value and (not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v)
+                           or not 0 < v <= MAX_QUANTUM):
+            raise InputError(f"{field}.{k}", f"must be a positive number up to {MAX_QUANTUM:g}, got {_short(v)}")
     if "keep_range" in value and not isinstance(value["keep_range"], bool):
         raise InputError(f"{field}.keep_range", f"must be true or false, got {value['keep_range']!r}")
     return dict(value)
 
 
-_POSITIVE = {"type": "number", "exclusiveMinimum": 0}
+_POSITIVE = {"type": "number", "exclusiveMinimum": 0, "maximum": MAX_QUANTUM}
+_VEC3 = {"type": "array", "items": {"type": "number", "minimum": -MAX_COORDINATE, "maximum": MAX_COORDINATE},
+         "minItems": 3, "maxItems": 3}
 _PREVIEW_SCHEMA = {
     "type": "object",
     "description": "preview video options",
     "properties": {
-        "path": {"type": "string", "minLength": 1, "description": "auto, arc, orbit, dolly or a keyframe file"},
+        "path": {"type": "string", "enum": list(NAMED_PATHS),
+                 "description": "the camera path: a job names no file (keyframes go in camera)"},
+        "camera": {
+            "type": "object",
+            "description": "keyframe camera path, inline: evenly spaced keyframes of eye and target (world units); "
+                           "a keyframe whose target is its eye looks at the scene's centre",
+            "properties": {
+                "fov": {"type": "number", "minimum": 1, "maximum": 170, "description": "vertical field of view, degrees"},
+                "keyframes": {"type": "array", "minItems": 1, "maxItems": MAX_INLINE_KEYFRAMES,
+                              "items": {"type": "object", "properties": {"eye": _VEC3, "target": _VEC3},
+                                        "required": ["eye", "target"], "additionalProperties": False}},
+            },
+            "required": ["keyframes"],
+            "additionalProperties": False,
+        },
         "size": {
             "type": "array",
             "description": "[width, height] in pixels, even",
@@ -132,7 +167,7 @@ _PREVIEW_SCHEMA = {
 _TILES_SCHEMA = {
     "type": ["object", "null"],
     "description": "Potree tiling options (null: the defaults)",
-    "properties": {**{k: {"type": "integer", "minimum": 100} for k in _TILE_OPTIONS},
+    "properties": {**{k: {"type": "integer", "minimum": 100, "maximum": _TILE_MAX[k]} for k in _TILE_OPTIONS},
                    "node_codec": {"type": "string", "enum": list(_NODE_CODECS)}},
     "additionalProperties": False,
 }
@@ -207,7 +242,7 @@ def _bool(description: str) -> Param:
 PARAMS: dict[str, dict[str, Param]] = {
     "scan": {
         "render": _bool("false leaves out tiles and preview"),
-        "export": _bool("false leaves out the LAZ / COPC export"),
+        "export": _bool("false leaves out the LAZ / COPC / E57 export"),
         "tiles": Param(lambda v, f: tiles_options(v, f), _TILES_SCHEMA),
         "preview": Param(_preview, _PREVIEW_SCHEMA),
         "compress": Param(lambda v, f: compress_options(v, f), _COMPRESS_SCHEMA),
@@ -215,6 +250,7 @@ PARAMS: dict[str, dict[str, Param]] = {
     "calibrate": {},
     "multiview": {
         "render": _bool("false leaves out tiles and preview of the merged cloud"),
+        "export": _bool("false leaves out the LAZ / COPC / E57 export of the merged cloud"),
         "drop_unregistered": _bool("true leaves out, with a warning, views that register to nothing"),
         "derivatives": Param(_derivatives, _DERIVATIVES_SCHEMA),
         "tiles": Param(lambda v, f: tiles_options(v, f), _TILES_SCHEMA),

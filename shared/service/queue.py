@@ -33,11 +33,14 @@ from shared.service.jobstore import Stage
 
 log = logging.getLogger(__name__)
 
-__all__ = ["QUEUES", "RECONCILE_TASK", "RERENDER_TASK", "celery_config", "publish_stages", "publisher", "task_name"]
+__all__ = ["QUEUES", "RECONCILE_TASK", "RERENDER_PREVIEW_TASK", "RERENDER_TASK", "celery_config", "publish_rerender",
+           "publish_stages", "publisher", "task_name"]
 
 #: Tasks that are not stages, run from beat on the ``control`` queue.
 RECONCILE_TASK = "graylight.reconcile"
 RERENDER_TASK = "graylight.rerender_previews"
+#: One job's preview re-render (a re-render record's id), on the ``render`` queue.
+RERENDER_PREVIEW_TASK = "graylight.rerender_preview"
 
 
 def task_name(stage: str) -> str:
@@ -85,9 +88,12 @@ def celery_config(settings: Settings) -> dict[str, Any]:
                 "schedule": settings.reconcile_seconds,
                 "options": {"queue": control, "expires": max(settings.reconcile_seconds * 2, 2.0)},
             },
+            # The mode travels with the message: beat's environment is the one place
+            # GRAYLIGHT_RERENDER_HOUR and GRAYLIGHT_RERENDER_MODE are read.
             "nightly-preview-rerender": {
                 "task": RERENDER_TASK,
                 "schedule": crontab(hour=settings.rerender_hour, minute=0),
+                "args": [settings.rerender_mode],
                 "options": {"queue": control},
             },
         },
@@ -132,3 +138,17 @@ def publish_stages(stages: Iterable[Stage], settings: Settings) -> int:
         except Exception as exc:  # the broker is down: the reconciler re-publishes later
             log.warning("could not publish stage %s (%s) of job %s: %s", st.id, st.name, st.job_id, exc)
     return sent
+
+
+def publish_rerender(rerender_id: str, settings: Settings) -> bool:
+    """Send the message of one preview re-render to the ``render`` queue; False when the broker
+    is down (the reconciler publishes it again)."""
+    try:
+        publisher(settings).send_task(
+            RERENDER_PREVIEW_TASK, args=[rerender_id], queue=settings.queue("render"), retry=True,
+            retry_policy={"max_retries": 2, "interval_start": 0.1, "interval_step": 0.5, "interval_max": 1.0},
+        )  # fmt: skip
+        return True
+    except Exception as exc:
+        log.warning("could not publish re-render %s: %s", rerender_id, exc)
+        return False

@@ -59,7 +59,9 @@ def drive(senv: jobsvc.ServiceEnv, job_id: str, stop_after: str | None = None) -
 
 def test_health_is_open_everything_else_needs_a_key(api) -> None:
     client, _senv, alice, _bob = api
-    assert client.get("/health").json() == {"status": "ok", "database": True}
+    h = client.get("/health")
+    assert h.status_code == 200 and (h.json()["status"], h.json()["database"], h.json()["problems"]) == ("ok", True, [])
+    assert h.json()["free_bytes"] >= h.json()["min_free_bytes"]
     for method, path in [("get", "/v1/jobs"), ("post", "/v1/jobs"), ("get", "/v1/batches"), ("post", "/v1/uploads"),
                          ("get", "/v1/jobs/00000000-0000-0000-0000-000000000000/artifacts/cloud.ply")]:  # fmt: skip
         assert getattr(client, method)(path).status_code == 401
@@ -201,11 +203,12 @@ def test_batch_from_storage_references_and_manifest(api, capture: Path, tmp_path
                                                         "captures": ["objects/ab"], "params": {"render": False}})  # fmt: skip
     assert r.status_code == 201, r.text
     b = r.json()
-    assert len(b["jobs"]) == 1 and b["total"] == 1
+    # Every reference sent is accounted for: the refused ones count, as "rejected" (issue 24).
+    assert len(b["jobs"]) == 1 and b["total"] == 3
     assert sorted(x["capture"] for x in b["rejected"]) == ["inbox/missing.zip", "objects/ab"]
     drive(senv, b["jobs"][0])
     prog = client.get(f"/v1/batches/{b['id']}", headers=alice).json()
-    assert prog["counts"] == {"succeeded": 1} and prog["progress"] == 1.0
+    assert prog["counts"] == {"succeeded": 1, "rejected": 2} and prog["progress"] == 1.0
     assert client.get(f"/v1/batches/{b['id']}", headers=bob).status_code == 404
     listed = client.get("/v1/jobs", headers=alice, params={"batch": "museum", "state": "succeeded"}).json()
     assert [j["id"] for j in listed["jobs"]] == b["jobs"]
@@ -335,7 +338,7 @@ def test_error_answers_have_the_documented_shapes(api) -> None:
     assert r.status_code == 422 and r.json()["detail"][0]["loc"] == ["body", "name"]
     r = client.post("/v1/batches", headers=alice, data={"name": "x", "params": "{nope"},
                     files={"unused": ("x", b"", "text/plain")})  # fmt: skip
-    assert r.status_code == 422 and problem(r).startswith("params: not JSON")
+    assert r.status_code == 422 and problem(r).startswith("params: malformed JSON")
     r = client.post("/v1/jobs", headers=alice, json={"capture_ref": "inbox/none.zip"})
     assert r.status_code == 404 and "no such file or folder in storage" in r.json()["detail"]
     doc = client.get("/openapi.json").json()

@@ -25,7 +25,8 @@ def test_export_each_format(
     printed = capsys.readouterr().out
     assert str(out) in printed and "points" in printed
     assert out.is_file() and out.stat().st_size > 0
-    assert [p.name for p in tmp_path.iterdir()] == [out.name]  # no temporary left beside it
+    # No temporary left beside it; the run's paradata is (services/cli/provenance.py).
+    assert sorted(p.name for p in tmp_path.iterdir()) == [out.name, f"{out.name}.paradata.json"]
     if fmt in ("laz", "las"):
         assert laspy.read(out).header.point_count > 1000
     if fmt == "copc":

@@ -17,6 +17,7 @@ from services.cli.main import main
 from shared.core.datapaths import shared_data_dir
 from shared.formats.capture import load_capture
 from shared.formats.ply import read_ply
+from tests.support.links import place_file
 from tests.support.synthetic_plane import render_plane_capture
 
 REPO = Path(__file__).resolve().parents[2]
@@ -153,7 +154,7 @@ def test_import_sequence_on_real_frames(tmp_path: Path, capsys: pytest.CaptureFi
     folder = tmp_path / "seq"
     folder.mkdir()
     for p in sorted((REAL / "capture_0").glob("graycode_*.png")):
-        (folder / p.name).symlink_to(p)
+        place_file(p, folder / p.name)  # not a symlink: a capture's files lie inside its folder
     assert main(["import-sequence", str(folder), "--projector", "1024x768"]) == 0
     cap = load_capture(folder)
     assert cap.white.name == "graycode_40.png" and cap.black.name == "graycode_41.png"

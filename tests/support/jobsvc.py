@@ -157,6 +157,20 @@ def start_api(senv: ServiceEnv, port: int | None = None) -> tuple[Proc, str]:
 
 
 @contextlib.contextmanager
+def tmpfs(mnt: Path, size: str) -> Iterator[Path]:
+    """A tmpfs of ``size`` (``64m``) mounted at the new folder ``mnt`` for a test (root only;
+    the test is skipped where mounting is not allowed), unmounted after."""
+    mnt.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", f"size={size}", "tmpfs", str(mnt)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield mnt
+    finally:
+        subprocess.run(["umount", "-l", str(mnt)], check=False)
+
+
+@contextlib.contextmanager
 def pg_database() -> Iterator[str]:
     """A fresh PostgreSQL database for this test session, dropped at the end."""
     import psycopg

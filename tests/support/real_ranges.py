@@ -16,6 +16,7 @@ import numpy as np
 
 from shared.core.datapaths import shared_data_dir
 from shared.formats.capture import numbered_frames, opencv_order_capture, write_capture
+from tests.support.links import place_file
 
 REAL = shared_data_dir() / "procam-kamino410"
 CAPTURES = [f"capture_{k}" for k in range(5)]
@@ -40,9 +41,7 @@ def scan_real_ranges(work: Path) -> dict[str, Path]:
         cap = session / f"pose_{k:02d}"
         cap.mkdir(exist_ok=True)
         for p in numbered_frames(REAL / name):
-            link = cap / p.name
-            if not link.exists():
-                link.symlink_to(p)
+            place_file(p, cap / p.name)  # not a symlink: a capture's files lie inside its folder
         write_capture(opencv_order_capture(cap, numbered_frames(cap), 1024, 768))
     calibrate_session(session, work / "calibration")
     rig = work / "calibration" / "rig.json"

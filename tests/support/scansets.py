@@ -20,6 +20,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from shared.core.datapaths import shared_data_dir
+from tests.support.links import place_file
 
 DRAGON = shared_data_dir() / "stanford-dragon-turntable"
 
@@ -49,13 +50,18 @@ def _dragon_conf() -> list[list[str]]:
 
 
 def dragon_scanset(folder: Path, turntable: bool) -> Path:
-    """Write ``folder/scanset.json`` naming the 15 dragon scans (units m), angles from the file names."""
+    """Write ``folder/scanset.json`` naming the 15 dragon scans (units m), angles from the file names.
+
+    The scans are hard-linked (copied across filesystems) into ``folder``: a scan set's paths must
+    lie inside its own folder, links leading out of it included."""
     conf = _dragon_conf()
-    views = [{"cloud": str(DRAGON / c[1]), "units": "m"} for c in conf]
+    folder.mkdir(parents=True, exist_ok=True)
+    for c in conf:
+        place_file(DRAGON / c[1], folder / c[1])
+    views = [{"cloud": c[1], "units": "m"} for c in conf]
     doc: dict = {"format": "graylight-scanset-v1", "views": views}
     if turntable:
         doc["turntable"] = {"angles_deg": [float(c[1].rsplit("_", 1)[1].split(".")[0]) for c in conf]}
-    folder.mkdir(parents=True, exist_ok=True)
     (folder / "scanset.json").write_text(json.dumps(doc))
     return folder
 

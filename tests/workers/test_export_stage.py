@@ -18,7 +18,7 @@ def test_export_stage_publishes_laz_and_copc(tmp_path: Path, small_capture: Path
     assert stage_spec("scan", "export").publish == ("cloud.laz", "cloud.copc.laz")
     # Tiles and preview left out: the export needs only the cloud.
     arts, job = run_scan_job(make_env(tmp_path / "svc").settings, small_capture, tmp_path, {"render": False})
-    assert [s.name for s in job.stages] == ["ingest", "decode", "triangulate", "compress", "export"]
+    assert [s.name for s in job.stages] == ["ingest", "decode", "triangulate", "compress", "export", "publish"]
     cloud = read_ply(arts.fetch(job.stage("triangulate").output_key, tmp_path / "c1") / "cloud.ply")
     out = arts.fetch(job.stage("export").output_key, tmp_path / "c2")
     assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == [

@@ -1,6 +1,6 @@
 """The reconciler against a real Redis (private queue names): expired leases are re-queued
 and re-published, lost messages are re-published, a stage that keeps killing workers fails,
-and the nightly re-render resets only preview stages."""
+and the nightly re-render queues a re-render beside the job, touching none of its stages."""
 
 from __future__ import annotations
 
@@ -11,8 +11,10 @@ import redis
 
 from shared.service.jobs import StageSpec, fan_out, fanout_index, graph_for, stage_key, stage_spec
 from shared.service.jobstore import JobStore, NewJob
+from shared.service.rerenders import RerenderStore
 from tests.support.jobsvc import ServiceEnv
-from workers.reconciler import enqueue_preview_rerender, reconcile_once
+from workers.reconciler import reconcile_once
+from workers.rerender import enqueue_rerenders
 
 
 def queue_len(senv: ServiceEnv, queue: str) -> int:
@@ -64,7 +66,7 @@ def test_stage_that_keeps_killing_workers_fails(svc_env: ServiceEnv) -> None:
     assert j.state == "failed" and "worker lost 2 times" in j.error
 
 
-def test_nightly_rerender_resets_only_previews(svc_env: ServiceEnv, tmp_path: Path) -> None:
+def test_nightly_rerender_queues_beside_the_job(svc_env: ServiceEnv, tmp_path: Path) -> None:
     settings = svc_env.settings
     store = JobStore(settings.database_url)
     owner, _ = store.create_key("r")
@@ -86,13 +88,35 @@ def test_nightly_rerender_resets_only_previews(svc_env: ServiceEnv, tmp_path: Pa
     if any(m.is_map for m in graph):
         assert {"tiles_chunk#0", "tiles_chunk#1"} <= {s.name for s in done.stages}
         assert sorted(done.stage("tiles").depends_on) == ["tiles_chunk#0", "tiles_chunk#1", "tiles_plan"]
-    assert enqueue_preview_rerender(settings, "changed", store) == 0  # nothing changed
-    assert enqueue_preview_rerender(settings, "all", store) == 1
+    assert enqueue_rerenders(settings, "changed", store) == 0  # nothing changed
+    assert enqueue_rerenders(settings, "all", store) == 1
+    assert enqueue_rerenders(settings, "all", store) == 0  # one at a time a job
     j = store.get_job(job.id)
-    assert j.stage("preview").state == "queued" and j.params["preview_epoch"]
-    assert all(s.state == "succeeded" for s in j.stages if s.name != "preview")
+    # The job is untouched: its state, its end, every stage and its attempts.
+    assert j.state == "succeeded" and j.finished_at == done.finished_at and "preview_epoch" not in j.params
+    assert [(s.name, s.state, s.attempts, s.output_key) for s in j.stages] == [
+        (s.name, s.state, s.attempts, s.output_key) for s in done.stages]
+    rec = RerenderStore(store).latest_rerender(job.id)
+    assert rec.state == "queued" and rec.params["preview_epoch"] and rec.base_key == done.stage("preview").output_key
     assert queue_len(svc_env, "render") == 1 and queue_len(svc_env, "cpu") == 0
     assert isinstance(stage_spec("scan", "preview"), StageSpec)
+    # Its worker dies mid-render: after a lease the reconciler queues it again (and publishes
+    # it); the job is still untouched.
+    rr = RerenderStore(store)
+    held = rr.claim_rerender(rec.id)
+    assert held is not None and rr.claim_rerender(rec.id) is None  # a duplicate message does nothing
+    assert reconcile_once(settings, store).rerenders_requeued == 0  # its lease is fresh
+    report = reconcile_once(settings, store, now=time.time() + settings.lease_seconds + 1)
+    assert report.rerenders_requeued == 1 and rr.get_rerender(rec.id).state == "queued"
+    assert queue_len(svc_env, "render") == 2
+    assert not rr.heartbeat_rerender(rec.id, held.lease_token)  # the dead worker's lease is gone
+    # Queued behind other messages, it is not re-sent every pass (a nightly run of thousands
+    # would pile up duplicates), only after ten leases.
+    later = time.time() + settings.lease_seconds + 1
+    assert reconcile_once(settings, store, now=later).rerenders_requeued == 0
+    assert reconcile_once(settings, store, now=later + 10 * settings.lease_seconds).rerenders_requeued == 1
+    assert queue_len(svc_env, "render") == 3
+    assert store.get_job(job.id).state == "succeeded"
 
 
 def test_abandoned_upload_sessions_are_deleted_with_their_chunks(svc_env: ServiceEnv, tmp_path: Path) -> None:

@@ -3,7 +3,6 @@ and ``GET /v1/jobs/{id}/artifacts/{name}`` (one file, with byte ranges from S3).
 
 from __future__ import annotations
 
-import mimetypes
 from pathlib import Path
 
 from fastapi import APIRouter, HTTPException, Request
@@ -11,7 +10,14 @@ from fastapi.responses import FileResponse, Response, StreamingResponse
 
 from services.api.deps import Key, Svc, owned_job
 from services.api.http import byte_range
-from services.api.models import ArtifactList, ArtifactOut, errors
+from services.api.models import (
+    ArtifactList,
+    ArtifactOut,
+    artifact_content,
+    artifact_media_type,
+    artifact_url,
+    errors,
+)
 from shared.service.artifacts import ArtifactStore
 from shared.service.jobs import StageState, stage_spec
 from shared.service.jobstore import Job
@@ -21,7 +27,8 @@ router = APIRouter(tags=["artifacts"])
 
 def job_files(arts: ArtifactStore, job: Job) -> list[ArtifactOut]:
     """Every file of the job's finished stages as ``STAGE/PATH``, and the published ones
-    (``cloud.ply``) also under their short name (the first stage publishing a name wins)."""
+    (``cloud.ply``) also under their short names and aliases (the first stage publishing a name
+    wins). Each ``url`` is percent-encoded (a map stage's ``#`` is ``%23``)."""
     out: list[ArtifactOut] = []
     published: set[str] = set()
     for st in job.stages:
@@ -34,12 +41,14 @@ def job_files(arts: ArtifactStore, job: Job) -> list[ArtifactOut]:
         for name, entry in sorted(m.files.items()):
             if name.startswith("."):
                 continue  # the stage's own bookkeeping (its summary)
-            url = f"/v1/jobs/{job.id}/artifacts/{st.name}/{name}"
-            out.append(ArtifactOut(name=f"{st.name}/{name}", stage=st.name, size=entry.size, sha256=entry.sha256, url=url))
-            if name in spec.publish and name not in published:
-                published.add(name)
-                out.append(ArtifactOut(name=name, stage=st.name, size=entry.size, sha256=entry.sha256,
-                                       url=f"/v1/jobs/{job.id}/artifacts/{name}"))  # fmt: skip
+            full = f"{st.name}/{name}"
+            out.append(ArtifactOut(name=full, stage=st.name, size=entry.size, sha256=entry.sha256,
+                                   url=artifact_url(job.id, full)))  # fmt: skip
+            for short in spec.short_names:
+                if spec.published_file(short) == name and short not in published:
+                    published.add(short)
+                    out.append(ArtifactOut(name=short, stage=st.name, size=entry.size, sha256=entry.sha256,
+                                           url=artifact_url(job.id, short)))  # fmt: skip
     return out
 
 
@@ -47,12 +56,12 @@ def job_files(arts: ArtifactStore, job: Job) -> list[ArtifactOut]:
 def list_artifacts(job_id: str, key: Key, svc: Svc) -> ArtifactList:
     """Files of every finished stage: ``STAGE/PATH``, plus short names (``cloud.ply``)."""
     job = owned_job(svc, job_id, key)
-    return ArtifactList(job=job.id, artifacts=job_files(svc.arts, job))
+    return ArtifactList(job=job.id, name=job.name, artifacts=job_files(svc.arts, job))
 
 
 @router.get("/v1/jobs/{job_id}/artifacts/{name:path}",
-            responses={200: {"content": {"application/octet-stream": {}}, "description": "the file"},
-                       206: {"content": {"application/octet-stream": {}}, "description": "the requested byte range"},
+            responses={200: {"content": artifact_content(), "description": "the file"},
+                       206: {"content": artifact_content(), "description": "the requested byte range"},
                        **errors(401, 404, 416, 422)})  # fmt: skip
 def get_artifact(job_id: str, name: str, key: Key, svc: Svc, request: Request) -> Response:
     """One file: a short name (``cloud.ply``, ``preview.mp4``) or ``STAGE/PATH``
@@ -66,8 +75,9 @@ def get_artifact(job_id: str, name: str, key: Key, svc: Svc, request: Request) -
             target = (st.output_key, inner)
     else:
         for st in job.stages:
-            if st.state == StageState.SUCCEEDED and st.output_key and name in stage_spec(job.kind, st.name).publish:
-                target = (st.output_key, name)
+            file = stage_spec(job.kind, st.name).published_file(name)
+            if st.state == StageState.SUCCEEDED and st.output_key and file is not None:
+                target = (st.output_key, file)
                 break
     if target is None:
         raise HTTPException(404, f"job {job.id} has no artifact {name!r} (yet)")
@@ -75,10 +85,11 @@ def get_artifact(job_id: str, name: str, key: Key, svc: Svc, request: Request) -
     m = svc.arts.manifest(okey)
     if m is None or fname not in m.files:
         raise HTTPException(404, f"job {job.id} has no artifact {name!r}")
-    media = mimetypes.guess_type(fname)[0] or "application/octet-stream"
+    media = artifact_media_type(fname)
     headers = {"ETag": f'"{m.files[fname].sha256}"', "X-Checksum-SHA256": m.files[fname].sha256}
     local = svc.arts.local_file(okey, fname)
     if local is not None:
+        byte_range(request.headers.get("range"), m.files[fname].size)  # a range outside: the documented JSON 416
         return FileResponse(local, media_type=media, headers=headers, filename=Path(fname).name)
     size = m.files[fname].size
     headers["Accept-Ranges"] = "bytes"

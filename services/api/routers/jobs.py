@@ -1,5 +1,6 @@
 """Jobs: ``POST /v1/jobs`` (submit), ``GET /v1/jobs`` (list), ``GET /v1/jobs/{id}``,
-``POST /v1/jobs/{id}/cancel`` and ``POST /v1/jobs/{id}/retry``."""
+``POST /v1/jobs/{id}/cancel``, ``POST /v1/jobs/{id}/retry`` and ``POST /v1/jobs/{id}/rerender``
+(a new preview, rendered beside the finished job)."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from services.api.schema import job_body
 from shared.service.jobs import JobState, StageView, rows_to_rerun
 from shared.service.jobstore import Job
 from shared.service.queue import publish_stages
+from shared.service.rerenders import RerenderStore, request_rerender
 
 router = APIRouter(tags=["jobs"])
 
@@ -55,8 +57,24 @@ def list_jobs(
 
 @router.get("/v1/jobs/{job_id}", response_model=JobOut, responses=errors(401, 404, 422))
 def get_job(job_id: str, key: Key, svc: Svc) -> JobOut:
-    """A job: its state, and per stage its state, progress, timings and error."""
-    return job_out(owned_job(svc, job_id, key))
+    """A job: its state, and per stage its state, progress, timings and error; the links of
+    its published files and of its viewer; its latest preview re-render (run beside it)."""
+    job = owned_job(svc, job_id, key)
+    return job_out(job, RerenderStore(svc.store).latest_rerender(job.id))
+
+
+@router.post("/v1/jobs/{job_id}/rerender", response_model=JobOut, status_code=202, responses=errors(401, 404, 409, 422))
+def rerender_job(job_id: str, key: Key, svc: Svc) -> JobOut:
+    """Render a succeeded job's preview again, beside it: the job stays ``succeeded`` with its
+    ``finished_at``; ``rerender`` follows the new render, and the new preview replaces the old
+    one at once when it is stored (a failed re-render leaves the old one)."""
+    job = owned_job(svc, job_id, key)
+    if request_rerender(svc.store, job, "all", "manual", svc.settings) is None:
+        latest = RerenderStore(svc.store).latest_rerender(job.id)
+        if latest is not None and latest.state in ("queued", "running"):
+            raise HTTPException(409, f"job {job.id}: a re-render is already {latest.state}")
+        raise HTTPException(409, f"job {job.id} has no finished preview to re-render (it is {job.state})")
+    return job_out(job, RerenderStore(svc.store).latest_rerender(job.id))
 
 
 @router.post("/v1/jobs/{job_id}/cancel", response_model=JobOut, responses=errors(401, 404, 409, 422))
@@ -89,7 +107,7 @@ def rerun(svc: Service, job: Job, new_params: dict[str, Any] | None = None) -> b
     return True
 
 
-@router.post("/v1/jobs/{job_id}/retry", response_model=JobOut, responses=errors(400, 401, 404, 409, 422, 429, 507))
+@router.post("/v1/jobs/{job_id}/retry", response_model=JobOut, responses=errors(400, 401, 404, 409, 413, 422, 429, 507))
 def retry_job(job_id: str, key: Key, svc: Svc, body: RetryIn | None = None) -> JobOut:
     """Re-run the stages that failed or were cancelled, and those whose inputs changed
     (new parameters, a new stage version); finished stages with unchanged inputs are kept."""

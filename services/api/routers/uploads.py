@@ -17,7 +17,7 @@ from shared.core.errors import InputError
 router = APIRouter(tags=["uploads"])
 
 
-@router.post("/v1/uploads", response_model=UploadOut, status_code=201, responses=errors(400, 401, 422))
+@router.post("/v1/uploads", response_model=UploadOut, status_code=201, responses=errors(400, 401, 413, 422, 507))
 def create_upload(key: Key, svc: Svc, body: UploadCreate | None = None) -> UploadOut:
     """Open an upload session; send the archive in chunks with ``PATCH`` and
     ``Upload-Offset``, resume from ``GET``'s offset, then ``POST /v1/jobs {"upload_id"}``."""
@@ -62,9 +62,15 @@ async def append_upload(
                 out.write(block)
         if size == 0:
             raise InputError("body", "an empty chunk")
-        await run_in_threadpool(svc.intake.quota.admit, key, 0, size)
+        await run_in_threadpool(svc.intake.quota.admit, key, 0, size)  # early: before it is stored
         await run_in_threadpool(svc.arts.put_chunk, up.id, up.chunks, path)
-    if not await run_in_threadpool(svc.store.advance_upload, up.id, up.offset, up.offset + size):
+    try:
+        # The key's stored-bytes limit and the offset's compare-and-set, in one transaction.
+        moved = await run_in_threadpool(svc.intake.quota.advance_upload, key, up.id, up.offset, up.offset + size)
+    except BaseException:
+        await run_in_threadpool(svc.arts.drop_chunk, up.id, up.chunks)
+        raise
+    if not moved:
         now = owned_upload(svc, upload_id, key)
         raise HTTPException(409, f"upload moved on concurrently; it is at {now.offset}")
     return UploadOut(id=up.id, offset=up.offset + size, finished=False, max_bytes=settings.max_upload_bytes)

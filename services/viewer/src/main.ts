@@ -62,8 +62,15 @@ function params(): URLSearchParams {
 interface PageConfig {
   tiles?: string;
   job?: string;
-  /** The job's artifact list (`GET /v1/jobs/{job}/artifacts`). */
+  /** The job's artifact list (`GET /v1/jobs/{job}/artifacts`; its `name` titles the page). */
   artifacts?: string;
+}
+
+/** Title the page with a job's (or a folder's) name. */
+function showName(name: string): void {
+  const title = document.getElementById("title");
+  if (title) title.textContent = `Graylight · ${name}`;
+  document.title = `${name} · Graylight`;
 }
 
 function injectedConfig(): PageConfig {
@@ -613,7 +620,8 @@ async function attachMesh(viewer: Viewer, p: URLSearchParams, config: PageConfig
     const listUrl = new URL(config.artifacts ?? new URL("..", tilesUrl).toString().replace(/\/$/, ""), document.baseURI);
     const response = await fetch(listUrl, { headers: headersFor(listUrl.toString()) });
     if (!response.ok) throw new Error(`listing the job's artifacts: HTTP ${response.status} from ${listUrl.pathname}`);
-    const list = (await response.json()) as { artifacts?: { name: string; stage?: string; size?: number }[] };
+    const list = (await response.json()) as { name?: string; artifacts?: { name: string; stage?: string; size?: number }[] };
+    if (list.name && !p.get("name")) showName(list.name);
     const arts = list.artifacts ?? [];
     // mesh.glb by its short (published) name, else as STAGE/mesh.glb; the levels of detail from
     // the same stage, by short name if published, else STAGE/mesh_lodN.glb.
@@ -755,8 +763,9 @@ function start(): void {
   const tilesUrl = new URL(tiles, document.baseURI);
   // The key is for the job service only: never send it to another origin.
   if (key && tilesUrl.origin === location.origin) headers.Authorization = `Bearer ${key}`;
-  const title = document.getElementById("title");
-  if (title && config.job) title.textContent = `Graylight · ${config.job}`;
+  // The title is ?name=, or the job's name once its artifact list (read with the key) names it.
+  const named = p.get("name") ?? config.job;
+  if (named) showName(named);
   viewer.open(tilesUrl.toString(), headers, p).catch((err: unknown) => {
     viewer.fail(err instanceof Error ? err.message : String(err));
   });

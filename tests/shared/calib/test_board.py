@@ -44,6 +44,8 @@ def test_parse_valid_boards() -> None:
         ({**CHESS, "inner_corners": [9.0, 7]}, '"inner_corners"'),
         ({**CHESS, "inner_corners": [7, 7]}, '"inner_corners"'),
         ({**CHESS, "square_size": 0}, '"square_size"'),
+        ({**CHESS, "square_size": 1e308}, '"square_size" must be a positive number up to'),
+        ({**CHESS, "inner_corners": [9, 10**12]}, '"inner_corners" must be two integers in 2..200'),
         ({**CHESS, "square_size": "75"}, '"square_size"'),
         ({**CHESS, "square_size": True}, '"square_size"'),
         ({**CHESS, "marker_size": 5.0}, '"marker_size"'),

@@ -34,6 +34,7 @@ from shared.core.datapaths import shared_data_dir
 from shared.core.errors import InputError
 from shared.formats.capture import Capture, numbered_frames, opencv_order_capture, write_capture
 from shared.formats.rig import load_rig
+from tests.support.links import place_file
 
 REAL = shared_data_dir() / "procam-kamino410"
 REAL_BOARD = {"kind": "chessboard", "inner_corners": [9, 7], "square_size": 75.0}
@@ -205,12 +206,13 @@ def test_camera_only_charuco_images(tmp_path: Path) -> None:
 
 
 def _link_pose(dst: Path, src: Path, frames: dict[int, int] | None = None) -> None:
-    """A pose folder of symlinks to ``src``'s frames; ``frames`` maps a frame number to the one it shows."""
+    """A pose folder of hard links to ``src``'s frames (a symlink out of the folder is refused);
+    ``frames`` maps a frame number to the one it shows."""
     dst.mkdir(parents=True)
     srcs = numbered_frames(src)
     for i, f in enumerate(srcs):
         target = srcs[frames.get(i, i)] if frames else f
-        (dst / f.name).symlink_to(target)
+        place_file(target, dst / f.name)
     write_capture(opencv_order_capture(dst, numbered_frames(dst), 1024, 768))
 
 

@@ -44,7 +44,8 @@ def test_size_is_checked_before_parsing_and_file_reads_are_bounded(tmp_path) -> 
         loads_bounded(b"[" + b"0," * 1000 + b"0]", "body", max_bytes=100)
     big = tmp_path / "big.json"
     big.write_bytes(b'"' + b"x" * 5_000_000 + b'"')
-    with pytest.raises(InputError, match=r"^scanset\.json: JSON document of 1025 bytes is too large"):
+    # The file's size (fstat) is refused before any of it is read.
+    with pytest.raises(InputError, match=r"^scanset\.json: file of 5000002 bytes is too large \(at most 1024\)$"):
         read_json_bounded(big, "scanset.json", missing="missing", max_bytes=1024)
 
 

@@ -32,11 +32,11 @@ def test_code_bits() -> None:
 
 def test_round_trip_keeps_every_field(tmp_path: Path) -> None:
     cap = capture_for_names(tmp_path, 1024, 768)
-    cap = type(cap)(**{**cap.__dict__, "rig": tmp_path / "rig.json", "extra": {"operator": "ada"}})
+    cap = type(cap)(**{**cap.__dict__, "rig": tmp_path / "rig.json", "extra": {"simulated": {"scene": "ada"}}})
     path = write_capture(cap)
     assert path == tmp_path / CAPTURE_FILE
     back = load_capture(tmp_path, check=False)
-    assert back == cap and back.extra == {"operator": "ada"}
+    assert back == cap and back.extra == {"simulated": {"scene": "ada"}}
     doc = json.loads(path.read_text())
     assert doc["white"] == "white.png" and doc["rig"] == "rig.json"  # relative to its own folder
     assert [e["bit"] for e in doc["columns"]] == list(range(9, -1, -1))  # most significant first
@@ -48,13 +48,18 @@ def test_round_trip_keeps_every_field(tmp_path: Path) -> None:
         (lambda d: d.update(format="graycode-v2"), 'field "format" is \'graycode-v2\''),
         (lambda d: d.pop("white"), 'missing field "white"'),
         (lambda d: d.update(projector={"width": 1024.5, "height": 768}), '"projector.width" must be an integer'),
-        (lambda d: d.update(white="../white.png"), "must be a path inside the capture folder"),
-        (lambda d: d.update(white="/tmp/white.png"), "must be a path inside the capture folder"),
+        (lambda d: d.update(white="../white.png"), "must be a relative path to a file inside the capture folder"),
+        (lambda d: d.update(white="/tmp/white.png"), "must be a relative path to a file inside the capture folder"),
         (lambda d: d.update(black="black.gif"), "is not a PNG, TIFF, JPEG or BMP file name"),
         (lambda d: d["columns"][0].update(bit=10), '"columns[0].bit" is 10, but a projector of this size has 10 bits'),
         (lambda d: d["columns"].reverse(), "most significant first"),
         (lambda d: d.update(columns=[]), 'field "columns" must list at least one pattern'),
-        (lambda d: d.update(rig="../rig.json"), 'field "rig" must be a path inside the capture folder'),
+        (lambda d: d.update(operator="ada"), "unknown field 'operator' at the top level"),
+        (lambda d: d["projector"].update(units="mm"), "unknown field 'units' in \"projector\""),
+        (lambda d: d["columns"][1].update(inverted="x.png"), "unknown field 'inverted' in \"columns[1]\""),
+        (lambda d: d.update(simulated=[1]), 'field "simulated" must be an object'),
+        (lambda d: d["projector"].update(width=10**30), '"projector.width" must be an integer in 2..16384'),
+        (lambda d: d.update(rig="../rig.json"), 'field "rig" must be a relative path to a file inside the capture folder'),
     ],
 )
 def test_bad_documents_name_the_file_and_field(tmp_path: Path, change, message: str) -> None:

@@ -74,6 +74,12 @@ def test_foreign_clouds_ascii_and_big_endian(tmp_path: Path) -> None:
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 5\nproperty float x\nproperty float y\nproperty float z\nend_header\n\0\0\0\0",
          "PLY is truncated"),
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty list uchar int x\nend_header\n", "list properties"),
+        # Counts against the file's size before any allocation (finding 9: 10^12 vertices gave MemoryError).
+        (b"ply\nformat ascii 1.0\nelement vertex 1000000000000\nproperty float x\nproperty float y\nproperty float z\n"
+         b"end_header\n0 0 0\n", "PLY header claims 1000000000000 vertices, but the 6 bytes after it hold at most 1"),
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1000000000000\nproperty float x\nproperty float y\n"
+         b"property float z\nend_header\n" + bytes(12), "header claims 1000000000000 vertices of 12 bytes, 12 bytes follow"),
+        (b"ply\nformat ascii 1.0\nelement vertex " + b"9" * 5000 + b"\nproperty float x\nend_header\n", "bad vertex count '9999"),
         (b"ply\nformat xml 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n", "unsupported PLY format"),
     ],
 )
@@ -90,3 +96,15 @@ def test_records_writer_refuses_a_short_stream_and_leaves_nothing(tmp_path: Path
     with pytest.raises(ValueError, match="5 records written, the header says 10"):
         write_ply_records(tmp_path / "c.ply", iter([rec[:5]]), 10, CLOUD_DTYPE)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_fifo_and_device_are_refused_without_blocking(tmp_path: Path) -> None:
+    """A FIFO is opened without blocking and refused by fstat; /dev/zero is not a regular file."""
+    import os
+
+    fifo = tmp_path / "cloud.ply"
+    os.mkfifo(fifo)
+    with pytest.raises(InputError, match=r"cloud\.ply: is not a regular file$"):
+        read_header(fifo)
+    with pytest.raises(InputError, match=r"^/dev/zero: is not a regular file$"):
+        read_header("/dev/zero")

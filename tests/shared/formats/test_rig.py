@@ -44,9 +44,18 @@ def test_round_trip(tmp_path: Path) -> None:
         (lambda d: d["camera"].update(K=[[1, 0], [0, 1]]), 'field "camera.K" has shape (2, 2)'),
         (lambda d: d["camera"].update(K=[[-5, 0, 1], [0, 5, 1], [0, 0, 1]]), 'field "camera.K" is not a camera matrix'),
         (lambda d: d["projector"].update(dist=[0.1, 0.2, 0.3]), 'field "projector.dist" must be OpenCV distortion'),
-        (lambda d: d["projector"].update(width=0), 'field "projector.width" must be a positive integer'),
+        (lambda d: d["projector"].update(width=0), 'field "projector.width" must be an integer in 2..65536'),
         (lambda d: d.update(T=[float("nan"), 0, 0]), 'field "T" holds NaN'),
         (lambda d: d.update(units=""), 'field "units" must be a string'),
+        (lambda d: d.update(scale=2), "unknown field 'scale' at the top level"),
+        (lambda d: d["camera"].update(k=[1]), "unknown field 'k' in \"camera\""),
+        (lambda d: d["camera"]["K"][0].__setitem__(0, 1e308), 'field "camera.K": focal length and skew must be at most'),
+        (lambda d: d["camera"]["K"][0].__setitem__(2, 1e12), 'field "camera.K": principal point'),
+        (lambda d: d["projector"].update(height=10**30), 'field "projector.height" must be an integer in 2..65536'),
+        (lambda d: d["camera"].update(width=1), 'field "camera.width" must be an integer in 2..65536'),
+        (lambda d: d["camera"].update(dist=[1e300, 0, 0, 0, 0]), 'field "camera.dist": coefficients must be at most'),
+        (lambda d: d["camera"].update(dist=[True, 0, 0, 0, 0]), 'field "camera.dist" must be OpenCV distortion'),
+        (lambda d: d.update(T=[1e300, 0, 0]), 'field "T": a baseline of'),
     ],
 )
 def test_bad_rigs_name_the_field(change, message: str) -> None:
@@ -64,3 +73,19 @@ def test_sizes_must_match_the_capture() -> None:
         check_rig_matches(rig, (1024, 768), (1024, 768), "cap")
     with pytest.raises(InputError, match="rig projector is 1024x768"):
         check_rig_matches(rig, (2048, 1536), (800, 600), "cap")
+
+
+def test_uploaded_rig_over_the_limit_is_too_large_not_malformed() -> None:
+    """An uploaded rig of more than 1 MiB is refused as too large (it used to be cut at 1 MiB and
+    reported as malformed JSON)."""
+    from shared.formats.rig import MAX_RIG_BYTES, parse_rig_bytes
+
+    doc = _doc()
+    ok = parse_rig_bytes(json.dumps(doc).encode(), "rig")
+    assert ok.camera.width == doc["camera"]["width"]
+    big = json.dumps(doc).encode() + b" " * MAX_RIG_BYTES
+    with pytest.raises(InputError, match=r"^rig: JSON document of \d+ bytes is too large"):
+        parse_rig_bytes(big, "rig")
+    deep = b"[" * 10000 + b"]" * 10000
+    with pytest.raises(InputError, match=r"^rig: JSON nested 10000 levels deep"):
+        parse_rig_bytes(deep, "rig")

@@ -74,13 +74,13 @@ def test_fewer_than_two_views(work: Path) -> None:
     doc["views"] = doc["views"][:1]
     doc.pop("turntable")
     _write(work, doc)
-    assert "views: a scan set needs at least two views, got 1" in _error(work)
+    assert "views: a scan set needs 2..1000 views, got 1" in _error(work)
 
 
 def test_missing_view(work: Path) -> None:
     shutil.rmtree(work / "view_01")
     msg = _error(work)
-    assert msg.startswith("views[1] (view_01): capture not found")
+    assert msg == "views[1].capture: 'view_01' not found in the scan set folder"
 
 
 def test_corrupt_capture_view(work: Path) -> None:
@@ -94,13 +94,13 @@ def test_corrupt_image_in_a_view(work: Path) -> None:
 
 
 def test_corrupt_cloud_view(work: Path, tmp_path: Path) -> None:
-    (tmp_path / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nend_header\n")
+    (work / "bad.ply").write_bytes(b"ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nend_header\n")
     doc = _doc(work)
-    doc["views"].append({"cloud": str(tmp_path / "bad.ply")})
+    doc["views"].append({"cloud": "bad.ply"})
     doc.pop("turntable")
     _write(work, doc)
     msg = _error(work)
-    assert msg.startswith("views[3] (bad): bad point cloud:") and "'y'" in msg
+    assert msg.startswith("views[3] (bad): bad point cloud: bad.ply: ") and "'y'" in msg
 
 
 def test_different_image_sizes_without_own_rig(work: Path, tmp_path: Path) -> None:
@@ -162,12 +162,27 @@ def test_turntable_angles_do_not_match_views(work: Path) -> None:
     [
         (lambda d: d.update(format="graycode-v1"), "format: must be 'graylight-scanset-v1'"),
         (lambda d: d["views"][0].update(cloud="x.ply"), 'views[0]: must name exactly one of "capture"'),
-        (lambda d: d["views"][1].update(units="m"), "views[1] (view_01).units: applies to cloud views only"),
+        (lambda d: d["views"][1].update(units="m"), "views[1].units: applies to cloud views only"),
         (lambda d: d.update(roi={"center": [0, 0], "radius": 5}), "roi.center: must be a list of 3 numbers"),
         (lambda d: d.update(roi={"center": [0, 0, 0], "radius": -5}), "roi.radius: must be a positive number"),
         (lambda d: d["views"][2].update(name="view_00"), "views[2] (view_00): view name 'view_00' is used twice"),
-        (lambda d: d.update(rig="nowhere.json"), "rig: rig file not found"),
+        (lambda d: d.update(rig="nowhere.json"), "rig: 'nowhere.json' not found in the scan set folder"),
         (lambda d: d["turntable"].update(angles_deg=[0, "a", 2]), "turntable.angles_deg: must hold numbers only"),
+        # Strict: every unknown key is named, with where it belongs when that is known.
+        (lambda d: d.update(units="m"), "units: unknown field: goes in each cloud view"),
+        (lambda d: d.update(angles_deg=[0, 1, 2]), 'angles_deg: unknown field: goes in "turntable"'),
+        (lambda d: d.update(comment="x"), "comment: unknown field: allowed here: format, rig, views"),
+        (lambda d: d["views"][0].update(rig="rig.json"), "views[0].rig: unknown field: allowed here: capture, name, pose"),
+        (lambda d: d["views"][0].update(pose={"R": [[1, 0, 0], [0, 1, 0], [0, 0, 1]], "T": [0, 0, 0], "t": 1}),
+         "pose.t: unknown field"),
+        (lambda d: d["turntable"].update(axis=[0, 1, 0]), "turntable.axis: unknown field: allowed here: angles_deg"),
+        (lambda d: d.update(roi={"center": [0, 0, 0], "radius": 5, "units": "m"}), "roi.units: unknown field"),
+        (lambda d: d.update(simulated="yes"), "simulated: must be an object"),
+        # Numbers bounded at intake.
+        (lambda d: d.update(roi={"center": [0, 0, 1e30], "radius": 5}), "roi.center: must hold numbers of magnitude"),
+        (lambda d: d.update(roi={"center": [0, 0, 0], "radius": 1e300}), "roi.radius: must be a positive number"),
+        (lambda d: d["turntable"].update(angles_deg=[0, 1e9, 2]), "turntable.angles_deg: must hold numbers of magnitude"),
+        (lambda d: d["views"][0].update(name=7), "views[0].name: must be a string"),
     ],
 )
 def test_bad_fields(work: Path, change, expected: str) -> None:
@@ -181,6 +196,16 @@ def test_bad_cloud_units(tmp_path: Path) -> None:
     write_ply(tmp_path / "a.ply", np.zeros((5, 3), np.float32))
     _write(tmp_path, scanset_doc([{"cloud": "a.ply", "units": "inch"}, {"cloud": "a.ply", "name": "b"}]))
     assert _error(tmp_path).startswith("views[0] (a).units: must be one of mm, m")
+
+
+def test_top_level_units_is_refused_not_read_as_mm(tmp_path: Path) -> None:
+    """Issue 22: cloud views with ``units`` at the top level were silently read as millimetres."""
+    write_ply(tmp_path / "a.ply", np.zeros((5, 3), np.float32))
+    doc = scanset_doc([{"cloud": "a.ply"}, {"cloud": "a.ply", "name": "b"}])
+    doc["units"] = "m"
+    _write(tmp_path, doc)
+    msg = _error(tmp_path)
+    assert msg.startswith("units: unknown field: goes in each cloud view") and '"units": "m"' in msg, msg
 
 
 def test_missing_scanset_json(tmp_path: Path) -> None:

@@ -9,6 +9,7 @@ across the object, so the pose tolerances here are 0.05 deg / 0.15 mm with and w
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -154,9 +155,11 @@ def test_view_that_overlaps_nothing(loaded, scanset_dir: Path, tmp_path: Path) -
     rng = np.random.default_rng(3)
     junk = rng.normal(size=(3000, 3)) * [40.0, 40.0, 2.0] + [0.0, 0.0, 900.0]  # a noisy disc of nothing
     write_ply(tmp_path / "junk.ply", junk.astype(np.float32))
-    doc = scanset_doc([{"capture": str(scanset_dir / "view_00")}, {"capture": str(scanset_dir / "view_01")},
-                       {"cloud": "junk.ply", "name": "junk"}], rig=str(scanset_dir / "rig.json"),
-                      roi=ss.roi)
+    for name in ("view_00", "view_01"):  # a scan set's paths lie inside its folder
+        shutil.copytree(scanset_dir / name, tmp_path / name)
+    shutil.copyfile(scanset_dir / "rig.json", tmp_path / "rig.json")
+    doc = scanset_doc([{"capture": "view_00"}, {"capture": "view_01"}, {"cloud": "junk.ply", "name": "junk"}],
+                      rig="rig.json", roi=ss.roi)
     write_scanset(tmp_path, doc)
     ss2 = load_scanset(tmp_path)
     three = [views[0], views[1]]

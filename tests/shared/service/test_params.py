@@ -13,6 +13,9 @@ def test_good_params_pass_through() -> None:
     assert check_job_params("scan", params) == params
     assert check_job_params("probe", {"seconds": 0.5}) == {"seconds": 0.5}
     assert check_job_params("scan", {}) == {}
+    inline = {"preview": {"camera": {"fov": 40, "keyframes": [{"eye": [0, 0, 0], "target": [0, 0, 0]},
+                                                               {"eye": [10, 0, 0], "target": [0, 0, 500]}]}}}
+    assert check_job_params("multiview", inline) == inline  # a target on the eye looks at the scene's centre
 
 
 @pytest.mark.parametrize(
@@ -23,7 +26,22 @@ def test_good_params_pass_through() -> None:
         ("scan", {"preview": {"seconds": 0}}, "params.preview.seconds", "(0, 600]"),
         ("scan", {"preview": {"fps": 1000}}, "params.preview.fps", "[1, 120]"),
         ("scan", {"preview": {"colour": "red"}}, "params.preview", "unknown option"),
-        ("scan", {"tiles": {"max_leaf": 10}}, "params.tiles.max_leaf", "at least 100"),
+        ("scan", {"tiles": {"max_leaf": 10}}, "params.tiles.max_leaf", "in 100..1000000"),
+        # Finding 9: every number bounded at intake (max_chunk of 1e30 failed after the job had run).
+        ("scan", {"tiles": {"max_chunk": 10**30}}, "params.tiles.max_chunk", "in 100..50000000"),
+        ("scan", {"compress": {"quantum": 1e300}}, "params.compress.quantum", "up to 1000"),
+        # Finding 2: a job names no file on the worker; keyframes come inline and are checked.
+        ("scan", {"preview": {"path": "/dev/zero"}}, "params.preview.path", "one of auto, arc, orbit, dolly"),
+        ("scan", {"preview": {"path": "cam.json"}}, "params.preview.path", "inline in params.preview.camera"),
+        ("scan", {"preview": {"camera": {"keyframes": []}}}, "params.preview.camera", "non-empty 'keyframes'"),
+        ("scan", {"preview": {"camera": {"keyframes": [{"eye": [0, 0, 1e300], "target": [0, 0, 0]}]}}},
+         "params.preview.camera.keyframes[0].eye", "magnitude at most"),
+        ("scan", {"preview": {"camera": {"keyframes": [{"eye": [0, 0, 1], "target": [0, 0, 0], "t": 0}]}}},
+         "params.preview.camera.keyframes[0].t", "unknown field"),
+        ("scan", {"preview": {"camera": {"fov": 0, "keyframes": [{"eye": [0, 0, 1], "target": [0, 0, 0]}]}}},
+         "params.preview.camera.fov", "[1, 170]"),
+        ("scan", {"preview": {"camera": {"keyframes": [{"eye": [0, 0, 1], "target": [0, 0, 0]}] * 65}}},
+         "params.preview.camera.keyframes", "at most 64"),
         ("scan", {"render": "yes"}, "params.render", "true or false"),
         ("scan", {"preveiw": {}}, "params.preveiw", "unknown parameter"),
         ("scan", {"rig": "x"}, "params.rig", "multipart field 'rig'"),

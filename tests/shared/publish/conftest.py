@@ -1,0 +1,30 @@
+"""A small simulated turntable set (4 views of the bunny, 320x240), its merge and view 0's scan, made
+once per session through the CLI (so each carries its paradata)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+from services.cli.main import main
+from tests.support.scansets import cached_scanset
+
+
+@pytest.fixture(scope="session")
+def small_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return cached_scanset(tmp_path_factory.mktemp("publish-set"), views=4, size=(320, 240), projector=(256, 192))
+
+
+@pytest.fixture(scope="session")
+def scanned(small_set: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("scan") / "scan"
+    assert main(["scan", str(small_set / "view_00"), "--out", str(out)]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def merged(small_set: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("merge") / "merge"
+    assert main(["merge", str(small_set), "--out", str(out)]) == 0
+    return out
