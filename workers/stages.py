@@ -92,7 +92,8 @@ def run_triangulate(ctx: StageContext) -> dict[str, Any]:
     from shared.scan.pipeline import triangulate_stage
 
     decoded = ctx.inputs["decode"] / "decoded.npz"
-    return _jsonable(triangulate_stage(decoded, _rig_for(ctx), ctx.out_dir))
+    # The capture's white and black frames give the cloud its albedo.
+    return _jsonable(triangulate_stage(decoded, _rig_for(ctx), ctx.out_dir, capture_dir=ctx.capture_dir))
 
 
 def run_tiles_plan(ctx: StageContext) -> dict[str, Any]:
@@ -244,7 +245,7 @@ def run_mv_triangulate(ctx: StageContext) -> dict[str, Any]:
     if spec.kind == "cloud":
         return {"view": spec.name, "kind": "cloud"}
     decoded = ctx.inputs[f"mv_decode#{ctx.index}"] / "decoded.npz"
-    summary = _in_view(spec, lambda: triangulate_stage(decoded, spec.rig, ctx.out_dir))
+    summary = _in_view(spec, lambda: triangulate_stage(decoded, spec.rig, ctx.out_dir, capture_dir=spec.path))
     return _jsonable({**summary, "view": spec.name, "kind": "capture"})
 
 
@@ -289,6 +290,20 @@ def run_mv_compress(ctx: StageContext) -> dict[str, Any]:
                "quantum": cloud["quantum"], "max_error": cloud["max_error"]}
     write_json_atomic(ctx.out_dir / "compress.json", summary)
     return _jsonable(summary)
+
+
+def run_derivatives(ctx: StageContext) -> dict[str, Any]:
+    """The textured web derivatives of the merge (:func:`shared.derive.pipeline.make_derivatives`):
+    ``mesh_<level>.glb`` per level of ``params.derivatives.levels`` (Voyager's by default)."""
+    from shared.derive.pipeline import make_derivatives
+
+    options = ctx.params.get("derivatives")
+    options = options if isinstance(options, dict) else {}
+    report = make_derivatives(ctx.inputs["mv_merge"], ctx.out_dir, levels=options.get("levels"),
+                              colour=options.get("colour", "albedo"))
+    return _jsonable({"colour": report["colour_baked"], "warnings": report["warnings"],
+                      "levels": [{k: lv[k] for k in ("level", "file", "faces", "texture_px", "bytes")}
+                                 for lv in report["levels"]]})
 
 
 def run_calibrate(ctx: StageContext) -> dict[str, Any]:
@@ -378,6 +393,7 @@ STAGE_FUNCS: dict[str, Callable[[StageContext], dict[str, Any]]] = {
     "mv_decode": run_mv_decode,
     "mv_triangulate": run_mv_triangulate,
     "mv_merge": run_mv_merge,
+    "derivatives": run_derivatives,
     "publish": run_publish,
 }
 STAGE_FUNCS = {name: _recorded(func) for name, func in STAGE_FUNCS.items()}

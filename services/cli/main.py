@@ -27,6 +27,7 @@ COMMAND_MODULES = [
     "services.cli.merge",
     "services.cli.results",
     "services.cli.publish",
+    "services.cli.derive",
 ]
 
 #: The commands each of :data:`COMMAND_MODULES` registers (a test keeps the two in step). A
@@ -47,6 +48,7 @@ COMMANDS = {
     "merge": "services.cli.merge",
     "job": "services.cli.results", "rerender": "services.cli.results", "view": "services.cli.results",
     "publish": "services.cli.publish", "rerun": "services.cli.publish",
+    "derivatives": "services.cli.derive",
 }  # fmt: skip
 
 

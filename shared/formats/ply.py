@@ -7,6 +7,11 @@ Graylight writes binary little-endian PLY with one ``vertex`` element::
     nx, ny, nz     float32   unit normal, facing the camera
     size           float32   world-space sample size Z / f_camera (renderers size splats with it)
 
+and, when the scan recovered it (``shared.scan.albedo``), the object's own colour beside the
+shaded one: ``albedo_red, albedo_green, albedo_blue`` uchar (linear albedo, sRGB-encoded) and
+``albedo_weight`` uchar (0 where no albedo could be measured). Readers that do not know these
+fields ignore them.
+
 Reading accepts any PLY whose vertex element carries at least ``x, y, z`` (binary
 either endianness, or ASCII); binary files are memory-mapped, so a 15 M-point cloud
 is read in chunks without loading it whole.
@@ -55,6 +60,8 @@ class PointCloud:
     rgb: np.ndarray | None = None  # (N, 3) uint8
     normals: np.ndarray | None = None  # (N, 3) float32
     size: np.ndarray | None = None  # (N,) float32
+    albedo: np.ndarray | None = None  # (N, 3) uint8, sRGB-encoded linear albedo
+    albedo_weight: np.ndarray | None = None  # (N,) uint8, 0 where masked
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -86,11 +93,13 @@ def write_ply(
     normals: np.ndarray | None = None,
     size: np.ndarray | None = None,
     comments: tuple[str, ...] = (),
+    albedo: np.ndarray | None = None,
+    albedo_weight: np.ndarray | None = None,
 ) -> Path:
     """Write a binary little-endian PLY atomically (temporary name, then rename).
 
-    ``xyz`` is (N, 3); ``rgb`` (N, 3) uint8, ``normals`` (N, 3), ``size`` (N,) are written
-    when given. Data is converted and written in chunks of :data:`CHUNK` points.
+    ``xyz`` is (N, 3); ``rgb`` (N, 3) uint8, ``normals`` (N, 3), ``size`` (N,), ``albedo`` (N, 3)
+    uint8 with ``albedo_weight`` (N,) uint8 are written when given. Data is converted and written in chunks of :data:`CHUNK` points.
     """
     path = Path(path)
     xyz = np.asarray(xyz)
@@ -104,7 +113,12 @@ def write_ply(
         fields += [("nx", "<f4"), ("ny", "<f4"), ("nz", "<f4")]
     if size is not None:
         fields += [("size", "<f4")]
-    for name, arr, shape in (("rgb", rgb, (n, 3)), ("normals", normals, (n, 3)), ("size", size, (n,))):
+    if (albedo is None) != (albedo_weight is None):
+        raise ValueError("albedo and albedo_weight go together")
+    if albedo is not None:
+        fields += [("albedo_red", "u1"), ("albedo_green", "u1"), ("albedo_blue", "u1"), ("albedo_weight", "u1")]
+    for name, arr, shape in (("rgb", rgb, (n, 3)), ("normals", normals, (n, 3)), ("size", size, (n,)),
+                             ("albedo", albedo, (n, 3)), ("albedo_weight", albedo_weight, (n,))):
         if arr is not None and np.shape(arr) != shape:
             raise ValueError(f"{name} must be {shape}, got {np.shape(arr)}")
     dtype = np.dtype(fields)
@@ -120,6 +134,9 @@ def write_ply(
                 rec["nx"], rec["ny"], rec["nz"] = normals[sl, 0], normals[sl, 1], normals[sl, 2]
             if size is not None:
                 rec["size"] = size[sl]
+            if albedo is not None and albedo_weight is not None:
+                rec["albedo_red"], rec["albedo_green"], rec["albedo_blue"] = albedo[sl, 0], albedo[sl, 1], albedo[sl, 2]
+                rec["albedo_weight"] = albedo_weight[sl]
             f.write(rec.tobytes())
     return path
 
@@ -236,7 +253,12 @@ def _to_cloud(rec: np.ndarray) -> PointCloud:
     if {"nx", "ny", "nz"} <= set(names):
         normals = np.stack([rec["nx"], rec["ny"], rec["nz"]], axis=1).astype(np.float32, copy=False)
     size = rec["size"].astype(np.float32, copy=False) if "size" in names else None
-    return PointCloud(xyz=xyz, rgb=rgb, normals=normals, size=size)
+    albedo = albedo_weight = None
+    if {"albedo_red", "albedo_green", "albedo_blue", "albedo_weight"} <= set(names):
+        albedo = np.stack([rec["albedo_red"], rec["albedo_green"], rec["albedo_blue"]], axis=1)
+        albedo = np.clip(albedo, 0, 255).astype(np.uint8, copy=False)
+        albedo_weight = np.clip(rec["albedo_weight"], 0, 255).astype(np.uint8, copy=False)
+    return PointCloud(xyz=xyz, rgb=rgb, normals=normals, size=size, albedo=albedo, albedo_weight=albedo_weight)
 
 
 def read_ply(path: str | os.PathLike[str]) -> PointCloud:

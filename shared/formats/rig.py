@@ -10,6 +10,13 @@
 ``X_projector = R @ X_camera + T`` (OpenCV ``stereoCalibrate`` convention); ``T`` and all
 reconstructed points are in ``units``; pixel coordinates follow OpenCV (the centre of the
 top-left pixel is (0, 0)). Distortion is OpenCV's five-parameter model.
+
+Optional ``"radiometry"`` (what :mod:`shared.scan.albedo` divides out to recover the object's own
+colour): ``camera_response`` (``"srgb"``, the default; ``"linear"``; ``"gamma:G"``; or 256
+non-decreasing numbers, a measured curve from 8-bit code to linear light),
+``camera_falloff_cos_power`` and ``projector_falloff_cos_power`` (natural falloff of each lens as
+a power of the off-axis cosine, 0 to 8), ``projector_vignetting`` (up to 4 coefficients of
+``1 + k1 r^2 + k2 r^4 ...`` in the projector's normalised radius).
 """
 
 from __future__ import annotations
@@ -69,6 +76,7 @@ class Rig:
     R: np.ndarray  # (3, 3) float64, rotation camera -> projector
     T: np.ndarray  # (3,) float64, in ``units``
     units: str = "mm"
+    radiometry: dict[str, Any] | None = None  # see the module docstring
 
     @property
     def baseline(self) -> float:
@@ -82,6 +90,7 @@ class Rig:
             "projector": self.projector.to_json(),
             "R": np.asarray(self.R, dtype=float).tolist(),
             "T": np.asarray(self.T, dtype=float).ravel().tolist(),
+            **({"radiometry": dict(self.radiometry)} if self.radiometry else {}),
         }
 
 
@@ -160,6 +169,42 @@ def _device(doc: Any, where: Path | str, name: str) -> Device:
     return Device(width=doc["width"], height=doc["height"], K=K, dist=dist)
 
 
+def _radiometry(doc: Any, where: Path | str) -> dict[str, Any]:
+    if not isinstance(doc, dict):
+        raise InputError(where, 'field "radiometry" must be an object')
+    out: dict[str, Any] = {}
+    for key, value in doc.items():
+        name = f"radiometry.{key}"
+        if key == "camera_response":
+            if isinstance(value, str):
+                ok = value in ("srgb", "linear")
+                if value.startswith("gamma:"):
+                    try:
+                        ok = 0.2 <= float(value[6:]) <= 5.0
+                    except ValueError:
+                        ok = False
+                if not ok:
+                    raise InputError(where, f'field "{name}" must be "srgb", "linear", "gamma:G" (G in [0.2, 5]) '
+                                            "or 256 numbers")
+                out[key] = value
+            else:
+                curve = _matrix(value, (256,), where, name)
+                if np.any(np.diff(curve) < 0) or curve[-1] <= curve[0]:
+                    raise InputError(where, f'field "{name}" must be 256 non-decreasing numbers, the last above the first')
+                out[key] = curve.tolist()
+        elif key in ("camera_falloff_cos_power", "projector_falloff_cos_power"):
+            if not isinstance(value, (int, float)) or isinstance(value, bool) or not 0 <= value <= 8:
+                raise InputError(where, f'field "{name}" must be a number in [0, 8], got {value!r}')
+            out[key] = float(value)
+        elif key == "projector_vignetting":
+            if not isinstance(value, list) or len(value) > 4:
+                raise InputError(where, f'field "{name}" must be a list of at most 4 numbers')
+            out[key] = _matrix(value, (len(value),), where, name).tolist()
+        else:
+            raise InputError(where, f'unknown field "{name}"')
+    return out
+
+
 def parse_rig(doc: Any, where: Path | str = "rig.json") -> Rig:
     """Validate a rig document; raises :class:`InputError` naming ``where`` and the field."""
     if not isinstance(doc, dict):
@@ -185,6 +230,7 @@ def parse_rig(doc: Any, where: Path | str = "rig.json") -> Rig:
         R=R,
         T=T,
         units=units,
+        radiometry=_radiometry(doc["radiometry"], where) if "radiometry" in doc else None,
     )
 
 

@@ -18,6 +18,11 @@ normal, ``size``) plus a per-point ``view`` (the view that contributed most) and
    two sides of a thin part or a rim stay apart), merge into one point whose position, normal and
    colour are confidence-weighted means (so overlapping views average their noise instead of
    piling up).
+4. **Albedo** (views that carry it, :mod:`shared.scan.albedo`): in each cell, the samples whose
+   luminance exceeds the cell's median by more than ``specular_ratio`` are specular highlights
+   (a glint lights one view, not the others) and are left out; the rest average weighted by
+   confidence times the projector's cosine. Cells without albedo keep weight 0 (renderers use the
+   shaded colour there).
 """
 
 from __future__ import annotations
@@ -37,6 +42,7 @@ from shared.formats.ply import CLOUD_DTYPE, read_header, write_ply_records
 from shared.merge._fusion_kernels import cell_keys, free_space_violations, gather_moved, ray_terms
 from shared.merge._kernels import grid_reduce
 from shared.merge.views import ViewCloud
+from shared.scan.albedo import encode_srgb
 
 log = logging.getLogger(__name__)
 
@@ -56,13 +62,15 @@ class FusionParams:
     min_view_cos : captured samples seen more obliquely than this (cosine of the angle between the
     normal and the ray) are dropped: grazing samples carry most of a scan's error, and in a scan set
     another view sees the same surface head-on (measured on the virtual rig: dropping those below
-    0.35 halves the merged RMS error)."""
+    0.35 halves the merged RMS error). specular_ratio : a sample's albedo luminance over its cell's
+    median above which it is taken for a specular highlight and left out of the cell's albedo."""
 
     cell_factor: float = 1.0
     free_space_tolerance: float = 6.0
     free_space_mm: float = 0.5
     min_confidence: float = 0.02
     min_view_cos: float = 0.35
+    specular_ratio: float = 1.35
 
 
 @dataclass
@@ -72,6 +80,7 @@ class FusedCloud:
     xyz (N, 3) float32, rgb (N, 3) uint8, normals (N, 3) float32, size (N,) float32 mm,
     view (N,) uint16, confidence (N,) float32 (sum of the merged samples' confidences),
     views_per_point (N,) uint8 (how many views the point merges). ``stats`` counts (JSON-ready).
+    albedo (N, 3) float32 and albedo_weight (N,) float32 when any view carries albedo.
     """
 
     xyz: np.ndarray
@@ -82,6 +91,8 @@ class FusedCloud:
     confidence: np.ndarray
     views_per_point: np.ndarray
     stats: dict
+    albedo: np.ndarray | None = None  # (N, 3) float32 linear, NaN where no view measured it
+    albedo_weight: np.ndarray | None = None  # (N,) float32, 0 where none
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -183,9 +194,15 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
     size = np.empty(n, np.float32)
     c = np.empty(n, np.float32)
     view = np.empty(n, np.uint16)
+    with_albedo = any(v.albedo is not None for v in views)
+    alb = np.full((n, 3), np.nan, np.float32) if with_albedo else None
+    alb_w = np.zeros(n, np.float32) if with_albedo else None
     o = 0
     for v, P, s, cc in zip(views, poses, sel, conf, strict=True):
         part = slice(o, o + len(s))
+        if alb is not None and alb_w is not None and v.albedo is not None and v.albedo_weight is not None:
+            alb[part] = v.albedo[s]
+            alb_w[part] = v.albedo_weight[s] * cc[s]
         gather_moved(np.ascontiguousarray(v.xyz, np.float64), np.ascontiguousarray(v.normals, np.float32), s, P,
                      xyz, normals, o)
         rgb[part] = v.rgb[s] if v.rgb is not None else 200
@@ -217,35 +234,85 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
     out_count = np.empty(C, np.int64)
     grid_reduce(order, starts, xyz, normals, rgb, c, view, out_xyz, out_n, out_rgb, out_conf, out_view, out_count)
     out_size = (np.float32(s0) * np.exp2(level[first]).astype(np.float32))
+    fused_albedo = None
+    if alb is not None and alb_w is not None:
+        fused_albedo = _fuse_albedo(order, starts, alb, alb_w, params.specular_ratio)
     stats = {"samples": n_in, "free_space_violations": n_free,
              "oblique": n_oblique,
              "low_confidence": max(0, int(n_in - n_free - n_oblique - n)),
              "merged_points": int(C), "size_classes": int(len(np.unique(level[first]))),
              "points_from_several_views": int(np.count_nonzero(out_count > 1))}
+    if fused_albedo is not None:
+        stats["albedo"] = fused_albedo[2]
     log.info("fused %d samples into %d points (%d free-space violations)", n_in, C, n_free)
     return FusedCloud(xyz=out_xyz.astype(np.float32), rgb=out_rgb.astype(np.uint8), normals=out_n.astype(np.float32),
                       size=out_size, view=out_view.astype(np.uint16), confidence=out_conf.astype(np.float32),
-                      views_per_point=np.minimum(out_count, 255).astype(np.uint8), stats=stats)
+                      views_per_point=np.minimum(out_count, 255).astype(np.uint8), stats=stats,
+                      albedo=None if fused_albedo is None else fused_albedo[0],
+                      albedo_weight=None if fused_albedo is None else fused_albedo[1])
+
+
+def _fuse_albedo(order: np.ndarray, starts: np.ndarray, alb: np.ndarray, weight: np.ndarray,
+                 specular_ratio: float) -> tuple[np.ndarray, np.ndarray, dict]:
+    """Per cell (``order[starts[c]:starts[c+1]]``) the weighted mean albedo of its samples
+    without the specular ones (luminance above ``specular_ratio`` times the cell's median).
+    Returns (C, 3) float32 albedo (NaN where none), (C,) float32 summed weight, counts."""
+    C = len(starts) - 1
+    cell = np.repeat(np.arange(C), np.diff(starts))  # the cell of each sample, in ``order``
+    a = alb[order]
+    w = weight[order]
+    ok = (w > 0) & np.isfinite(a).all(axis=1)
+    y = np.where(ok, a @ np.array([0.2126, 0.7152, 0.0722], np.float32), np.inf)
+    # Valid samples first within each cell, sorted by luminance: the median is at a fixed offset.
+    by = np.lexsort((y, cell))
+    n_ok = np.bincount(cell[ok], minlength=C)
+    med = y[by[np.clip(starts[:-1] + (n_ok - 1) // 2, 0, max(len(by) - 1, 0))]]
+    specular = ok & (n_ok[cell] >= 2) & (y > specular_ratio * med[cell])
+    use = ok & ~specular
+    wsum = np.bincount(cell[use], weights=w[use], minlength=C)
+    out = np.full((C, 3), np.nan, np.float32)
+    has = wsum > 0
+    for ch in range(3):
+        acc = np.bincount(cell[use], weights=(w * a[:, ch])[use], minlength=C)
+        out[has, ch] = acc[has] / wsum[has]
+    stats = {"samples": int(ok.sum()), "specular_rejected": int(specular.sum()),
+             "points_with_albedo": int(has.sum()), "points_without": int(C - has.sum())}
+    return out, wsum.astype(np.float32), stats
+
+
+#: The albedo fields a fused cloud adds after :data:`FUSED_DTYPE` when it carries albedo.
+ALBEDO_FIELDS = [("albedo_red", "u1"), ("albedo_green", "u1"), ("albedo_blue", "u1"), ("albedo_weight", "u1")]
 
 
 def write_fused(path: str | os.PathLike[str], cloud: FusedCloud, comments: tuple[str, ...] = ()) -> Path:
-    """Write the fused cloud as binary PLY (:data:`FUSED_DTYPE`), atomically, in chunks."""
+    """Write the fused cloud as binary PLY (:data:`FUSED_DTYPE`, then :data:`ALBEDO_FIELDS` when it
+    has albedo: sRGB-encoded, weight 255 times the mean projector cosine), atomically, in chunks."""
     n = len(cloud)
     chunk = 1 << 20
+    dtype = FUSED_DTYPE if cloud.albedo is None else np.dtype(FUSED_DTYPE.descr + ALBEDO_FIELDS)
 
     def chunks():
         for s in range(0, n, chunk):
             sl = slice(s, min(n, s + chunk))
-            rec = np.empty(sl.stop - sl.start, FUSED_DTYPE)
+            rec = np.empty(sl.stop - sl.start, dtype)
             rec["x"], rec["y"], rec["z"] = cloud.xyz[sl].T
             rec["red"], rec["green"], rec["blue"] = cloud.rgb[sl].T
             rec["nx"], rec["ny"], rec["nz"] = cloud.normals[sl].T
             rec["size"] = cloud.size[sl]
             rec["view"] = cloud.view[sl]
             rec["confidence"] = cloud.confidence[sl]
+            if cloud.albedo is not None and cloud.albedo_weight is not None:
+                a = cloud.albedo[sl]
+                none = ~np.isfinite(a).all(axis=1)
+                enc = encode_srgb(np.nan_to_num(a, nan=0.0))
+                enc[none] = 0
+                rec["albedo_red"], rec["albedo_green"], rec["albedo_blue"] = enc.T
+                cnt = np.maximum(cloud.views_per_point[sl], 1)
+                wq = np.clip(np.rint(255 * cloud.albedo_weight[sl] / cnt), 1, 255)
+                rec["albedo_weight"] = np.where(none, 0, wq)
             yield rec
 
-    return write_ply_records(path, chunks(), n, FUSED_DTYPE, comments=("units mm", "frame scan set (view 0 camera)",
+    return write_ply_records(path, chunks(), n, dtype, comments=("units mm", "frame scan set (view 0 camera)",
                                                                           *comments))
 
 

@@ -31,8 +31,9 @@ from shared.formats.capture import load_capture
 from shared.formats.ply import read_ply
 from shared.formats.rig import load_rig
 from shared.formats.scanset import Roi, ScanSet, ViewSpec
+from shared.scan.albedo import linear_from_srgb
 from shared.scan.decode import decode_capture, load_decoded
-from shared.scan.pipeline import ingest_stage
+from shared.scan.pipeline import ingest_stage, view_albedo
 from shared.scan.triangulate import triangulate
 
 log = logging.getLogger(__name__)
@@ -52,6 +53,9 @@ class ViewCloud:
     pixel : (N, 2) int32 camera pixel (x, y) of each point, or None for cloud views.
     range_image : (H, W) float32 Z in mm (NaN holes) or None.
     K, dist : the camera's (3, 3) intrinsics (pixels) and (5,) distortion, or None.
+    albedo : (N, 3) float32 linear albedo from the projector's light (:mod:`shared.scan.albedo`),
+        NaN where masked; None for cloud views and views whose albedo is not trusted.
+    albedo_weight : (N,) float32 cosine to the projector (0 where masked), or None.
     """
 
     index: int
@@ -65,6 +69,8 @@ class ViewCloud:
     range_image: np.ndarray | None = None
     K: np.ndarray | None = None
     dist: np.ndarray | None = None
+    albedo: np.ndarray | None = None
+    albedo_weight: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.xyz.shape[0])
@@ -75,7 +81,8 @@ class ViewCloud:
             index=self.index, name=self.name, xyz=self.xyz[keep], normals=self.normals[keep], size=self.size[keep],
             confidence=self.confidence[keep], rgb=None if self.rgb is None else self.rgb[keep],
             pixel=None if self.pixel is None else self.pixel[keep], range_image=self.range_image, K=self.K,
-            dist=self.dist,
+            dist=self.dist, albedo=None if self.albedo is None else self.albedo[keep],
+            albedo_weight=None if self.albedo_weight is None else self.albedo_weight[keep],
         )
 
 
@@ -162,12 +169,18 @@ def _capture_view(spec: ViewSpec, progress: Callable[[float], None] | None) -> V
             raise InputError(spec.path, "no rig")
         decoded = decode_capture(capture, progress=progress)
         tri = triangulate(decoded, rig)
+        albedo = view_albedo(capture, tri, rig, white=decoded.colour)
     except InputError as exc:
         raise InputError(spec.where, str(exc)) from None
     if len(tri) < 16:
         raise InputError(spec.where, f"the capture gave {len(tri)} points (need 16): nothing was lit or decoded")
-    return _from_arrays(spec, tri.xyz, tri.normals, tri.size, tri.rgb, tri.pixel, tri.range_image,
+    view = _from_arrays(spec, tri.xyz, tri.normals, tri.size, tri.rgb, tri.pixel, tri.range_image,
                         decoded.confidence, rig.camera.K, rig.camera.dist, spec.scale_mm)
+    if albedo.trusted:
+        view.albedo, view.albedo_weight = albedo.albedo, albedo.weight
+    else:
+        log.warning("view %s: %s", spec.name, albedo.stats.get("fallback"))
+    return view
 
 
 def view_from_scan_outputs(spec: ViewSpec, scan_dir: Path, decoded_dir: Path | None = None) -> ViewCloud:
@@ -196,8 +209,13 @@ def view_from_scan_outputs(spec: ViewSpec, scan_dir: Path, decoded_dir: Path | N
     pixel = np.stack([flat % w, flat // w], axis=1).astype(np.int32)
     if pc.normals is None or pc.size is None or pc.rgb is None:
         raise InputError(spec.where, f"{scan_dir / 'cloud.ply'} lacks normals, size or colour")
-    return _from_arrays(spec, pc.xyz, pc.normals, pc.size, pc.rgb, pixel, range_image, decoded.confidence, K, dist,
+    view = _from_arrays(spec, pc.xyz, pc.normals, pc.size, pc.rgb, pixel, range_image, decoded.confidence, K, dist,
                         spec.scale_mm)
+    if pc.albedo is not None and pc.albedo_weight is not None:
+        view.albedo = linear_from_srgb(pc.albedo.astype(np.float32) / 255.0)
+        view.albedo_weight = pc.albedo_weight.astype(np.float32) / 255.0
+        view.albedo[pc.albedo_weight == 0] = np.nan
+    return view
 
 
 def load_view(spec: ViewSpec, progress: Callable[[float], None] | None = None) -> ViewCloud:

@@ -201,6 +201,9 @@ MESH_LOD_FILES: tuple[str, ...] = ("mesh_lod1.glb", "mesh_lod2.glb", "mesh_lod3.
 EXPORT_FILES: tuple[str, ...] = ("cloud.laz", "cloud.copc.laz", "cloud.e57")
 #: What the publish stage serves by name (shared.publish.folder; the scene's derivatives are in its folder).
 PUBLISH_FILES: tuple[str, ...] = ("scene.svx.json", "qa.json", "qa.html", "paradata.json")
+#: The derivative GLBs a ``derivatives`` stage may write (shared.derive.levels: the job parameter
+#: accepts these level names only, so that every file it writes is published by its name).
+DERIVATIVE_FILES: tuple[str, ...] = tuple(f"mesh_{n}.glb" for n in ("thumb", "low", "medium", "high", "highest"))
 
 GRAPHS: dict[str, tuple[StageSpec, ...]] = {
     "scan": (
@@ -244,6 +247,10 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
                   publish=("merged.ply", "registration.json", "mesh.glb", "mesh.ply", "report.json",
                            *MESH_LOD_FILES),
                   params=("drop_unregistered",), aliases=(("cloud.ply", "merged.ply"),), weight=16.0),
+        # Textured web derivatives of the merge (shared.derive): one Draco GLB per level;
+        # {"derivatives": false} leaves them out, an object chooses levels and colour.
+        StageSpec("derivatives", "cpu", ("mv_merge",), 7200, publish=(*DERIVATIVE_FILES, "derivatives.json"),
+                  params=("derivatives",), switch="derivatives"),
         # The object compressed: the merged cloud (merged.glo) or the views' range images
         # (ranges/*.glr), whichever is smaller.
         StageSpec("mv_compress", "cpu", ("mv_merge",), 3600, publish=("merged.glo", "compress.json"), params=("compress",)),

@@ -39,6 +39,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from shared.core.errors import InputError
+from shared.derive.levels import parse_levels
 from shared.render.camera_path import MAX_COORDINATE, MAX_INLINE_KEYFRAMES, NAMED_PATHS
 from shared.render.options import MAX_FPS, MAX_HEIGHT, MAX_SECONDS, MAX_WIDTH, MIN_SIDE, PreviewOptions
 
@@ -191,6 +192,48 @@ class Param:
     schema: dict[str, Any]
 
 
+_DERIVATIVE_LEVELS = ("thumb", "low", "medium", "high", "highest")
+_DERIVATIVES_SCHEMA: dict[str, Any] = {
+    "description": "false leaves out the textured derivatives; an object chooses them",
+    "anyOf": [{"type": "boolean"}, {"type": "object", "additionalProperties": False, "properties": {
+        "colour": {"enum": ["albedo", "shaded"]},
+        "levels": {"type": "array", "minItems": 1, "maxItems": 5, "items": {"anyOf": [
+            {"enum": list(_DERIVATIVE_LEVELS)},
+            {"type": "object", "additionalProperties": False, "required": ["name"], "properties": {
+                "name": {"enum": list(_DERIVATIVE_LEVELS)},
+                "faces": {"type": "integer", "minimum": 100, "maximum": 5_000_000},
+                "texture_px": {"type": "integer", "enum": [64, 128, 256, 512, 1024, 2048, 4096, 8192]},
+                "jpeg_quality": {"type": "integer", "minimum": 1, "maximum": 100}}}]}}}}],
+}
+
+
+def _derivatives(value: Any, field: str) -> Any:
+    if isinstance(value, bool):
+        return value
+    if not isinstance(value, Mapping):
+        raise InputError(field, f"must be true, false or an object (levels, colour), got {value!r}")
+    unknown = set(value) - {"levels", "colour"}
+    if unknown:
+        raise InputError(f"{field}.{sorted(unknown)[0]}", "unknown field (accepted: levels, colour)")
+    if value.get("colour", "albedo") not in ("albedo", "shaded"):
+        raise InputError(f"{field}.colour", f"must be albedo or shaded, got {value.get('colour')!r}")
+    if "levels" in value:
+        levels = value["levels"]
+        if not isinstance(levels, list) or not levels:
+            raise InputError(f"{field}.levels", "must be a non-empty list of level names or objects")
+        for item in levels:
+            name = item.get("name") if isinstance(item, Mapping) else item
+            if name not in _DERIVATIVE_LEVELS:
+                raise InputError(f"{field}.levels", f"unknown level {name!r} (accepted: {', '.join(_DERIVATIVE_LEVELS)})")
+            if isinstance(item, Mapping) and set(item) - {"name", "faces", "texture_px", "jpeg_quality"}:
+                raise InputError(f"{field}.levels.{name}", "accepted fields: name, faces, texture_px, jpeg_quality")
+        try:
+            parse_levels(levels)
+        except InputError as exc:
+            raise InputError(f"{field}.{exc.where}", exc.problem) from None
+    return value
+
+
 def _bool(description: str) -> Param:
     return Param(_switch, {"type": "boolean", "description": description})
 
@@ -209,6 +252,7 @@ PARAMS: dict[str, dict[str, Param]] = {
         "render": _bool("false leaves out tiles and preview of the merged cloud"),
         "export": _bool("false leaves out the LAZ / COPC / E57 export of the merged cloud"),
         "drop_unregistered": _bool("true leaves out, with a warning, views that register to nothing"),
+        "derivatives": Param(_derivatives, _DERIVATIVES_SCHEMA),
         "tiles": Param(lambda v, f: tiles_options(v, f), _TILES_SCHEMA),
         "preview": Param(_preview, _PREVIEW_SCHEMA),
         "compress": Param(lambda v, f: compress_options(v, f), _COMPRESS_SCHEMA),

@@ -56,7 +56,7 @@ from shared.sim.scenes import (
     build_scene,
     rotation_about,
 )
-from shared.sim.simulate import ImagingParams, make_rig, simulate_capture
+from shared.sim.simulate import ImagingParams, make_rig, sim_radiometry, simulate_capture
 from shared.sim.truth import truth_file
 
 log = logging.getLogger(__name__)
@@ -287,7 +287,7 @@ def simulate_scanset(
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
     tmp.chmod(0o755)
     try:
-        save_rig(rig, tmp / "rig.json")
+        save_rig(replace(rig, radiometry=rig.radiometry or sim_radiometry(imaging)), tmp / "rig.json")
         entries = []
         for i, sc in enumerate(scenes):
             name = f"view_{i:02d}"

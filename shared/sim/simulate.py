@@ -775,7 +775,7 @@ def simulate_capture(
             for f in pending:
                 f.result()
         t2 = time.perf_counter()
-        save_rig(rig, tmp / RIG_FILE)
+        save_rig(replace(rig, radiometry=rig.radiometry or sim_radiometry(imaging)), tmp / RIG_FILE)
         if write_truth:
             r.truth.save(tmp / TRUTH_FILE)
         capture = capture_for_names(tmp, rig.projector.width, rig.projector.height, rows=imaging.rows,

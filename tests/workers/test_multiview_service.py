@@ -23,7 +23,8 @@ from tests.support.scansets import cached_scanset
 
 pytestmark = pytest.mark.slow
 
-PARAMS = '{"render": false}'
+# Small derivatives (one Thumb with 256 px maps): the stage runs, in seconds.
+PARAMS = '{"render": false, "derivatives": {"levels": [{"name": "thumb", "texture_px": 256}]}}'
 
 
 @pytest.fixture(scope="module")
@@ -84,9 +85,11 @@ def test_multiview_job_over_two_workers(pg_env: ServiceEnv, scanset: Path, tmp_p
     (tmp_path / "merged.ply").write_bytes(client.get(f"/v1/jobs/{jid}/artifacts/merged.ply", headers=auth).content)
     rec = read_fused(tmp_path / "merged.ply")
     assert len(rec) > 10000 and set(np.unique(rec["view"])) == {0, 1, 2, 3}
-    for name in ("mesh.glb", *MESH_LOD_FILES):  # the mesh and its levels of detail, by their short names
+    for name in ("mesh.glb", *MESH_LOD_FILES, "mesh_thumb.glb"):  # the meshes and the derivative, by short names
         glb = client.get(f"/v1/jobs/{jid}/artifacts/{name}", headers=auth).content
         assert glb[:4] == b"glTF", name
+    derivatives = client.get(f"/v1/jobs/{jid}/artifacts/derivatives.json", headers=auth).json()
+    assert [lv["level"] for lv in derivatives["levels"]] == ["thumb"] and derivatives["levels"][0]["texture_px"] == 256
 
 
 def test_broken_view_fails_the_job_naming_it(svc_env: ServiceEnv, scanset: Path, tmp_path: Path) -> None:

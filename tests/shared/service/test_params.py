@@ -70,3 +70,18 @@ def test_every_kind_and_parameter_has_a_schema() -> None:
         schema = params_schema(kind)
         assert schema["additionalProperties"] is False and set(schema["properties"]) == set(accepted)
         assert all(p.schema.get("type") or p.schema.get("anyOf") for p in accepted.values()), kind
+
+
+def test_derivatives_parameter_names_levels_and_fields() -> None:
+    from shared.service.params import check_job_params
+
+    ok = {"derivatives": {"levels": ["thumb", {"name": "low", "faces": 50000, "texture_px": 512}], "colour": "shaded"}}
+    assert check_job_params("multiview", ok) == ok
+    assert check_job_params("multiview", {"derivatives": False}) == {"derivatives": False}
+    for bad, field in (({"levels": ["huge"]}, "params.derivatives.levels"),
+                       ({"levels": [{"name": "low", "faces": 0}]}, "params.derivatives.levels.low.faces"),
+                       ({"levels": [{"name": "low", "texture_px": 100000}]}, "params.derivatives.levels.low.texture_px"),
+                       ({"colour": "glossy"}, "params.derivatives.colour"), ({"lod": 1}, "params.derivatives.lod"),
+                       (3, "params.derivatives")):
+        with pytest.raises(InputError, match=field.replace(".", r"\.") + ":"):
+            check_job_params("multiview", {"derivatives": bad})

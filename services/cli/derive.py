@@ -1,0 +1,46 @@
+"""``graylight derivatives MERGE_DIR [--out DIR] [--levels SPEC] [--colour albedo|shaded]``.
+
+The textured web derivatives of a merged model (:func:`shared.derive.pipeline.make_derivatives`):
+per level a Draco GLB with base colour, normal and occlusion maps and a bridged-texel mask, and
+``derivatives.json``. Prints one line per level beside its budget. Bad input (no master mesh,
+nonsense budgets, a mesh too small to unwrap) ends with a one-line error and exit status 1;
+nothing is left half-written.
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+
+def _cmd_derivatives(args: argparse.Namespace) -> int:
+    from shared.derive.pipeline import make_derivatives
+
+    report = make_derivatives(Path(args.merge_dir), Path(args.out) if args.out else None, levels=args.levels,
+                              colour=args.colour)
+    for w in report["warnings"]:
+        print(f"warning: {w}")
+    for lv in report["levels"]:
+        bound = "" if lv["max_bytes"] is None else (
+            f" (budget {lv['max_bytes'] / 1000:.0f} kB: {'within' if lv['within_max_bytes'] else 'OVER'})")
+        print(f"{lv['level']:<8} {lv['faces']:>8} faces (budget {lv['faces_budget']}), {lv['texture_px']} px maps, "
+              f"{lv['bytes'] / 1000:.0f} kB{bound}, {lv['seconds']['total']:.1f} s  {lv['file']}")
+    print(f"colour: {report['colour_baked']}; {report['seconds']:.1f} s in all")
+    return 0
+
+
+def register(subparsers: argparse._SubParsersAction) -> None:
+    p = subparsers.add_parser("derivatives", help="textured web derivatives (GLB levels) of a merged model",
+                              description="Make Voyager-style derivative levels (textured, Draco GLB) from a merge's "
+                                          "mesh.ply and merged.ply.")
+    p.add_argument("merge_dir", help="a graylight merge output folder (mesh.ply, merged.ply)")
+    p.add_argument("--out", help="output folder (default: the merge folder)")
+    p.add_argument("--levels", help="levels: names (thumb,low,medium,high,highest) or NAME:FACES:PX, comma-separated "
+                                    "(default: thumb,low,medium,high)")
+    p.add_argument("--colour", choices=("albedo", "shaded"), default="albedo",
+                   help="bake the albedo from the projector's light (default; the shaded colour where there is none) "
+                        "or the shaded white-frame colour")
+    p.set_defaults(func=_cmd_derivatives)
+
+
+__all__ = ["register"]
