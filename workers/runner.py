@@ -98,6 +98,17 @@ def worker_name() -> str:
     return f"{socket.gethostname()}:{os.getpid()}"
 
 
+class OutputNotStored(Exception):
+    """The store would not take or look up a stage's output object (something in the way, a
+    permission): the stage's failure says so, naming the object by its key (a content hash, not
+    a worker path), for the operator to find in the store."""
+
+    def __init__(self, stage: str, key: str, exc: OSError) -> None:
+        self.stage, self.key = stage, key
+        super().__init__(f"stage {stage} could not store its output as object {key}: "
+                         f"{exc.strerror or type(exc).__name__}; nothing of it was kept")
+
+
 class LeaseLost(Exception):
     """Raised in a running stage, from its progress callback, once its lease is gone: the job
     was cancelled or the stage was given to another worker, so its work would be dropped."""
@@ -233,7 +244,12 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
         upstream = {d: _output_key(job, d) for d in stage.depends_on}
         key = row_key(job.kind, stage.name, job.capture_key, job.params, upstream)
         store.set_input_key(stage_id, token, key)
-        reused = arts.exists(key)
+        try:
+            reused = arts.exists(key)
+        except TRANSIENT:
+            raise  # a remote store's passing fault: the stage goes back to the queue
+        except OSError as exc:  # the object's place in the store is taken by something else
+            raise OutputNotStored(stage.name, key, exc) from exc
         if reused:
             log.info("job %s stage %s: output %s exists, reusing", job.id, stage.name, key[:12])
             summary = _stored_json(arts, key, SUMMARY_FILE)
@@ -274,8 +290,11 @@ def run_stage(stage_id: int, settings: Settings, retries_left: bool = True, publ
         if isinstance(exc, SoftTimeLimitExceeded):
             msg = f"stage {stage.name} exceeded its time limit of {spec.time_limit} s"
         elif (fault := storage_fault(exc, stage.name)) is not None:
-            log.error("job %s stage %s: %s", job.id, stage.name, fault)
+            log.error("job %s stage %s: %s (%s)", job.id, stage.name, fault, exc)
             msg = fault
+        elif isinstance(exc, OutputNotStored):
+            log.error("job %s: %s (%r)", job.id, exc, exc.__cause__)
+            msg = str(exc)
         else:
             log.exception("job %s stage %s failed", job.id, stage.name)
             msg = unexpected_failure(exc, stage.name, _reading(job, spec.inputs, upstream))
@@ -417,7 +436,12 @@ def _execute(
                 _store_detached(arts, key, name, out / name, tmp)
         if detached:
             (out / DETACHED_FILE).write_text(json.dumps(detached, sort_keys=True))
-        arts.put_dir(key, out, move=True)
+        try:
+            arts.put_dir(key, out, move=True)
+        except TRANSIENT:
+            raise
+        except OSError as exc:
+            raise OutputNotStored(stage.name, key, exc) from exc
         return summary
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

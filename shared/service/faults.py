@@ -2,8 +2,8 @@
 
 A full disk (the worker's work folder or a local store), a quota, a store mounted read-only
 or an I/O error are not the stage's fault and not the input's: :func:`storage_fault` gives
-the reason the job fails with (``storage full: no space left on device (/var/lib/...) while
-stage decode wrote its output; nothing of it was kept``). Transient faults of a remote store
+the reason the job fails with (``storage full: no space left on device while stage decode
+wrote its output; nothing of it was kept``). Transient faults of a remote store
 (connections, timeouts) are not here: the runner gives those stages back to the queue.
 """
 
@@ -29,7 +29,7 @@ def storage_fault(exc: BaseException, stage: str) -> str | None:
     while exc is not None and id(exc) not in seen:  # the OSError may be wrapped (a library's own error)
         seen.add(id(exc))
         if isinstance(exc, OSError) and exc.errno in STORAGE_ERRNOS:
-            where = f" ({exc.filename})" if exc.filename else ""
-            return f"{STORAGE_ERRNOS[exc.errno]}{where} while stage {stage} wrote its output; nothing of it was kept"
+            # The file's path stays in the worker's log: a client's message never names a worker path.
+            return f"{STORAGE_ERRNOS[exc.errno]} while stage {stage} wrote its output; nothing of it was kept"
         exc = exc.__cause__ or exc.__context__
     return None
