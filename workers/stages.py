@@ -335,15 +335,20 @@ def run_publish(ctx: StageContext) -> dict[str, Any]:
     import tempfile
 
     from shared.publish.folder import ObjectMeta, publish_folder
-    from shared.publish.stages import scan_source
+    from shared.publish.stages import merge_source, scan_source
 
     assert ctx.capture_dir is not None
-    meta = ObjectMeta(title=f"Job {ctx.job_id}", identifier=ctx.job_id)
+    meta = ObjectMeta(title=str(ctx.params.get("title") or f"Job {ctx.job_id}"),
+                      collection=str(ctx.params.get("collection") or ""),
+                      identifier=str(ctx.params.get("identifier") or ctx.job_id))
     if ctx.kind == "multiview":
         from shared.formats.scanset import load_scanset
 
         rig = load_scanset(ctx.capture_dir).rig
-        qa = publish_folder(ctx.inputs["mv_merge"], ctx.out_dir, meta, rig=rig, points_asset=False)
+        with tempfile.TemporaryDirectory(prefix="publish-src-") as work:
+            # The derivatives stage's textured levels when the job made them, else the merge's LODs.
+            source = merge_source(ctx.inputs["mv_merge"], ctx.inputs.get("derivatives"), Path(work) / "merge")
+            qa = publish_folder(source, ctx.out_dir, meta, rig=rig, points_asset=False)
     else:
         with tempfile.TemporaryDirectory(prefix="publish-src-") as work:
             rig = _rig_for(ctx)

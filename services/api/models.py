@@ -46,6 +46,7 @@ class ValidationErrorOut(BaseModel):
 _DESCRIPTIONS = {
     400: "the request body cannot be parsed (a malformed multipart form)",
     401: "no valid ``Authorization: Bearer KEY``",
+    403: "the link's token is malformed, for another job, expired or its key revoked",
     404: "no such object, or it belongs to another key",
     409: "the object's state does not allow this (already final, already used, wrong offset)",
     413: "the request body is larger than the upload limit (archives, chunks) or the JSON body limit",
@@ -282,6 +283,8 @@ class ReportRow(BaseModel):
     error: str | None = Field(None, description="the failure reason, one line")
     artifacts: list[ArtifactLink]
     verdict: str | None = Field(None, description="the quality report's verdict: 'publishable' or why not")
+    scene: str | None = Field(None, description="URL that gives a published object's Voyager link (GET with the key)")
+    qa_report: str | None = Field(None, description="URL of a published object's quality report (qa.html)")
 
 
 class BatchReport(BaseModel):

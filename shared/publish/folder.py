@@ -19,7 +19,6 @@ import logging
 import os
 import shutil
 import tempfile
-import unicodedata
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,6 +28,7 @@ import numpy as np
 from shared.core.errors import InputError
 from shared.core.files import atomic_file, write_json_atomic
 from shared.publish.glb import GlbInfo, glb_positions, inspect_glb, write_points_glb
+from shared.publish.labels import MAX_LABEL_CHARS, check_label
 from shared.publish.paradata import load_paradata, sha256_file, software
 from shared.publish.qa import QaThresholds, build_qa
 from shared.publish.qa_html import coverage_map_png, render_qa_html
@@ -39,7 +39,6 @@ log = logging.getLogger(__name__)
 
 __all__ = ["MAX_LABEL_CHARS", "ObjectMeta", "check_label", "publish_folder"]
 
-MAX_LABEL_CHARS = 500
 #: Points in a scan's Thumb level: about 200 kB of GLB (16 bytes a point), Voyager's Thumb budget.
 THUMB_POINTS = 12_000
 
@@ -54,17 +53,6 @@ class ObjectMeta:
 
     def as_dict(self) -> dict[str, str]:
         return {"title": self.title, "collection": self.collection, "identifier": self.identifier}
-
-
-def check_label(field: str, value: str) -> str:
-    """A title, collection or identifier: any printable text up to :data:`MAX_LABEL_CHARS` characters
-    (markup, quotes and slashes are kept and escaped where shown); control characters are refused."""
-    if len(value) > MAX_LABEL_CHARS:
-        raise InputError(field, f"{len(value)} characters, at most {MAX_LABEL_CHARS}")
-    bad = [c for c in value if unicodedata.category(c) in ("Cc", "Cf", "Cs", "Co")]
-    if bad:
-        raise InputError(field, f"control character U+{ord(bad[0]):04X} is not allowed")
-    return value
 
 
 def _levels(src: Source, stage: Path, points_asset: bool) -> tuple[list[SceneAsset], dict[str, GlbInfo]]:

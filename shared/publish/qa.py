@@ -179,6 +179,23 @@ def _derivatives(levels: dict[str, GlbInfo]) -> tuple[list[dict[str, Any]], list
     return rows, over
 
 
+def _derivative_set(source: Source) -> dict[str, Any]:
+    """How the published levels were made: ``graylight derivatives`` (textured, from its report), the
+    merge's own untextured levels, or a single view's cloud."""
+    rep = source.derivatives
+    if rep is None:
+        made = "textured derivatives" if any(p.name.startswith("mesh_") and "lod" not in p.name and p.name != "mesh.glb"
+                                             for p in source.levels.values()) else (
+            "the merge's own levels (untextured)" if source.levels else "the cloud as points")
+        return {"made_by": made}
+    master = rep.get("master") if isinstance(rep.get("master"), dict) else {}
+    return {"made_by": "graylight derivatives", "colour": rep.get("colour_baked"),
+            "master_faces": master.get("faces"), "bridged_vertex_share": master.get("bridged_vertex_share"),
+            "seconds": rep.get("seconds"),
+            "levels": [{k: lv.get(k) for k in ("level", "file", "faces", "texture_px", "bytes")}
+                       for lv in rep.get("levels", []) if isinstance(lv, dict)]}
+
+
 def _flags(quality: dict[str, Any] | None) -> tuple[list[dict[str, Any]], list[str]]:
     """The merge's quality checks, whatever their shape: a ``flags`` list, or named blocks with ``ok``."""
     if not quality:
@@ -276,6 +293,7 @@ def build_qa(source: Source, levels: dict[str, GlbInfo], model_points: np.ndarra
         "noise": noise,
         "coverage": coverage,
         "derivatives": deriv,
+        "derivative_set": _derivative_set(source),
         "notes": list(source.notes),
         "verdict": {"publishable": not why, "reasons": why,
                     "line": "publishable" if not why else "not publishable: " + "; ".join(why)},

@@ -206,6 +206,16 @@ def render_qa_html(qa: dict[str, Any], coverage_png: str | None) -> str:
         parts.append(f"<img alt='coverage map' src='{coverage_png}'>")
 
     parts.append("<h2>Derivatives</h2>")
+    dset = qa.get("derivative_set") or {}
+    if dset.get("made_by"):
+        made = f"Levels: {escape(dset['made_by'])}"
+        if dset.get("colour"):
+            made += f", colour baked from the {escape(dset['colour'])}"
+        if dset.get("master_faces"):
+            made += f", from a master mesh of {_fmt(dset['master_faces'])} faces"
+        if isinstance(dset.get("bridged_vertex_share"), int | float):
+            made += f" ({100 * dset['bridged_vertex_share']:.1f} % of its vertices bridged without data)"
+        parts.append(f"<p>{made}.</p>")
     parts.append(_table(["quality", "file", "bytes", "faces", "points", "texture px", "within budget", "problems"],
                         [[d["quality"], d["file"], d["bytes"], d["faces"], d["points"], d["image_size"],
                           d["within_budget"], "; ".join(d["problems"])] for d in qa.get("derivatives", [])], left=2))

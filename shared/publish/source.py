@@ -20,7 +20,7 @@ from shared.core.jsonsafe import read_json_bounded
 
 log = logging.getLogger(__name__)
 
-__all__ = ["DERIVATIVE_FILES", "LEGACY_LOD_FILES", "QUALITIES", "Source", "read_source"]
+__all__ = ["DERIVATIVES_REPORT", "DERIVATIVE_FILES", "LEGACY_LOD_FILES", "QUALITIES", "Source", "read_source"]
 
 #: Voyager's quality levels, lowest first.
 QUALITIES = ("Thumb", "Low", "Medium", "High", "Highest")
@@ -28,6 +28,8 @@ QUALITIES = ("Thumb", "Low", "Medium", "High", "Highest")
 DERIVATIVE_FILES = {q: f"mesh_{q.lower()}.glb" for q in QUALITIES}
 #: Without derivatives, the merge's own levels stand in (1/64, 1/16, 1/4 of the faces, the full mesh).
 LEGACY_LOD_FILES = {"Thumb": "mesh_lod3.glb", "Low": "mesh_lod2.glb", "Medium": "mesh_lod1.glb", "High": "mesh.glb"}
+#: The report ``graylight derivatives`` writes beside its levels (shared.derive.pipeline.REPORT_FILE).
+DERIVATIVES_REPORT = "derivatives.json"
 _REPORT_BYTES = 64 << 20
 
 
@@ -44,6 +46,8 @@ class Source:
     paradata: Path | None
     quality: dict[str, Any] | None = None
     notes: list[str] = field(default_factory=list)
+    #: ``derivatives.json`` of the textured levels (colour baked, bridged share, per level), None without.
+    derivatives: dict[str, Any] | None = None
 
 
 def _read(path: Path, what: str) -> dict[str, Any]:
@@ -73,6 +77,12 @@ def read_source(root: Path) -> Source:
         if not cloud.is_file():
             raise InputError(cloud, "the merged cloud is missing")
         levels = {q: root / n for q, n in DERIVATIVE_FILES.items() if (root / n).is_file()}
+        derivatives = None
+        if levels and (root / DERIVATIVES_REPORT).is_file():
+            derivatives = _read(root / DERIVATIVES_REPORT, DERIVATIVES_REPORT)
+            notes += [f"derivatives: {w}" for w in derivatives.get("warnings", []) if isinstance(w, str)]
+        elif levels:
+            notes.append(f"textured derivatives without their {DERIVATIVES_REPORT}: how they were made is not shown")
         if not levels:
             levels = {q: root / n for q, n in LEGACY_LOD_FILES.items() if (root / n).is_file()}
             if levels:
@@ -83,7 +93,7 @@ def read_source(root: Path) -> Source:
         quality = quality or (report.get("quality") if isinstance(report.get("quality"), dict) else None)
         if quality is None:
             notes.append("the merge wrote no quality block (an older Graylight): registration flags not shown")
-        return Source(root, "merge", report, registration, levels, cloud, paradata, quality, notes)
+        return Source(root, "merge", report, registration, levels, cloud, paradata, quality, notes, derivatives)
     if "decode" in report or (root / "cloud.ply").is_file():
         cloud = root / "cloud.ply"
         if not cloud.is_file():

@@ -19,8 +19,9 @@ from typing import Any
 
 from shared.core.files import write_json_atomic
 from shared.publish.paradata import PARADATA_FILE, STAGE_PARADATA_FILE, Run, build_paradata, write_paradata
+from shared.publish.source import DERIVATIVE_FILES, DERIVATIVES_REPORT
 
-__all__ = ["record_stage", "scan_source"]
+__all__ = ["merge_source", "record_stage", "scan_source"]
 
 
 def record_stage(*, stage: str, job_id: str, kind: str, params: Mapping[str, Any], capture_dir: Path | None,
@@ -50,4 +51,20 @@ def scan_source(triangulate_dir: Path, capture_dir: Path, rig: Path, work: Path)
     record = Path(triangulate_dir) / STAGE_PARADATA_FILE
     if record.is_file():
         shutil.copyfile(record, work / PARADATA_FILE)
+    return work
+
+
+def merge_source(merge_dir: Path, derivatives_dir: Path | None, work: Path) -> Path:
+    """A folder shaped like a ``graylight merge`` output that ``graylight derivatives`` wrote into,
+    from a multiview job's ``mv_merge`` output and its ``derivatives`` output (None when the job
+    leaves them out: the merge's own levels are published). Files are linked, not copied."""
+    work.mkdir(parents=True, exist_ok=True)
+    merge_dir = Path(merge_dir).resolve()
+    for p in sorted(merge_dir.iterdir()):
+        if p.is_file() and not p.name.startswith("mesh_") or p.name.startswith("mesh_lod"):
+            (work / p.name).symlink_to(p)
+    if derivatives_dir is not None:
+        for p in sorted(Path(derivatives_dir).resolve().iterdir()):
+            if p.is_file() and (p.name in DERIVATIVE_FILES.values() or p.name == DERIVATIVES_REPORT):
+                (work / p.name).symlink_to(p)
     return work

@@ -30,7 +30,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any
 
@@ -155,6 +155,9 @@ class StageSpec:
     # Short names a published file is also served under, as (alias, file): a multi-view job's
     # merged.ply is its cloud.ply, so every kind answers the same links.
     aliases: tuple[tuple[str, str], ...] = ()
+    # Upstream stages read when the job runs them: a job that switches one off runs this stage
+    # without it (the publish stage reads the derivatives, else falls back to the merge's LODs).
+    optional: tuple[str, ...] = ()
     # The stage's share of a job's work, relative to the others (job progress weighs each
     # stage's own fraction by it): its typical run time in units of a scan's triangulation, at
     # full size (a 15 MP capture, an 8-view set, the default 1280x720 10 s preview: decode about
@@ -201,6 +204,8 @@ MESH_LOD_FILES: tuple[str, ...] = ("mesh_lod1.glb", "mesh_lod2.glb", "mesh_lod3.
 EXPORT_FILES: tuple[str, ...] = ("cloud.laz", "cloud.copc.laz", "cloud.e57")
 #: What the publish stage serves by name (shared.publish.folder; the scene's derivatives are in its folder).
 PUBLISH_FILES: tuple[str, ...] = ("scene.svx.json", "qa.json", "qa.html", "paradata.json")
+#: The job parameters naming the object (title, collection, identifier: shared.service.params).
+OBJECT_PARAMS: tuple[str, ...] = ("title", "collection", "identifier")
 #: The derivative GLBs a ``derivatives`` stage may write (shared.derive.levels: the job parameter
 #: accepts these level names only, so that every file it writes is published by its name).
 DERIVATIVE_FILES: tuple[str, ...] = tuple(f"mesh_{n}.glb" for n in ("thumb", "low", "medium", "high", "highest"))
@@ -228,7 +233,8 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         # CPU work (LAZ compression), so it runs on the cpu queue; {"export": false} skips it.
         StageSpec("export", "cpu", ("triangulate",), 7200, publish=EXPORT_FILES, switch="export", version=2, weight=2.0),
         # The object as a museum publishes it (shared.publish): Voyager scene, quality report, the job's paradata.
-        StageSpec("publish", "cpu", (CAPTURE, "triangulate"), 1800, publish=PUBLISH_FILES, weight=1.0),
+        StageSpec("publish", "cpu", (CAPTURE, "triangulate"), 1800, publish=PUBLISH_FILES, weight=1.0,
+                  params=OBJECT_PARAMS),
     ),
     "calibrate": (
         StageSpec("calibrate", "cpu", (CAPTURE,), 3600, publish=("rig.json", "calibration.json", "paradata.json")),
@@ -261,7 +267,9 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
                   params=("preview", "preview_epoch"), switch="render", weight=6.0),
         # The merged cloud in the interchange formats, as a scan's cloud is.
         StageSpec("export", "cpu", ("mv_merge",), 7200, publish=EXPORT_FILES, switch="export", version=2, weight=2.0),
-        StageSpec("publish", "cpu", (CAPTURE, "mv_merge"), 1800, publish=PUBLISH_FILES, weight=1.0),
+        # Publishes the derivatives when the job makes them, else the merge's own levels.
+        StageSpec("publish", "cpu", (CAPTURE, "mv_merge", "derivatives"), 1800, publish=PUBLISH_FILES, weight=1.0,
+                  params=OBJECT_PARAMS, optional=("derivatives",)),
     ),
     # A service self-test: one trivial stage that sleeps params["seconds"] (at most 60) and
     # writes probe.json. It measures queue overhead and proves the workers are alive.
@@ -289,6 +297,9 @@ def graph_for(kind: str, params: Mapping[str, Any] | None = None) -> tuple[Stage
     for spec in GRAPHS[kind]:
         if spec.switch is not None and params.get(spec.switch, True) is False:
             continue
+        missing = tuple(d for d in spec.optional if d not in names)
+        if missing:
+            spec = replace(spec, inputs=tuple(i for i in spec.inputs if i not in missing))
         if all(d in names for d in spec.depends_on):
             kept.append(spec)
             names.add(spec.name)

@@ -40,6 +40,7 @@ from typing import Any
 
 from shared.core.errors import InputError
 from shared.derive.levels import parse_levels
+from shared.publish.labels import MAX_LABEL_CHARS, check_label
 from shared.render.camera_path import MAX_COORDINATE, MAX_INLINE_KEYFRAMES, NAMED_PATHS
 from shared.render.options import MAX_FPS, MAX_HEIGHT, MAX_SECONDS, MAX_WIDTH, MIN_SIDE, PreviewOptions
 
@@ -234,6 +235,25 @@ def _derivatives(value: Any, field: str) -> Any:
     return value
 
 
+def _label(value: Any, field: str) -> str:
+    if not isinstance(value, str):
+        raise InputError(field, f"must be a string, got {_short(value)}")
+    return check_label(field, value)
+
+
+def _label_param(description: str) -> Param:
+    """The object's title, collection or identifier, shown in its Voyager scene and quality report."""
+    return Param(_label, {"type": "string", "maxLength": MAX_LABEL_CHARS, "description": description})
+
+
+#: The object as the museum names it (shared.publish.folder.ObjectMeta), for scan and multiview jobs.
+_OBJECT_PARAMS: dict[str, Param] = {
+    "title": _label_param("the object's title in its published scene and quality report (default: the job)"),
+    "collection": _label_param("the collection the object belongs to"),
+    "identifier": _label_param("the object's accession number or identifier (default: the job id)"),
+}
+
+
 def _bool(description: str) -> Param:
     return Param(_switch, {"type": "boolean", "description": description})
 
@@ -246,6 +266,7 @@ PARAMS: dict[str, dict[str, Param]] = {
         "tiles": Param(lambda v, f: tiles_options(v, f), _TILES_SCHEMA),
         "preview": Param(_preview, _PREVIEW_SCHEMA),
         "compress": Param(lambda v, f: compress_options(v, f), _COMPRESS_SCHEMA),
+        **_OBJECT_PARAMS,
     },
     "calibrate": {},
     "multiview": {
@@ -256,6 +277,7 @@ PARAMS: dict[str, dict[str, Param]] = {
         "tiles": Param(lambda v, f: tiles_options(v, f), _TILES_SCHEMA),
         "preview": Param(_preview, _PREVIEW_SCHEMA),
         "compress": Param(lambda v, f: compress_options(v, f), _COMPRESS_SCHEMA),
+        **_OBJECT_PARAMS,
     },
     "probe": {"seconds": Param(_seconds, {"type": "number", "minimum": 0, "maximum": MAX_PROBE_SECONDS})},
 }

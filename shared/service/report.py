@@ -24,10 +24,13 @@ from typing import Any
 from shared.service.jobs import JOB_TERMINAL, JobState, StageState, stage_spec
 from shared.service.jobstore import REJECTED, Job, Reject
 
-__all__ = ["CSV_COLUMNS", "CaptureRow", "capture_row", "report_csv", "report_rows", "summarize"]
+__all__ = ["CSV_COLUMNS", "QA_REPORT", "SCENE_PATH", "CaptureRow", "capture_row", "report_csv", "report_rows", "scene_url", "summarize"]
 
 #: Columns of the CSV report, in order (``artifacts`` is space-separated).
-CSV_COLUMNS = ("capture", "job", "state", "points", "error", "artifacts", "verdict")
+CSV_COLUMNS = ("capture", "job", "state", "points", "error", "artifacts", "verdict", "scene", "qa_report")
+#: The route that hands out a published object's Voyager link (``/v1/jobs/{job}/scene``) and the QA report's name.
+SCENE_PATH = "/v1/jobs/{job}/scene"
+QA_REPORT = "qa.html"
 
 
 @dataclass(frozen=True)
@@ -45,6 +48,11 @@ class CaptureRow:
     artifacts: list[str] = field(default_factory=list)
     #: The publish stage's verdict line (``publishable`` or why not; shared.publish.qa), None before it ran.
     verdict: str | None = None
+
+    @property
+    def published(self) -> bool:
+        """Whether the publish stage left its scene and QA report (the report then links them)."""
+        return self.job is not None and "scene.svx.json" in self.artifacts and QA_REPORT in self.artifacts
 
 
 def _one_line(text: str | None) -> str | None:
@@ -93,17 +101,25 @@ def summarize(rows: Iterable[CaptureRow]) -> dict[str, Any]:
     return {"total": total, "counts": counts, "progress": done / total if total else 1.0}
 
 
-def report_csv(rows: Iterable[CaptureRow], link: Callable[[CaptureRow, str], str] | None = None) -> str:
+def report_csv(rows: Iterable[CaptureRow], link: Callable[[CaptureRow, str], str] | None = None,
+               base: str = "") -> str:
     """The CSV text of ``rows`` (header :data:`CSV_COLUMNS`); ``link(row, name)`` turns an
-    artifact name into its URL (default: the bare name)."""
+    artifact name into its URL (default: the bare name); ``base`` goes before the scene route's path.
+    A published object's ``scene`` is the route that gives its Voyager link, ``qa_report`` its qa.html."""
     out = io.StringIO()
     w = csv.writer(out, lineterminator="\n")
     w.writerow(CSV_COLUMNS)
     for r in rows:
         links = [link(r, a) if link else a for a in r.artifacts]
         w.writerow([r.capture, r.job or "", r.state, "" if r.points is None else r.points, r.error or "", " ".join(links),
-                    r.verdict or ""])
+                    r.verdict or "", scene_url(r, base) or "",
+                    (link(r, QA_REPORT) if link else QA_REPORT) if r.published else ""])
     return out.getvalue()
+
+
+def scene_url(row: CaptureRow, base: str = "") -> str | None:
+    """Where the owner of a published object gets its Voyager link (``base`` + :data:`SCENE_PATH`), else None."""
+    return f"{base}{SCENE_PATH.format(job=row.job)}" if row.published else None
 
 
 def row_json(row: CaptureRow) -> dict[str, Any]:

@@ -73,22 +73,131 @@ def _run_job(settings, folder: Path, archive: Path, kind: str, params: dict, own
     return store, arts, store.get_job(job.id), key
 
 
-@pytest.mark.slow
-def test_multiview_job_publishes_the_merged_object(tmp_path: Path, tmp_path_factory: pytest.TempPathFactory) -> None:
+HOSTILE = {"title": "<script>alert(1)</script>", "collection": "Dept. \"A&B\" / casts", "identifier": "../1990.12/7"}
+#: Two small textured levels (256 px maps): the derivatives stage runs in seconds.
+MV_PARAMS = {"render": False, "export": False, **HOSTILE,
+             "derivatives": {"levels": [{"name": "thumb", "texture_px": 256}, {"name": "low", "texture_px": 256}]}}
+
+
+@pytest.fixture(scope="module")
+def mv_job(tmp_path_factory: pytest.TempPathFactory):
+    """A multiview job run to its end once for the module, with two derivative levels and a hostile
+    title: (settings, artifact store, job, key, its publish folder)."""
+    root = tmp_path_factory.mktemp("mv-job")
     scanset = cached_scanset(tmp_path_factory.mktemp("mv-publish"), views=4, size=(320, 240), projector=(256, 192))
-    settings = make_env(tmp_path / "svc").settings
-    _store, arts, job, _key = _run_job(settings, scanset, tmp_path / "set.zip", "multiview", {"render": False})
-    assert job.state == "succeeded", job
-    out = arts.fetch(job.stage("publish").output_key, tmp_path / "pub")
+    settings = make_env(root / "svc").settings
+    _store, arts, job, key = _run_job(settings, scanset, root / "set.zip", "multiview", MV_PARAMS)
+    assert job.state == "succeeded", [(s.name, s.error) for s in job.stages if s.error]
+    return settings, arts, job, key, arts.fetch(job.stage("publish").output_key, root / "pub")
+
+
+def test_publish_reads_the_derivatives_stage_when_the_job_runs_it() -> None:
+    """The multiview publish stage waits for the derivatives when the job makes them; without them
+    ({"derivatives": false}) it still runs, on the merge alone (its levels are the fallback)."""
+    with_d = {s.name: s for s in graph_for("multiview", {})}
+    without = {s.name: s for s in graph_for("multiview", {"derivatives": False})}
+    assert set(with_d["publish"].depends_on) == {"mv_merge", "derivatives"}
+    assert "derivatives" not in without and without["publish"].depends_on == ("mv_merge",)
+
+
+def test_object_names_are_job_parameters() -> None:
+    """title, collection and identifier: any text (markup kept, escaped where shown), checked at submission."""
+    from shared.core.errors import InputError
+    from shared.service.params import check_job_params
+
+    for kind in ("scan", "multiview"):
+        assert check_job_params(kind, HOSTILE) == HOSTILE
+    with pytest.raises(InputError, match=r"^params.title: control character U\+0007 is not allowed$"):
+        check_job_params("scan", {"title": "bell\a"})
+    with pytest.raises(InputError, match=r"^params.identifier: must be a string"):
+        check_job_params("multiview", {"identifier": 7})
+    with pytest.raises(InputError, match=r"^params.collection: 501 characters, at most 500$"):
+        check_job_params("scan", {"collection": "x" * 501})
+
+
+@pytest.mark.slow
+def test_multiview_job_publishes_the_merged_object(mv_job, tmp_path: Path) -> None:
+    _settings, arts, job, _key, out = mv_job
     scene = json.loads((out / "scene.svx.json").read_text())
     assert list(svx_validator().iter_errors(scene)) == []
-    assert [d["quality"] for d in scene["models"][0]["derivatives"]] == ["Thumb", "Low", "Medium", "High"]
+    # The derivatives stage's textured levels, measured as published (not the merge's LODs).
+    derivs = scene["models"][0]["derivatives"]
+    assert [d["quality"] for d in derivs] == ["Thumb", "Low"]
+    made = json.loads((arts.fetch(job.stage("derivatives").output_key, tmp_path / "d") / "derivatives.json").read_text())
+    for d, lv in zip(derivs, made["levels"], strict=True):
+        asset = d["assets"][0]
+        assert asset["uri"] == lv["file"] and asset["byteSize"] == (out / lv["file"]).stat().st_size == lv["bytes"]
+        assert asset["numFaces"] == lv["faces"] and asset["imageSize"] == lv["texture_px"] == 256
+    qa = json.loads((out / "qa.json").read_text())
+    assert [(r["file"], r["faces"], r["image_size"]) for r in qa["derivatives"]] == [
+        (lv["file"], lv["faces"], lv["texture_px"]) for lv in made["levels"]]
+    assert qa["derivative_set"]["made_by"] == "graylight derivatives"
+    assert qa["derivative_set"]["master_faces"] == made["master"]["faces"]
+    # The submission's names: verbatim in qa.json, escaped in the scene (Voyager shows HTML) and in qa.html.
+    assert {k: qa["object"][k] for k in HOSTILE} == HOSTILE
+    assert scene["metas"][0]["collection"]["title"] == "&lt;script&gt;alert(1)&lt;/script&gt;"
+    page = (out / "qa.html").read_text()
+    assert "<script>" not in page and "&lt;script&gt;alert(1)&lt;/script&gt;" in page
     doc = json.loads((out / "paradata.json").read_text())
     stages = sorted(a["stage"] for a in _activities(doc))
-    assert stages.count("mv_triangulate#3") == 1 and "mv_merge" in stages and "publish" in stages
+    assert stages.count("mv_triangulate#3") == 1 and {"mv_merge", "derivatives", "publish"} <= set(stages)
     jsonld.expand(doc)
-    qa = json.loads((out / "qa.json").read_text())
     assert len(qa["views"]) == 4 and qa["calibration"]["rig"].endswith("rig.json")
+
+
+@pytest.mark.slow
+def test_scene_route_serves_voyager_on_another_origin(mv_job) -> None:
+    """GET /v1/jobs/{id}/scene gives a link whose token in the path lets a viewer without the key read
+    every file the scene names, with CORS headers; a wrong, foreign, expired or revoked token is refused."""
+    import time
+
+    from fastapi.testclient import TestClient
+
+    from services.api.app import create_app
+    from shared.service.scene_tokens import sign_scene_token
+
+    settings, _arts, job, key, out = mv_job
+    client = TestClient(create_app(settings))
+    assert client.get(f"/v1/jobs/{job.id}/scene").status_code == 401
+    r = client.get(f"/v1/jobs/{job.id}/scene", headers={"Authorization": f"Bearer {key}"}, params={"seconds": 600})
+    assert r.status_code == 200, r.text
+    link = r.json()
+    assert link["url"] == link["root"] + "scene.svx.json" and 0 < link["expires"] - time.time() <= 600
+    origin = {"Origin": "https://museum.example"}
+    scene = client.get(link["url"], headers=origin)
+    assert scene.status_code == 200 and scene.headers["access-control-allow-origin"] == "*"
+    assert scene.content == (out / "scene.svx.json").read_bytes()
+    named = [a["uri"] for d in scene.json()["models"][0]["derivatives"] for a in d["assets"]]
+    assert {"mesh_thumb.glb", "mesh_low.glb"} <= set(named)
+    for uri in named:  # every file the scene names, byte for byte
+        got = client.get(link["root"] + uri, headers=origin)
+        assert got.status_code == 200 and got.content == (out / uri).read_bytes(), uri
+        assert got.headers["access-control-allow-origin"] == "*"
+    part = client.get(link["root"] + named[0], headers={**origin, "Range": "bytes=0-3"})
+    assert part.status_code == 206 and part.content == b"glTF"
+    pre = client.options(link["root"] + named[0], headers={**origin, "Access-Control-Request-Method": "GET",
+                                                            "Access-Control-Request-Headers": "range"})
+    assert pre.status_code == 204 and "Range" in pre.headers["access-control-allow-headers"]
+    assert client.get(link["root"] + "nothing.glb").status_code == 404
+    base = f"/v1/jobs/{job.id}/scene"
+    secret = settings.signing_secret()
+    expires, sig = link["root"].rstrip("/").rsplit("/", 1)[1].split(".")
+    bad = {
+        "forged": f"{expires}.{sig[:-1]}{'A' if sig[-1] != 'A' else 'B'}",
+        "extended": f"{int(expires) + 1}.{sig}",
+        "another job": sign_scene_token(secret, "00000000-0000-0000-0000-000000000000", job.owner_id, int(expires)),
+        "another key": sign_scene_token(secret, job.id, job.owner_id + 1, int(expires)),
+        "expired": sign_scene_token(secret, job.id, job.owner_id, int(time.time()) - 1),
+        "malformed": "not-a-token",
+    }
+    for why, token in bad.items():
+        got = client.get(f"{base}/{token}/scene.svx.json", headers=origin)
+        assert got.status_code == 403, why
+        assert got.headers["access-control-allow-origin"] == "*" and "token" in got.json()["detail"], why
+    # Authorised as the artifacts are: revoking the owner's key ends its links.
+    store = JobStore(settings.database_url)
+    assert store.revoke_key(key[:10])
+    assert client.get(link["url"]).status_code == 403
 
 
 def test_publish_a_job_by_its_id(tmp_path: Path, small_capture: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -152,9 +261,13 @@ def test_batch_report_repeats_the_verdict_with_links(tmp_path: Path, small_captu
     assert good.verdict == json.loads((published / "qa.json").read_text())["verdict"]["line"]
     assert {"scene.svx.json", "qa.html", "qa.json", "paradata.json"} <= set(good.artifacts)
     assert bad.state == "failed" and bad.verdict is None and "scene.svx.json" not in bad.artifacts
-    table = list(csv.DictReader(io.StringIO(report_csv(rows, lambda r, a: f"/v1/jobs/{r.job}/artifacts/{a}"))))
+    table = list(csv.DictReader(io.StringIO(report_csv(rows, lambda r, a: f"/v1/jobs/{r.job}/artifacts/{a}", "https://h"))))
     assert table[0]["verdict"] == good.verdict and table[1]["verdict"] == ""
     assert f"/v1/jobs/{good.job}/artifacts/scene.svx.json" in table[0]["artifacts"].split()
+    # Links to each published object's scene (the route giving its Voyager link) and its QA report.
+    assert table[0]["scene"] == f"https://h/v1/jobs/{good.job}/scene"
+    assert table[0]["qa_report"] == f"/v1/jobs/{good.job}/artifacts/qa.html"
+    assert table[1]["scene"] == table[1]["qa_report"] == ""
 
 
 @pytest.mark.slow

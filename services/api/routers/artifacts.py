@@ -85,19 +85,25 @@ def get_artifact(job_id: str, name: str, key: Key, svc: Svc, request: Request) -
     m = svc.arts.manifest(okey)
     if m is None or fname not in m.files:
         raise HTTPException(404, f"job {job.id} has no artifact {name!r}")
+    return send_artifact(svc.arts, okey, fname, m.files[fname].size, m.files[fname].sha256, request)
+
+
+def send_artifact(arts: ArtifactStore, okey: str, fname: str, size: int, sha256: str, request: Request,
+                  headers: dict[str, str] | None = None) -> Response:
+    """File ``fname`` of stored object ``okey`` (``size`` bytes, ``sha256``), whole or the byte range the
+    request asks for, with ``headers`` added (the scene route's CORS headers)."""
     media = artifact_media_type(fname)
-    headers = {"ETag": f'"{m.files[fname].sha256}"', "X-Checksum-SHA256": m.files[fname].sha256}
-    local = svc.arts.local_file(okey, fname)
+    headers = {**(headers or {}), "ETag": f'"{sha256}"', "X-Checksum-SHA256": sha256}
+    local = arts.local_file(okey, fname)
     if local is not None:
-        byte_range(request.headers.get("range"), m.files[fname].size)  # a range outside: the documented JSON 416
+        byte_range(request.headers.get("range"), size)  # a range outside: the documented JSON 416
         return FileResponse(local, media_type=media, headers=headers, filename=Path(fname).name)
-    size = m.files[fname].size
     headers["Accept-Ranges"] = "bytes"
     span = byte_range(request.headers.get("range"), size)
     if span is not None:
         start, end = span
         headers.update({"Content-Range": f"bytes {start}-{end}/{size}", "Content-Length": str(end - start + 1)})
-        return StreamingResponse(svc.arts.iter_range(okey, fname, start, end - start + 1), status_code=206,
+        return StreamingResponse(arts.iter_range(okey, fname, start, end - start + 1), status_code=206,
                                  media_type=media, headers=headers)  # fmt: skip
     headers["Content-Length"] = str(size)
-    return StreamingResponse(svc.arts.iter_bytes(okey, fname), media_type=media, headers=headers)
+    return StreamingResponse(arts.iter_bytes(okey, fname), media_type=media, headers=headers)

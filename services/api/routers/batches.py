@@ -31,7 +31,7 @@ from services.api.routers.jobs import rerun, rerun_plan
 from services.api.schema import batch_body
 from shared.service.jobs import JobState
 from shared.service.jobstore import ApiKey, Batch, Job
-from shared.service.report import CaptureRow, report_csv, report_rows
+from shared.service.report import QA_REPORT, CaptureRow, report_csv, report_rows, scene_url
 from shared.service.rerenders import epoch_now, request_rerender
 
 router = APIRouter(tags=["batches"])
@@ -95,9 +95,13 @@ def batch_jobs(svc: Service, key: ApiKey, b: Batch) -> list[Job]:
     return svc.store.list_jobs(key.id, batch_id=b.id, limit=MAX_REPORT_ROWS)[0]
 
 
+def _base(request: Request) -> str:
+    return str(request.base_url).rstrip("/")
+
+
 def _link(request: Request, row: CaptureRow, name: str) -> str:
     assert row.job is not None  # a rejected file publishes nothing
-    return f"{str(request.base_url).rstrip('/')}{artifact_url(row.job, name)}"
+    return f"{_base(request)}{artifact_url(row.job, name)}"
 
 
 @router.get("/v1/batches/{batch_id}/report.json", response_model=BatchReport, responses=errors(401, 404, 422))
@@ -106,7 +110,9 @@ def batch_report_json(batch_id: str, key: Key, svc: Svc, request: Request) -> Ba
     b = batch_by_ref(svc, batch_id, key)
     rows = [
         ReportRow(capture=r.capture, job=r.job, state=r.state, points=r.points, error=r.error, verdict=r.verdict,
-                  artifacts=[ArtifactLink(name=a, url=_link(request, r, a)) for a in r.artifacts])  # fmt: skip
+                  artifacts=[ArtifactLink(name=a, url=_link(request, r, a)) for a in r.artifacts],
+                  scene=scene_url(r, _base(request)),
+                  qa_report=_link(request, r, QA_REPORT) if r.published else None)  # fmt: skip
         for r in report_rows(batch_jobs(svc, key, b), b.rejects)
     ]
     return BatchReport(batch=batch_out(b, jobs_total=b.job_count), rows=rows)
@@ -114,12 +120,14 @@ def batch_report_json(batch_id: str, key: Key, svc: Svc, request: Request) -> Ba
 
 @router.get("/v1/batches/{batch_id}/report.csv", response_class=Response,
             responses={200: {"content": {"text/csv": {"schema": {"type": "string"}}},
-                             "description": "columns capture, job, state, points, error, artifacts (space-separated URLs)"},
+                             "description": "columns capture, job, state, points, error, artifacts (space-separated URLs), "
+                                            "verdict, scene (the URL giving its Voyager link), qa_report"},
                        **errors(401, 404, 422)})  # fmt: skip
 def batch_report_csv(batch_id: str, key: Key, svc: Svc, request: Request) -> Response:
     """The batch's report as CSV (UTF-8, a header row, one row per file sent, rejected ones too)."""
     b = batch_by_ref(svc, batch_id, key)
-    text = report_csv(report_rows(batch_jobs(svc, key, b), b.rejects), lambda r, a: _link(request, r, a))
+    text = report_csv(report_rows(batch_jobs(svc, key, b), b.rejects), lambda r, a: _link(request, r, a),
+                      _base(request))
     filename = f"batch-{b.id}.csv"
     return Response(text, media_type="text/csv; charset=utf-8",
                     headers={"Content-Disposition": f'attachment; filename="{filename}"'})  # fmt: skip
