@@ -29,9 +29,10 @@ import numpy as np
 from shared.core.files import write_json_atomic
 from shared.formats.scanset import ScanSet, load_scanset
 from shared.merge.fusion import FusedCloud, FusionParams, fuse_views, write_fused
+from shared.merge.isolate import IsolationParams, isolate_object
 from shared.merge.meshing import MeshParams, reconstruct_mesh, simplify_lods, write_mesh
 from shared.merge.registration import Registration, RegistrationParams, register_views
-from shared.merge.views import ViewCloud, crop_to_roi, load_views
+from shared.merge.views import ViewCloud, load_views
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +97,7 @@ def merge_views(
     registration: RegistrationParams | None = None,
     fusion: FusionParams | None = None,
     meshing: MeshParams | None = None,
+    isolation: IsolationParams | None = None,
     progress: Callable[[float], None] | None = None,
     timings: dict[str, float] | None = None,
     registered: Registration | None = None,
@@ -111,14 +113,15 @@ def merge_views(
     out_dir = Path(out_dir)
     names = [v.name for v in scanset.views]
     t0 = time.perf_counter()
-    cropped = [crop_to_roi(v, scanset.roi) for v in views]
-    reg = registered or register_views(registration_views(cropped, registration), hints=hints_mm(scanset),
+    iso = isolate_object(views, scanset, isolation)
+    t_iso = time.perf_counter()
+    reg = registered or register_views(registration_views(iso.registration, registration), hints=hints_mm(scanset),
                                        turntable_deg=scanset.turntable_deg, params=registration,
                                        drop_unregistered=drop_unregistered, names=names,
                                        progress=lambda f: report_progress(0.55 * f))
     t_reg = time.perf_counter()
     kept = [i for i in range(len(views)) if i not in reg.dropped]
-    fused = fuse_views([cropped[i] for i in kept], reg.poses[kept], fusion)
+    fused = fuse_views([iso.fusion[i] for i in kept], reg.poses[kept], fusion)
     t_fuse = time.perf_counter()
     report_progress(0.65)
     mesh, mesh_stats = reconstruct_mesh(fused.xyz, fused.normals, fused.rgb, fused.size, meshing)
@@ -126,7 +129,7 @@ def merge_views(
     report_progress(0.85)
     lods = simplify_lods(mesh, (meshing or MeshParams()).lods)
     t_lod = time.perf_counter()
-    seconds.update({"register": round(t_reg - t0, 3), "fuse": round(t_fuse - t_reg, 3),
+    seconds.update({"isolate": round(t_iso - t0, 3), "register": round(t_reg - t_iso, 3), "fuse": round(t_fuse - t_reg, 3),
                     "mesh": round(t_mesh - t_fuse, 3), "lods": round(t_lod - t_mesh, 3)})
     out_dir.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".merge-staging-", dir=out_dir))
