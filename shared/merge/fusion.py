@@ -30,6 +30,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from shared.core.errors import InputError
 from shared.core.threads import cpu_budget
@@ -56,13 +57,15 @@ class FusionParams:
     min_view_cos : captured samples seen more obliquely than this (cosine of the angle between the
     normal and the ray) are dropped: grazing samples carry most of a scan's error, and in a scan set
     another view sees the same surface head-on (measured on the virtual rig: dropping those below
-    0.35 halves the merged RMS error)."""
+    0.35 halves the merged RMS error). max_size_factor : no merged point's size exceeds this many
+    median sizes, nor what the distance to its neighbours supports (beyond twice the median)."""
 
     cell_factor: float = 1.0
     free_space_tolerance: float = 6.0
     free_space_mm: float = 0.5
     min_confidence: float = 0.02
     min_view_cos: float = 0.35
+    max_size_factor: float = 4.0
 
 
 @dataclass
@@ -217,15 +220,36 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
     out_count = np.empty(C, np.int64)
     grid_reduce(order, starts, xyz, normals, rgb, c, view, out_xyz, out_n, out_rgb, out_conf, out_view, out_count)
     out_size = (np.float32(s0) * np.exp2(level[first]).astype(np.float32))
+    capped = _cap_sizes(out_xyz, out_size, params.max_size_factor)
     stats = {"samples": n_in, "free_space_violations": n_free,
              "oblique": n_oblique,
              "low_confidence": max(0, int(n_in - n_free - n_oblique - n)),
-             "merged_points": int(C), "size_classes": int(len(np.unique(level[first]))),
+             "merged_points": int(C), "sizes_capped": capped, "size_classes": int(len(np.unique(level[first]))),
              "points_from_several_views": int(np.count_nonzero(out_count > 1))}
     log.info("fused %d samples into %d points (%d free-space violations)", n_in, C, n_free)
     return FusedCloud(xyz=out_xyz.astype(np.float32), rgb=out_rgb.astype(np.uint8), normals=out_n.astype(np.float32),
                       size=out_size, view=out_view.astype(np.uint16), confidence=out_conf.astype(np.float32),
                       views_per_point=np.minimum(out_count, 255).astype(np.uint8), stats=stats)
+
+
+def _cap_sizes(xyz: np.ndarray, size: np.ndarray, factor: float) -> int:
+    """Shrink, in place, the sizes (C,) of merged points (C, 3) mm that their neighbourhood does not
+    support: a point larger than twice the median size gets the mean distance to its 4 nearest merged
+    points, clipped to [2, ``factor``] median sizes (an isolated sample of a sparse scan kept its own
+    huge spacing: on the real dragon sizes up to 37.3 mm against a median 0.58 mm). Returns how many
+    were shrunk."""
+    if len(size) < 8:
+        return 0
+    med = float(np.median(size))
+    big = np.flatnonzero(size > 2.0 * med)
+    if not len(big):
+        return 0
+    d, _ = cKDTree(xyz).query(xyz[big], k=5, workers=cpu_budget())
+    support = np.clip(d[:, 1:].mean(axis=1), 2.0 * med, factor * med).astype(np.float32)
+    new = np.minimum(size[big], support)
+    changed = int(np.count_nonzero(new < size[big]))
+    size[big] = new
+    return changed
 
 
 def write_fused(path: str | os.PathLike[str], cloud: FusedCloud, comments: tuple[str, ...] = ()) -> Path:

@@ -242,7 +242,8 @@ def _clusters(xyz: np.ndarray, step: float) -> tuple[np.ndarray, np.ndarray]:
 def _sphere(xyz: np.ndarray, margin: float) -> Roi:
     lo, hi = np.percentile(xyz, 0.1, axis=0), np.percentile(xyz, 99.9, axis=0)
     centre = 0.5 * (lo + hi)
-    radius = float(np.max(np.linalg.norm(xyz - centre, axis=1))) + margin
+    # A few stray samples (mixed pixels at the silhouette) must not inflate the sphere.
+    radius = float(np.percentile(np.linalg.norm(xyz - centre, axis=1), 99.9)) + margin
     return Roi(center=centre, radius=radius)
 
 
