@@ -300,8 +300,12 @@ def register_checked(register: Callable[[list[int]], Registration], views: Seque
             return reg, checks
         if not drop_unregistered:
             raise InputError(*checks.message(names))
-        bad = [v for v in checks.failed_views if v in active]
+        # A loop that does not close names no view to leave out: it stays an error.
+        droppable = [v for vs, m in checks.failures if "does not close" not in m for v in vs]
+        bad = sorted({v for v in droppable if v in active} | {v for v in reg.dropped if v in active})
         left = [v for v in active if v not in bad]
+        if len(droppable) < sum(len(vs) for vs, _ in checks.failures):
+            raise InputError(*checks.message(names))
         if not bad or len(left) < 2:
             raise InputError(*checks.message(names))
         log.warning("left out views that fail the registration's checks: %s (%s)", ", ".join(names[v] for v in bad),

@@ -65,8 +65,8 @@ class IsolationParams:
     support_tolerance : samples within this many sample sizes of the support plane (or below it)
         belong to the support.
     cluster_step : the object's samples are connected on a grid of this many sample sizes.
-    min_object_share : the samples that move must be at least this share of the set's, else the
-        set is all backdrop.
+    min_object_share : the object (what moves, above the support) must hold at least this share of
+        the set's samples, else the set is all backdrop.
     keep_support : keep the plate's disc in the fused cloud (never in the registration).
     """
 
@@ -75,7 +75,7 @@ class IsolationParams:
     fill_fraction: float = 0.03
     support_tolerance: float = 1.5
     cluster_step: float = 3.0
-    min_object_share: float = 0.002
+    min_object_share: float = 0.01
     keep_support: bool = False
 
 
@@ -306,8 +306,12 @@ def isolate_object(views: Sequence[ViewCloud], scanset: ScanSet,
             idx = np.flatnonzero(region)
             region[idx[~keep]] = False
         disc = _disc(near_xyz, n, d, tol, pooled[region])
-    if region.sum() < 200:
-        raise InputError("views", "no object is left above the support plane: all backdrop and turntable?")
+    if region.sum() < max(200, params.min_object_share * total):
+        raise InputError("views", f"every view shows only geometry that does not turn ({100.0 * n_static / total:.1f} % "
+                                  f"of the samples static, {100.0 * support_removed / total:.1f} % support; what moves "
+                                  f"and stands on it, {100.0 * region.sum() / total:.2f} %, is under the "
+                                  f"{100 * params.min_object_share:g} % an object needs): all backdrop, no object on "
+                                  "the turntable?")
     if roi is None:
         roi = _sphere(pooled[region], 2.0 * params.cluster_step * size)
     reg_views, fus_views, per_view = [], [], []
