@@ -4,7 +4,8 @@
 [--colour] [--bits 16] [--no-rows] [--no-inverses] [--force]`` writes a ``graycode-v1`` capture folder with
 ``rig.json`` and ``truth.npz`` (see :mod:`shared.sim.simulate`). With ``--views N [--turntable | --orbit]``
 it writes a ``graylight-scanset-v1`` scan set of N captures with every view's true pose
-(:mod:`shared.sim.scanset`).
+(:mod:`shared.sim.scanset`): a turntable set sees what a real one does (backdrop, table, the
+turntable's base and plate) and has no ``roi`` unless ``--roi`` asks for the crop.
 """
 
 from __future__ import annotations
@@ -15,6 +16,7 @@ import time
 from pathlib import Path
 
 from services.cli.args import parse_size
+from shared.core.errors import InputError
 
 log = logging.getLogger(__name__)
 
@@ -55,6 +57,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
                         help="the object turns on a turntable before a fixed rig (default with --views)")
     motion.add_argument("--orbit", dest="motion", action="store_const", const="orbit",
                         help="the rig moves around the object")
+    p.add_argument("--roi", action="store_true",
+                   help="scan sets: also write the roi sphere that crops every view to the object (a real capture has none)")
     p.set_defaults(func=run)
 
 
@@ -65,13 +69,17 @@ def run(args: argparse.Namespace) -> int:
     projector = parse_size(args.projector, "--projector", lo=2)
     imaging = ImagingParams(colour=args.colour, bits=args.bits, rows=not args.no_rows, inverses=not args.no_inverses)
     t0 = time.perf_counter()
+    if args.roi and args.views == 1 and not args.motion:
+        raise InputError("--roi", "only a scan set (--views N) has a region of interest")
     if args.views != 1 or args.motion:
         from shared.sim.scanset import simulate_scanset
 
         path = simulate_scanset(args.scene, args.out, views=args.views, mode=args.motion or "turntable", size=size,
-                                projector=projector, seed=args.seed, imaging=imaging, overwrite=args.force)
+                                projector=projector, seed=args.seed, imaging=imaging, overwrite=args.force,
+                                roi=args.roi)
         print(f"{path}: scene {args.scene}, {args.views} views ({args.motion or 'turntable'}), camera "
-              f"{size[0]}x{size[1]}, projector {projector[0]}x{projector[1]}, truth.npz with the true poses")
+              f"{size[0]}x{size[1]}, projector {projector[0]}x{projector[1]}, truth.npz with the true poses"
+              f"{', roi written' if args.roi else ''}")
         return 0
     capture = simulate_named(args.scene, args.out, size=size, projector=projector, seed=args.seed,
                              imaging=imaging, overwrite=args.force)

@@ -10,14 +10,22 @@ folder (:mod:`shared.formats.scanset`): ``scanset.json``, a shared ``rig.json``,
 - ``angles_deg`` (V,): the true rotation of every view about it;
 - ``mesh_vertices`` (M, 3) float64 mm and ``mesh_faces`` (F, 3) int32: the object's true surface in
   view 0's frame (the turntable plate is not part of it; ``surface`` index 0 in the views' truth
-  files is the object).
+  files is the object, 1 the plate).
 
-Modes. ``turntable``: the object stands on a turntable plate (a low cylinder) and turns with it by
-``360 / N`` degrees per view; the rig, the floor and the back wall stay put, as on a real table,
-so the scan set gets an ``"roi"`` sphere about the axis that holds the object (and the angles in
-``"turntable"``). ``orbit``: the rig moves around the object on a circle (the object, plate and
-floor turn together in the camera frame, the wall is left out because the rig passes behind it);
-no angles are written, the views have to register from their overlap.
+Each view's own ``truth.npz`` (:mod:`shared.sim.simulate`) labels every pixel (``labels``, int8,
+codes of :mod:`shared.sim.scenes`): -1 nothing, 0 object, 1 plate, 2 support (the table top),
+3 the turntable's base, 4 the backdrop.
+
+Modes. ``turntable`` (what a real turntable rig sees): the object stands where the single-view
+scene frames it, on a plain plate (``PLATE_THICKNESS`` mm, light grey, round: it turns with the
+object by ``360 / N`` degrees per view yet looks static) on the turntable's static base
+(``BASE_HEIGHT`` mm, dark, ``BASE_MARGIN`` mm wider than the plate) on a laminate table top, before
+a cloth backdrop ``BACKDROP_DISTANCE`` mm behind the axis; the rig, table, base and backdrop stay
+put and fill most of the image. The set carries the angles in ``"turntable"`` and, only with
+``roi=True`` (``--roi``), an ``"roi"`` sphere about the axis that holds the object: a real capture
+has no such crop. ``orbit``: the rig moves around the object on a circle (the object, a textured
+plate and the floor turn together in the camera frame, the wall is left out because the rig
+passes behind it); no angles are written, the views have to register from their overlap.
 """
 
 from __future__ import annotations
@@ -29,13 +37,25 @@ import tempfile
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from shared.core.errors import InputError
 from shared.formats.mesh import TriangleMesh
 from shared.formats.rig import save_rig
 from shared.formats.scanset import SCANSET_FILE, Roi, scanset_doc, write_scanset
-from shared.sim.scenes import Material, MeshObject, Scene, TexturedPlane, build_scene, rotation_about
+from shared.sim.scenes import (
+    LABEL_BACKDROP,
+    LABEL_BASE,
+    LABEL_PLATE,
+    LABEL_SUPPORT,
+    Material,
+    MeshObject,
+    Scene,
+    TexturedPlane,
+    build_scene,
+    rotation_about,
+)
 from shared.sim.simulate import ImagingParams, make_rig, simulate_capture
 
 log = logging.getLogger(__name__)
@@ -44,8 +64,14 @@ __all__ = ["MODES", "ScanSetTruth", "load_scanset_truth", "simulate_scanset", "t
 
 MODES = ("turntable", "orbit")
 TRUTH_FILE = "truth.npz"
-#: Height of the turntable plate the object stands on, mm.
-PLATE_HEIGHT = 25.0
+#: An orbit set's plate (the object stands on it; the whole stage turns in the camera frame), mm.
+ORBIT_PLATE_HEIGHT = 25.0
+#: A turntable set's plate: thickness; the static base under it: height and how far it reaches
+#: beyond the plate; the backdrop's distance behind the axis (mm).
+PLATE_THICKNESS = 12.0
+BASE_HEIGHT = 30.0
+BASE_MARGIN = 15.0
+BACKDROP_DISTANCE = 400.0
 
 
 class ScanSetTruth:
@@ -98,18 +124,80 @@ def _move(surface, G: np.ndarray):
     R, t = G[:3, :3], G[:3, 3]
     if isinstance(surface, MeshObject):
         return MeshObject(mesh=surface.mesh, R=R @ surface.R, t=R @ surface.t + t, scale=surface.scale,
-                          material=surface.material, seed=surface.seed)
+                          material=surface.material, seed=surface.seed, label=surface.label)
     if isinstance(surface, TexturedPlane):
         return replace(surface, R=R @ surface.R, t=R @ surface.t + t)
     raise InputError("scene", f"cannot move a {type(surface).__name__} surface")
+
+
+def _turntable_textures(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Albedo images of the table top (a fine-grained laminate) and the backdrop (a mottled cloth)."""
+    rng = np.random.default_rng(seed)
+    # Table: wood-like laminate, grain along the plate's x axis, 2 mm texels.
+    grain = cv2.GaussianBlur(rng.random((750, 700)).astype(np.float32), (0, 0), sigmaX=12.0, sigmaY=0.8)
+    grain = (grain - grain.min()) / max(float(np.ptp(grain)), 1e-6)
+    table = np.stack([0.50 + 0.16 * grain, 0.36 + 0.12 * grain, 0.24 + 0.08 * grain], axis=-1)
+    # Backdrop: grey-blue cloth with soft blotches, 4 mm texels.
+    blot = cv2.GaussianBlur(rng.random((260, 360)).astype(np.float32), (0, 0), 6.0)
+    blot = (blot - blot.min()) / max(float(np.ptp(blot)), 1e-6)
+    weave = rng.random((260, 360)).astype(np.float32)
+    cloth = (0.85 + 0.25 * blot + 0.05 * weave)[:, :, None] * np.array([0.36, 0.40, 0.46], np.float32)
+    return np.clip(table, 0, 1).astype(np.float32), np.clip(cloth, 0, 1).astype(np.float32)
+
+
+def _turntable_stage(obj: MeshObject, point: np.ndarray, up: np.ndarray, e1: np.ndarray, e2: np.ndarray,
+                     views: int, seed: int) -> tuple[MeshObject, list]:
+    """The turntable's plate (moving) and the static stage around it, in view 0's camera frame.
+
+    ``point`` is the axis's point on the plate's top (where the object stands), ``up`` the axis,
+    ``e1`` and ``e2`` the horizontal directions (world X, and world Z towards the camera). Returns the
+    plate and the static surfaces: the turntable's base, the table top and the backdrop
+    ``BACKDROP_DISTANCE`` mm behind the axis.
+    """
+    v = obj.placed.vertices
+    rel = v - point
+    radial = float(np.max(np.linalg.norm(rel - np.outer(rel @ up, up), axis=1)))
+    plate_r = max(1.1 * radial, 80.0)
+    # A facet count that is a multiple of the views: every turn maps the plate's facets onto
+    # themselves, so the plate is exactly static in the images, as a round plate is.
+    segments = views * int(np.ceil(192 / views))
+    Ru = np.column_stack([e1, up, np.cross(e1, up)])  # cylinder frame: y = up
+    plate = MeshObject(mesh=_cylinder(plate_r, PLATE_THICKNESS, segments), R=Ru, t=point - up * PLATE_THICKNESS,
+                       material=Material(albedo=(0.62, 0.62, 0.60)), seed=seed + 7, label=LABEL_PLATE)
+    table_level = point - up * (PLATE_THICKNESS + BASE_HEIGHT)
+    base = MeshObject(mesh=_cylinder(plate_r + BASE_MARGIN, BASE_HEIGHT, segments), R=Ru, t=table_level,
+                      material=Material(albedo=(0.09, 0.09, 0.10), specular=0.3, shininess=30.0), seed=seed + 8,
+                      label=LABEL_BASE)
+    tex_table, tex_cloth = _turntable_textures(seed + 11)
+    width = 1400.0
+    # Table top: from the backdrop towards the camera, x along e1, y along e2 (towards the camera).
+    Rt = np.column_stack([e1, e2, np.cross(e1, e2)])
+    table = TexturedPlane(Rt, table_level - e1 * width / 2 - e2 * BACKDROP_DISTANCE, tex_table, 1500.0 / 750,
+                          label=LABEL_SUPPORT)
+    # Backdrop: vertical, facing the camera, from below the table top (hidden behind it) upwards.
+    Rb = np.column_stack([e1, -up, np.cross(e1, -up)])
+    top = table_level + up * 990.0
+    backdrop = TexturedPlane(Rb, top - e1 * width / 2 - e2 * BACKDROP_DISTANCE, tex_cloth, 1040.0 / 260,
+                             label=LABEL_BACKDROP)
+    return plate, [base, table, backdrop]
+
+
+def _roi_about_axis(vertices: np.ndarray, point: np.ndarray, up: np.ndarray) -> Roi:
+    """The smallest sphere centred on the axis holding every vertex (4 % margin)."""
+    h = (vertices - point) @ up
+    cand = np.linspace(float(h.min()), float(h.max()), 201)
+    radii = [float(np.max(np.linalg.norm(vertices - (point + up * c), axis=1))) for c in cand]
+    k = int(np.argmin(radii))
+    return Roi(center=point + up * cand[k], radius=1.04 * radii[k])
 
 
 def turntable_scenes(scene: str, views: int, mode: str = "turntable", seed: int = 0
                      ) -> tuple[list[Scene], np.ndarray, np.ndarray, np.ndarray, Roi, TriangleMesh]:
     """The N scenes of a turntable or orbit scan set of a mesh scene.
 
-    Returns the scenes (camera frame of each view), the true poses (V, 4, 4), the axis direction
-    and a point on it (view 0's frame, mm), the region of interest and the object's placed mesh.
+    Returns the scenes (camera frame of each view; surface 0 is the object, 1 the plate), the true
+    poses (V, 4, 4), the axis direction and a point on it (view 0's frame, mm), the region of
+    interest and the object's placed mesh.
     """
     if mode not in MODES:
         raise InputError("mode", f"must be one of {', '.join(MODES)}, got {mode!r}")
@@ -129,31 +217,44 @@ def turntable_scenes(scene: str, views: int, mode: str = "turntable", seed: int 
     foot = e1 * 0.5 * (c1.min() + c1.max()) + e2 * 0.5 * (c2.min() + c2.max())
     base_h = float(ch.min())
     point = foot + up * (base_h - float(np.dot(foot, up)))  # on the floor, under the object's centre
-    # Raise the object onto the plate.
-    raised = MeshObject(mesh=obj.mesh, R=obj.R, t=obj.t + up * PLATE_HEIGHT, scale=obj.scale, material=obj.material,
-                        seed=obj.seed)
-    height = float(ch.max() - ch.min())
-    centre = point + up * (PLATE_HEIGHT + 0.5 * height)
-    radius = float(np.max(np.linalg.norm(raised.placed.vertices - centre, axis=1))) * 1.04
-    foot_r = float(np.max(np.linalg.norm((v - point) - np.outer((v - point) @ up, up), axis=1)))
-    reach = np.sqrt(max(radius**2 - (PLATE_HEIGHT + 0.5 * height) ** 2, 0.0))
-    plate_r = max(1.08 * foot_r, reach + 5.0)
-    # Plate: cylinder in a frame with y = up, standing on the floor at the axis.
-    Rp = np.column_stack([e1, up, np.cross(e1, up)])
-    plate = MeshObject(mesh=_cylinder(plate_r, PLATE_HEIGHT), R=Rp, t=point, material=Material(
-        albedo=(0.42, 0.40, 0.38), variation=0.35, wavelength=25.0), seed=seed + 7)
-    background = [s for s in base.surfaces[1:] if mode == "turntable" or s is floor]
     angles = np.arange(views) * 360.0 / views
+    if mode == "turntable":
+        # The object stays where the single-view scene frames it; the plate's top is the old floor.
+        placed = obj
+        plate, static = _turntable_stage(obj, point, up, e1, e2, views, seed)
+        roi = _roi_about_axis(v, point, up)
+    else:
+        placed, plate, static, roi = _orbit_stage(obj, floor, point, up, e1)
     scenes = []
     poses = []
     for a in angles:
         G = _rigid(rotation_about(up, float(a)), point - rotation_about(up, float(a)) @ point)
-        moving = [_move(raised, G), _move(plate, G)]
-        rest = background if mode == "turntable" else [_move(s, G) for s in background]
+        moving = [_move(placed, G), _move(plate, G)]
+        rest = static if mode == "turntable" else [_move(s, G) for s in static]
         scenes.append(Scene(name=f"{base.name}-{mode}-{a:.1f}", surfaces=[*moving, *rest],
                             description=f"{base.description}; {mode} view at {a:.2f} degrees"))
         poses.append(np.linalg.inv(G))
-    return scenes, np.stack(poses), up, point, Roi(center=centre, radius=radius), raised.placed
+    return scenes, np.stack(poses), up, point, roi, placed.placed
+
+
+def _orbit_stage(obj: MeshObject, floor: TexturedPlane, point: np.ndarray, up: np.ndarray, e1: np.ndarray
+                 ) -> tuple[MeshObject, MeshObject, list, Roi]:
+    """An orbit set's object raised onto a textured plate on the floor (all turn together in the
+    camera frame; the wall is left out because the rig passes behind it), and its region of interest."""
+    raised = MeshObject(mesh=obj.mesh, R=obj.R, t=obj.t + up * ORBIT_PLATE_HEIGHT, scale=obj.scale,
+                        material=obj.material, seed=obj.seed)
+    v = obj.placed.vertices
+    ch = v @ up
+    height = float(ch.max() - ch.min())
+    centre = point + up * (ORBIT_PLATE_HEIGHT + 0.5 * height)
+    radius = float(np.max(np.linalg.norm(raised.placed.vertices - centre, axis=1))) * 1.04
+    foot_r = float(np.max(np.linalg.norm((v - point) - np.outer((v - point) @ up, up), axis=1)))
+    reach = np.sqrt(max(radius**2 - (ORBIT_PLATE_HEIGHT + 0.5 * height) ** 2, 0.0))
+    plate_r = max(1.08 * foot_r, reach + 5.0)
+    Rp = np.column_stack([e1, up, np.cross(e1, up)])
+    plate = MeshObject(mesh=_cylinder(plate_r, ORBIT_PLATE_HEIGHT), R=Rp, t=point, material=Material(
+        albedo=(0.42, 0.40, 0.38), variation=0.35, wavelength=25.0), seed=obj.seed + 7, label=LABEL_PLATE)
+    return raised, plate, [floor], Roi(center=centre, radius=radius)
 
 
 def simulate_scanset(
@@ -167,8 +268,12 @@ def simulate_scanset(
     seed: int = 0,
     imaging: ImagingParams | None = None,
     overwrite: bool = False,
+    roi: bool = False,
 ) -> Path:
     """Render a turntable or orbit scan set of a mesh scene into ``out_dir`` (see the module docstring).
+
+    ``roi``: also write the scan set's ``roi`` sphere that crops every view to the object (a real
+    capture has none; it is for tests and comparisons of the crop).
 
     Assembled under a temporary name beside ``out_dir`` and renamed when complete. Returns the
     path of ``scanset.json``.
@@ -179,7 +284,7 @@ def simulate_scanset(
             raise InputError(out, "output folder exists and is not empty")
         if not (out / SCANSET_FILE).is_file():
             raise InputError(out, "output folder exists and does not hold a scan set; refusing to replace it")
-    scenes, poses, up, point, roi, mesh = turntable_scenes(scene, views, mode, seed)
+    scenes, poses, up, point, sphere, mesh = turntable_scenes(scene, views, mode, seed)
     rig = make_rig(camera_size=size, projector_size=projector, seed=seed)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
@@ -196,8 +301,9 @@ def simulate_scanset(
         np.savez(tmp / TRUTH_FILE, poses=poses, axis_direction=up, axis_point=point, angles_deg=angles,
                  mesh_vertices=mesh.vertices, mesh_faces=mesh.faces)
         doc = scanset_doc(entries, rig="rig.json", turntable_deg=list(angles) if mode == "turntable" else None,
-                          roi=roi, extra={"simulated": {"scene": scene, "mode": mode, "views": views, "seed": seed,
-                                                        "truth": TRUTH_FILE}})
+                          roi=sphere if roi else None,
+                          extra={"simulated": {"scene": scene, "mode": mode, "views": views, "seed": seed,
+                                               "truth": TRUTH_FILE}})
         write_scanset(tmp, doc)
         if out.exists():
             shutil.rmtree(out) if out.is_dir() else out.unlink()

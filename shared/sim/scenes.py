@@ -9,7 +9,15 @@ camera at the origin). A :class:`Scene` is a list of surfaces:
 - :class:`MeshObject` — a triangle mesh (e.g. from an OBJ file) placed in the camera frame.
 
 Each surface has a :class:`Material`: RGB albedo (0..1), optional procedural variation, a
-Phong specular lobe, and whether it takes part in one-bounce inter-reflection.
+Phong specular lobe, and whether it takes part in one-bounce inter-reflection; and a ``label``,
+what the surface is in a scan (the per-pixel ``labels`` of the truth, int8):
+
+- ``LABEL_NONE`` -1: no surface (the ray leaves the scene);
+- ``LABEL_OBJECT`` 0: the object scanned (meshes, spheres, the plane poster, the corner's walls);
+- ``LABEL_PLATE`` 1: the turntable's plate, which turns with the object (plain: it looks static);
+- ``LABEL_SUPPORT`` 2: the table top or floor the object or the turntable stands on (static);
+- ``LABEL_BASE`` 3: the turntable's base under the plate (static);
+- ``LABEL_BACKDROP`` 4: the wall or cloth behind (static).
 
 Named scenes (``SCENES``, built by :func:`build_scene`): ``plane``, ``spheres``, ``corner``,
 ``bunny``, ``teapot``, ``spot``, ``fandisk``. Mesh scenes read ``meshes/*.obj`` under
@@ -28,6 +36,16 @@ from shared.core.datapaths import shared_data_dir
 from shared.core.errors import InputError
 from shared.formats.mesh import TriangleMesh, load_obj
 from shared.sim.raycast import texture_filtered
+
+LABEL_NONE = -1
+LABEL_OBJECT = 0
+LABEL_PLATE = 1
+LABEL_SUPPORT = 2
+LABEL_BASE = 3
+LABEL_BACKDROP = 4
+#: Label code -> name, as documented in the module docstring.
+LABELS: dict[int, str] = {LABEL_NONE: "none", LABEL_OBJECT: "object", LABEL_PLATE: "plate",
+                          LABEL_SUPPORT: "support", LABEL_BASE: "base", LABEL_BACKDROP: "backdrop"}
 
 
 @dataclass(frozen=True)
@@ -117,6 +135,7 @@ class TexturedPlane:
     board_inner_corners: tuple[int, int] | None = None
     board_square: float = 0.0
     board_origin: float = 0.0
+    label: int = LABEL_OBJECT
 
     def __post_init__(self) -> None:
         self.R = np.asarray(self.R, np.float64)
@@ -260,6 +279,7 @@ class Sphere:
     radius: float
     material: Material = field(default_factory=Material)
     seed: int = 0
+    label: int = LABEL_OBJECT
 
     def __post_init__(self) -> None:
         self.center = np.asarray(self.center, np.float64).ravel()
@@ -294,6 +314,7 @@ class MeshObject:
     scale: float = 1.0
     material: Material = field(default_factory=Material)
     seed: int = 0
+    label: int = LABEL_OBJECT
 
     def __post_init__(self) -> None:
         self.R = np.asarray(self.R, np.float64)
@@ -364,8 +385,8 @@ def _floor_and_wall(
     wall_origin = np.array([-size / 2, size * 0.6, wall_z])
     tex_wall = _random_texture(rng, (120, 160))
     return [
-        TexturedPlane(Rwc @ Rf_world, Rwc @ floor_origin + twc, tex_floor, size / 96),
-        TexturedPlane(Rwc @ Rw_world, Rwc @ wall_origin + twc, tex_wall, size / 160),
+        TexturedPlane(Rwc @ Rf_world, Rwc @ floor_origin + twc, tex_floor, size / 96, label=LABEL_SUPPORT),
+        TexturedPlane(Rwc @ Rw_world, Rwc @ wall_origin + twc, tex_wall, size / 160, label=LABEL_BACKDROP),
     ]
 
 

@@ -72,6 +72,7 @@ from shared.sim.raycast import (
     undistort_grid,
 )
 from shared.sim.scenes import (
+    LABEL_NONE,
     SCENES,
     Material,
     MeshObject,
@@ -153,7 +154,10 @@ class ImagingParams:
 
 @dataclass
 class Truth:
-    """Per-camera-pixel ground truth (see the module docstring for meanings and units)."""
+    """Per-camera-pixel ground truth (see the module docstring for meanings and units).
+
+    ``labels``, ``albedo`` and ``irradiance`` are None only in truth files written before they existed.
+    """
 
     depth: np.ndarray  # (H, W) float32
     points: np.ndarray  # (H, W, 3) float32
@@ -162,13 +166,23 @@ class Truth:
     proj_row: np.ndarray  # (H, W) float32
     lit: np.ndarray  # (H, W) bool
     surface: np.ndarray  # (H, W) int16
+    labels: np.ndarray | None = None  # (H, W) int8, LABEL_* codes of shared.sim.scenes
+    albedo: np.ndarray | None = None  # (H, W, 3) float32 linear RGB, NaN where no surface
+    irradiance: np.ndarray | None = None  # (H, W) float32 full-scale fractions per unit albedo
+    response: str = "linear"  # the camera response the images went through (see camera_response)
 
     def save(self, path: str | os.PathLike[str]) -> Path:
         """Write ``truth.npz`` (uncompressed: it is written fast and read with ``np.load``)."""
         p = Path(path)
+        extra = {k: v for k, v in (("labels", self.labels), ("albedo", self.albedo),
+                                   ("irradiance", self.irradiance)) if v is not None}
         np.savez(p, depth=self.depth, points=self.points, normals=self.normals, proj_col=self.proj_col,
-                 proj_row=self.proj_row, lit=self.lit, surface=self.surface)
+                 proj_row=self.proj_row, lit=self.lit, surface=self.surface, response=np.array(self.response),
+                 **extra)
         return p
+
+
+_TRUTH_KEYS = ("depth", "points", "normals", "proj_col", "proj_row", "lit", "surface")
 
 
 def load_truth(path: str | os.PathLike[str]) -> Truth:
@@ -179,7 +193,12 @@ def load_truth(path: str | os.PathLike[str]) -> Truth:
     if not p.is_file():
         raise InputError(p, "ground-truth file not found")
     with np.load(p) as z:
-        return Truth(**{k: z[k] for k in ("depth", "points", "normals", "proj_col", "proj_row", "lit", "surface")})
+        missing = [k for k in _TRUTH_KEYS if k not in z.files]
+        if missing:
+            raise InputError(p, f"not a ground-truth file: no {', '.join(missing)}")
+        extra = {k: z[k] for k in ("labels", "albedo", "irradiance") if k in z.files}
+        response = str(z["response"]) if "response" in z.files else "linear"
+        return Truth(**{k: z[k] for k in _TRUTH_KEYS}, **extra, response=response)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -484,6 +503,7 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
     proj_col = np.full(H * W, np.nan, np.float32)
     proj_row = np.full(H * W, np.nan, np.float32)
     lit = np.zeros(H * W, np.bool_)
+    albedo_map = np.full((H * W, 3), np.nan, np.float32)
     if with_shading:
         A = np.empty((N, nc), np.float32)
         B = np.empty((N, nc), np.float32)
@@ -509,9 +529,10 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
         proj_col[idx] = pt["u"]
         proj_row[idx] = pt["v"]
         lit[idx] = pt["lit"]
+        albedo = _albedo(scene, sv, P, (rx, ry), idx, W)
+        albedo_map[idx] = albedo
         if not with_shading:
             continue
-        albedo = _albedo(scene, sv, P, (rx, ry), idx, W)
         if nc == 1:
             albedo = (albedo @ luma)[:, None]
         if imaging.vignetting:
@@ -527,9 +548,11 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
         if coef is not None:
             coef[sl] = vign[:, None] * albedo
     del t, face, t_flat, face_flat
+    label_of = np.array([s.label for s in scene.surfaces] + [LABEL_NONE], np.int8)  # index -1: no surface
     truth = Truth(
         depth=depth.reshape(H, W), points=points.reshape(H, W, 3), normals=normals.reshape(H, W, 3),
         proj_col=proj_col.reshape(H, W), proj_row=proj_row.reshape(H, W), lit=lit.reshape(H, W), surface=surf,
+        labels=label_of[surf], albedo=albedo_map.reshape(H, W, 3),
     )
     pg = _profiles_geometry(rig)
     if not with_shading:

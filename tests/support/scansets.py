@@ -25,11 +25,13 @@ DRAGON = shared_data_dir() / "stanford-dragon-turntable"
 
 
 def cached_scanset(root: Path, scene: str = "bunny", views: int = 8, mode: str = "turntable",
-                   size: tuple[int, int] = (640, 480), projector: tuple[int, int] = (512, 384), seed: int = 0) -> Path:
-    """The folder of a simulated scan set under ``root`` (rendered on first use)."""
+                   size: tuple[int, int] = (640, 480), projector: tuple[int, int] = (512, 384), seed: int = 0,
+                   roi: bool = False) -> Path:
+    """The folder of a simulated scan set under ``root`` (rendered on first use); ``roi`` writes the
+    crop sphere (a real capture has none)."""
     from shared.sim.scanset import simulate_scanset
 
-    key = json.dumps([scene, views, mode, list(size), list(projector), seed])
+    key = json.dumps([scene, views, mode, list(size), list(projector), seed] + (["roi"] if roi else []))
     folder = root / f"scanset-{scene}-{mode}-{views}-{size[0]}x{size[1]}-{hashlib.sha1(key.encode()).hexdigest()[:8]}"
     root.mkdir(parents=True, exist_ok=True)
     with open(root / f"{folder.name}.lock", "w") as lock:
@@ -37,7 +39,7 @@ def cached_scanset(root: Path, scene: str = "bunny", views: int = 8, mode: str =
         try:
             if not (folder / "scanset.json").is_file():
                 simulate_scanset(scene, folder, views=views, mode=mode, size=size, projector=projector, seed=seed,
-                                 overwrite=True)
+                                 overwrite=True, roi=roi)
         finally:
             fcntl.flock(lock, fcntl.LOCK_UN)
     return folder

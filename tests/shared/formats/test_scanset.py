@@ -15,7 +15,8 @@ from shared.formats.ply import write_ply
 from shared.formats.scanset import load_scanset, scanset_doc, write_scanset
 from tests.support.scansets import cached_scanset
 
-TINY = {"size": (64, 48), "projector": (64, 48), "views": 3}
+# roi: the contract's crop sphere is read here (a simulated set has none by default, as a real capture).
+TINY = {"size": (64, 48), "projector": (64, 48), "views": 3, "roi": True}
 
 
 @pytest.fixture(scope="module")

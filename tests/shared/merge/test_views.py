@@ -20,7 +20,8 @@ from tests.support.scansets import cached_scanset
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return cached_scanset(tmp_path_factory.mktemp("view-sets"), size=(160, 120), projector=(128, 96), views=2)
+    # roi: the crop is tested here (a simulated set has none by default, as a real capture).
+    return cached_scanset(tmp_path_factory.mktemp("view-sets"), size=(160, 120), projector=(128, 96), views=2, roi=True)
 
 
 def test_captured_view_matches_truth_and_stage_outputs(small: Path, tmp_path: Path) -> None:
