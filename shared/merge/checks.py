@@ -292,7 +292,10 @@ def register_checked(register: Callable[[list[int]], Registration], views: Seque
         if later:
             log.warning("left out views identical to an earlier one: %s", ", ".join(names[v] for v in later))
         active = [v for v in active if v not in later]
-    for _attempt in range(3):
+    # One view that does not belong (another object, a wrong angle) can bend its neighbours' fits
+    # enough that they fail the checks too: views are left out one at a time, the worst first, and
+    # the rest registered again, so the consensus of the others decides (at most half the set).
+    for _attempt in range(max(3, V // 2 + 1)):
         reg = registered if registered is not None and len(active) == V else _expand(register(active), active, V)
         checks = check_registration(reg, views, names, turntable=turntable, angles_deg=angles_deg,
                                     identical=identical, params=params)
@@ -302,13 +305,30 @@ def register_checked(register: Callable[[list[int]], Registration], views: Seque
             raise InputError(*checks.message(names))
         # A loop that does not close names no view to leave out: it stays an error.
         droppable = [v for vs, m in checks.failures if "does not close" not in m for v in vs]
-        bad = sorted({v for v in droppable if v in active} | {v for v in reg.dropped if v in active})
-        left = [v for v in active if v not in bad]
         if len(droppable) < sum(len(vs) for vs, _ in checks.failures):
             raise InputError(*checks.message(names))
-        if not bad or len(left) < 2:
+        lost = sorted(v for v in reg.dropped if v in active)
+        worst = _worst_view(checks, [v for v in droppable if v in active], names)
+        bad = sorted(set(lost) | ({worst} if worst is not None else set()))
+        left = [v for v in active if v not in bad]
+        if not bad or len(left) < 2 or len(left) < 0.5 * V:
             raise InputError(*checks.message(names))
         log.warning("left out views that fail the registration's checks: %s (%s)", ", ".join(names[v] for v in bad),
                     checks.message(names)[1])
         active = left
     raise InputError(*checks.message(names))
+
+
+def _worst_view(checks: Checks, flagged: Sequence[int], names: Sequence[str]) -> int | None:
+    """Of the views the failed checks name, the one to leave out first: named by the most checks,
+    then the farthest off the common axis or the given angle."""
+    if not flagged:
+        return None
+    count = {v: flagged.count(v) for v in set(flagged)}
+    off = {}
+    turn = checks.doc.get("turn") or {}
+    by_name = {e["name"]: e for e in turn.get("per_view", [])}
+    for v in count:
+        e = by_name.get(names[v], {})
+        off[v] = float(e.get("axis_misfit_deg", 0.0)) + abs(float(e.get("angle_error_deg", 0.0)))
+    return max(count, key=lambda v: (count[v], off[v], v))

@@ -67,6 +67,9 @@ class IsolationParams:
     cluster_step : the object's samples are connected on a grid of this many sample sizes.
     min_object_share : the object (what moves, above the support) must hold at least this share of
         the set's samples, else the set is all backdrop.
+    foreign_static_ratio : a view whose share of static samples is under this ratio of the other
+        views' median does not share their background (measured: 2 % static for a view of another
+        session's scene among views 71-81 % static); it is left out of the object's search.
     keep_support : keep the plate's disc in the fused cloud (never in the registration).
     """
 
@@ -76,6 +79,7 @@ class IsolationParams:
     support_tolerance: float = 1.5
     cluster_step: float = 3.0
     min_object_share: float = 0.01
+    foreign_static_ratio: float = 0.5
     keep_support: bool = False
 
 
@@ -264,7 +268,13 @@ def isolate_object(views: Sequence[ViewCloud], scanset: ScanSet,
     size = float(np.median(np.concatenate([v.size[:: max(1, len(v) // 20000)] for v in views])))
     total = int(sum(len(v) for v in views))
     n_static = int(sum(int(m.sum()) for m in static))
-    moving = [np.flatnonzero(~m) for m in static]
+    foreign = _foreign_backgrounds(static, params)
+    if foreign:
+        log.warning("views whose background differs from the rest's (not this rig's scene?): %s; their samples are "
+                    "cropped to the object found in the others", ", ".join(names[i] for i in foreign))
+    # A view whose background is not the others' looks all moving: left out of the object's search
+    # (its backdrop would join the object's cluster), cropped to the object found in the others below.
+    moving = [np.zeros(0, np.int64) if i in foreign else np.flatnonzero(~m) for i, m in enumerate(static)]
     pooled = np.concatenate([v.xyz[k] for v, k in zip(views, moving, strict=True)])
     owner = np.concatenate([np.full(len(k), i, np.int32) for i, k in enumerate(moving)])
     if len(pooled) < params.min_object_share * total or len(pooled) < 200:
@@ -318,6 +328,12 @@ def isolate_object(views: Sequence[ViewCloud], scanset: ScanSet,
     starts = np.concatenate([[0], np.cumsum([len(k) for k in moving])])
     for i, v in enumerate(views):
         keep = moving[i][region[starts[i]:starts[i + 1]]]
+        if i in foreign:
+            d = v.xyz - roi.center
+            inside = ~static[i] & (np.einsum("ij,ij->i", d, d) <= roi.radius**2)
+            if plane is not None:
+                inside &= v.xyz @ plane[0] + plane[1] > tol
+            keep = np.flatnonzero(inside)
         obj = v.subset(keep)
         reg_views.append(obj)
         sup = np.zeros(0, np.int64)
@@ -340,11 +356,27 @@ def isolate_object(views: Sequence[ViewCloud], scanset: ScanSet,
             "disc": None if disc is None else {"centre_mm": [round(float(x), 3) for x in disc["centre"]],
                                                "radius_mm": round(float(disc["radius"]), 3)}},
         "object": {**roi.to_json(), "source": source},
+        "foreign_background": [names[i] for i in foreign],
         "per_view": per_view,
     }
     log.info("static removal: %d of %d samples static, %d support, object %d samples in %s (%s)", n_static, total,
              support_removed, int(region.sum()), roi.to_json(), source)
     return Isolation(registration=reg_views, fusion=fus_views, report=report, object_roi=roi)
+
+
+def _foreign_backgrounds(static: Sequence[np.ndarray], params: IsolationParams) -> list[int]:
+    """Views whose share of static samples is under ``foreign_static_ratio`` of the other views'
+    median: their background is not the one the rest share (a capture from another session or rig),
+    so almost all of it looks as if it moved. Needs four views or more (a median of the others)."""
+    share = np.array([float(m.mean()) if len(m) else 0.0 for m in static])
+    if len(share) < 4:
+        return []
+    out = []
+    for i in range(len(share)):
+        others = float(np.median(np.delete(share, i)))
+        if others >= 0.2 and share[i] < params.foreign_static_ratio * others:
+            out.append(i)
+    return out if len(out) < 0.5 * len(share) else []
 
 
 def _object_cluster(label: np.ndarray, sizes: np.ndarray, owner: np.ndarray, n_views: int) -> np.ndarray:
@@ -363,19 +395,44 @@ def _object_cluster(label: np.ndarray, sizes: np.ndarray, owner: np.ndarray, n_v
 
 
 def _disc(static_xyz: np.ndarray, n: np.ndarray, d: float, tol: float, obj: np.ndarray) -> dict[str, Any] | None:
-    """The plate's disc: the support plane's static samples around the object's foot (centre on the
-    plane under the object's centroid, radius where they stop: the first empty ring beyond the fullest)."""
+    """The plate's disc: the support plane's static samples around the object's foot (centre in the
+    middle of those samples, radius where they thin out beyond the fullest ring: :func:`_rim`)."""
     on = static_xyz[np.abs(static_xyz @ n + d) <= tol]
     if len(on) < 50 or not len(obj):
         return None
     c = obj.mean(axis=0)
     centre = c - n * float(c @ n + d)
-    r = np.linalg.norm((on - centre) - np.outer((on - centre) @ n, n), axis=1)
-    # The disc ends at the first empty ring beyond its fullest (the object hides its middle; the
-    # plane's samples further out belong to something else that happens to lie in it).
-    width = max(4.0 * tol, 1e-3)
-    rings = np.bincount(np.minimum((r / width).astype(np.int64), 100000))
-    full = int(np.argmax(rings))
-    empty = np.flatnonzero(rings[full:] == 0)
-    radius = float(width * (full + empty[0])) if len(empty) else float(r.max())
+    radius = _rim(on, n, centre, tol)
+    # The object's centroid is off the axis (it need not stand centred, and is not symmetric): the
+    # disc's centre and radius come from its rim where the camera sees it whole, left and right
+    # (across the line of sight) and the near side (the far side hides behind the object).
+    toward = -(centre - n * float(centre @ n))  # the camera (origin) seen from the centre, in the plane
+    if np.linalg.norm(toward) < 1e-6:
+        return {"normal": n, "offset": d, "centre": centre, "radius": radius}
+    e2 = toward / np.linalg.norm(toward)
+    e1 = np.cross(n, e2)
+    rel = on - centre
+    inside = rel[np.linalg.norm(rel - np.outer(rel @ n, n), axis=1) <= radius]
+    if len(inside) >= 50:
+        lo, hi = np.percentile(inside @ e1, [0.5, 99.5])
+        near = float(np.percentile(inside @ e2, 99.5))
+        half = 0.5 * float(hi - lo)
+        centre = centre + e1 * 0.5 * float(lo + hi) + e2 * (near - half)
+        radius = min(radius, _rim(on, n, centre, tol))
     return {"normal": n, "offset": d, "centre": centre, "radius": radius}
+
+
+def _rim(on: np.ndarray, n: np.ndarray, centre: np.ndarray, tol: float) -> float:
+    """The radius (mm) where the plane's samples ``on`` (N, 3) thin out beyond their fullest ring
+    about ``centre``: the object hides the disc's middle, and past the rim only a few mixed pixels
+    of the silhouette (the rim's depth blended with the table's) and whatever else crosses the plane
+    are left. Checked against the simulator's labels: the first ring under a tenth of the fullest
+    ring's density (samples per unit area) is the rim; an empty ring never came (mixed pixels
+    reached 181 mm on a 146 mm plate)."""
+    r = np.linalg.norm((on - centre) - np.outer((on - centre) @ n, n), axis=1)
+    width = max(4.0 * tol, 1e-3)
+    rings = np.bincount(np.minimum((r / width).astype(np.int64), 100000)).astype(np.float64)
+    density = rings / (np.arange(len(rings)) + 0.5)  # per unit area of each ring
+    full = int(np.argmax(rings))
+    thin = np.flatnonzero(density[full:] < 0.1 * density[full])
+    return float(width * (full + thin[0])) if len(thin) else float(r.max())

@@ -25,13 +25,14 @@ from shared.core.errors import InputError
 from shared.formats.ply import write_ply
 from shared.formats.scanset import load_scanset, scanset_doc, write_scanset
 from shared.merge.fusion import read_fused
-from shared.merge.isolate import isolate_object
+from shared.merge.isolate import IsolationParams, isolate_object
 from shared.merge.pipeline import merge_views
 from shared.merge.registration import pose_error, register_views
 from shared.merge.views import load_views
 from shared.sim.scanset import load_scanset_truth, turntable_scenes
+from shared.sim.scenes import LABEL_OBJECT, LABEL_PLATE, LABEL_SUPPORT
 from shared.sim.simulate import load_truth
-from tests.support.scansets import cached_scanset
+from tests.support.scansets import cached_scanset, merged_label_shares
 
 pytestmark = pytest.mark.slow
 
@@ -51,9 +52,15 @@ def loaded(scanset_dir: Path):
     obj = []
     for spec in ss.views:
         t = load_truth(spec.path)
-        m = (t.surface == 0) & np.isfinite(t.depth)
+        m = (t.labels == LABEL_OBJECT) & np.isfinite(t.depth)
         obj.append(t.points[m].astype(np.float64))
     return ss, views, truth, obj
+
+
+@pytest.fixture(scope="module")
+def labels(loaded) -> list[np.ndarray]:
+    """Each view's (H, W) simulator labels (object, plate, support, base, backdrop)."""
+    return [load_truth(spec.path).labels for spec in loaded[0].views]
 
 
 def _check_poses(reg, truth, obj, max_deg: float, max_mm: float) -> None:
@@ -108,7 +115,7 @@ def _dist_to(mesh: trimesh.Trimesh, pts: np.ndarray, n: int = 20000, seed: int =
     return scene.compute_distance(o3d.core.Tensor(pick.astype(np.float32))).numpy().astype(np.float64)
 
 
-def test_merge_covers_fuses_and_meshes(loaded, tmp_path: Path) -> None:
+def test_merge_covers_fuses_and_meshes(loaded, labels, tmp_path: Path) -> None:
     ss, views, truth, obj = loaded
     out = tmp_path / "out"
     report = merge_views(views, dataclasses.replace(ss, turntable_deg=None), out)  # no roi, no hints
@@ -117,19 +124,18 @@ def test_merge_covers_fuses_and_meshes(loaded, tmp_path: Path) -> None:
         assert (out / name).is_file(), name
     assert sorted(p.name for p in (out / "ranges").iterdir()) == [f"view_{i:02d}.npz" for i in range(8)]
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
-    reg_doc = json.loads((out / "registration.json").read_text())
-    poses = np.stack([np.block([[np.array(v["R"]), np.array(v["T"])[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
-                      for v in reg_doc["views"]])
+    poses = json_poses(out)
     rec = read_fused(out / "merged.ply")
     merged = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
     # The right model: every view where it belongs, and almost nothing but the object in the cloud.
     _check_poses_of(poses, truth, obj, 0.05, 0.15)
-    object_mesh = trimesh.Trimesh(truth.mesh_vertices, truth.mesh_faces, process=False)
-    off_object = float(np.mean(_dist_to(object_mesh, merged, n=40000) > 1.0))
+    # What is object and what is static, by the simulator's per-pixel labels.
+    shares = merged_label_shares(merged, isolate_object(views, ss).fusion, poses, labels)
+    off_object = shares["plate"] + shares["support"] + shares["base"] + shares["backdrop"]
     quality = report["quality"]
-    print(f"merged points off the object (> 1 mm): {100 * off_object:.2f} %; removed {quality['removed']['static']} "
-          f"static samples, object sphere {quality['removed']['object']}")
-    assert off_object <= 0.005
+    print(f"merged points by label: {({k: round(100 * v, 3) for k, v in shares.items()})} %; removed "
+          f"{quality['removed']['static']} static samples, object sphere {quality['removed']['object']}")
+    assert off_object <= 0.005 and shares["object"] >= 0.99
     assert quality["passed"] and quality["removed"]["object"]["source"] == "found"
     assert quality["removed"]["static"] > 0.5 * quality["removed"]["samples"]
     assert [v["flags"] for v in quality["views"]] == [[]] * 8 and quality["loop_closure"]["closes"]
@@ -177,7 +183,8 @@ def test_view_that_overlaps_nothing(loaded, scanset_dir: Path, tmp_path: Path) -
     write_ply(tmp_path / "junk.ply", junk.astype(np.float32))
     doc = scanset_doc([{"capture": str(scanset_dir / "view_00")}, {"capture": str(scanset_dir / "view_01")},
                        {"cloud": "junk.ply", "name": "junk"}], rig=str(scanset_dir / "rig.json"),
-                      roi=load_scanset(scanset_dir).roi)  # a crop: the two real views hold the object only
+                      roi=turntable_scenes(SET["scene"], SET["views"], SET["mode"])[4])  # the simulator's crop:
+    # two captures and a cloud are not one fixed rig, so only a crop leaves the captures the object alone
     write_scanset(tmp_path, doc)
     ss2 = load_scanset(tmp_path)
     three = [views[0], views[1]]
@@ -204,8 +211,8 @@ def test_all_backdrop_fails_saying_so(loaded, scanset_dir: Path, tmp_path: Path)
     ss, views, truth, obj = loaded
     empty = []
     for spec, v in zip(ss.views, views, strict=True):
-        surface = load_truth(spec.path).surface
-        backdrop = surface >= 2  # the floor and the wall: what a turntable with nothing on it shows
+        label = load_truth(spec.path).labels
+        backdrop = label >= LABEL_SUPPORT  # table, base and backdrop: what a turntable with nothing on it shows
         keep = backdrop[v.pixel[:, 1], v.pixel[:, 0]]
         e = v.subset(keep)
         e.range_image = np.where(backdrop, v.range_image, np.nan).astype(np.float32)
@@ -253,4 +260,48 @@ def test_view_of_another_object_is_named_not_merged(loaded, scanset_dir: Path, t
         merge_views(nine, ss9, out)
     print(exc.value)
     assert "overlaps no other view" in str(exc.value) and "\n" not in str(exc.value)
+    assert not str(exc.value).startswith(tuple(f"views[{i}]" for i in range(8)))  # the bunny's views are not named
     assert not out.exists() or not any(out.iterdir())
+    # --drop-unregistered leaves out exactly the foreign view; the other eight pass every check (before
+    # the foreign view's backdrop was kept out of the object's search, views 2 and 3 failed too and
+    # four of the eight were left out).
+    report = merge_views(nine, ss9, out, drop_unregistered=True)
+    assert report["dropped_views"] == ["teapot"] and report["registered_views"] == 8
+    quality = report["quality"]
+    assert quality["passed"] and [v["flags"] for v in quality["views"][:8]] == [[]] * 8
+    assert quality["removed"]["foreign_background"] == ["teapot"]
+    _check_poses_of(json_poses(out)[:8], truth, obj, 0.05, 0.15)
+
+
+def json_poses(out: Path) -> np.ndarray:
+    """(V, 4, 4) the poses of ``registration.json`` in ``out`` (NaN for a view left out)."""
+    doc = json.loads((out / "registration.json").read_text())
+    return np.stack([np.block([[np.array(v["R"]), np.array(v["T"])[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
+                     if "R" in v else np.full((4, 4), np.nan) for v in doc["views"]])
+
+
+def test_keep_support_keeps_the_plate_disc(loaded, labels) -> None:
+    """--keep-support adds the plate's disc to what is fused, and nothing else: judged by the
+    simulator's labels, and the disc's radius against the plate's true rim (the labelled plate
+    samples' largest distance from the true axis)."""
+    ss, views, truth, obj = loaded
+    iso = isolate_object(views, ss, IsolationParams(keep_support=True))
+    disc = iso.report["support_plane"]["disc"]
+    rim = []
+    for v, lab in zip(views, labels, strict=True):
+        plate = v.xyz[lab[v.pixel[:, 1], v.pixel[:, 0]] == LABEL_PLATE] - truth.axis_point
+        rim.append(np.linalg.norm(plate - np.outer(plate @ truth.axis_direction, truth.axis_direction), axis=1).max())
+    centre = np.array(disc["centre_mm"]) - truth.axis_point
+    off_axis = float(np.linalg.norm(centre - truth.axis_direction * (centre @ truth.axis_direction)))
+    print(f"plate disc radius {disc['radius_mm']:.2f} mm (true rim {max(rim):.2f} mm), centre {off_axis:.2f} mm "
+          "from the axis")
+    assert abs(disc["radius_mm"] - max(rim)) <= 0.03 * max(rim) and off_axis <= 0.03 * max(rim)
+    added = kept = 0
+    for reg_v, fus_v, lab in zip(iso.registration, iso.fusion, labels, strict=True):
+        extra = np.setdiff1d(fus_v.pixel[:, 1] * lab.shape[1] + fus_v.pixel[:, 0],
+                             reg_v.pixel[:, 1] * lab.shape[1] + reg_v.pixel[:, 0])
+        kept += int(np.count_nonzero(lab.ravel()[extra] == LABEL_PLATE))
+        added += len(extra)
+    print(f"support kept: {added} samples, {100 * kept / max(1, added):.2f} % on the plate")
+    assert added > 0 and kept >= 0.99 * added
+    assert iso.report["support_kept"] and sum(v["support_kept"] for v in iso.report["per_view"]) == added
