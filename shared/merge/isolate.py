@@ -91,12 +91,15 @@ class Isolation:
     fusion : per view what is fused: the object's samples, plus the plate's disc with ``keep_support``.
     report : JSON-ready figures (samples static, support, clutter and kept per view; the noise;
         the support plane and disc; the object's sphere and whether it was found or given).
+    axis : the turntable's axis from the plate, unit direction (3,) and point (3,) mm in the
+        views' common frame (the support plane's normal through the disc's centre), or None.
     """
 
     registration: list[ViewCloud]
     fusion: list[ViewCloud]
     report: dict[str, Any] = field(default_factory=dict)
     object_roi: Roi | None = None
+    axis: tuple[np.ndarray, np.ndarray] | None = None
 
 
 def fixed_rig(views: Sequence[ViewCloud], scanset: ScanSet) -> bool:
@@ -361,7 +364,8 @@ def isolate_object(views: Sequence[ViewCloud], scanset: ScanSet,
     }
     log.info("static removal: %d of %d samples static, %d support, object %d samples in %s (%s)", n_static, total,
              support_removed, int(region.sum()), roi.to_json(), source)
-    return Isolation(registration=reg_views, fusion=fus_views, report=report, object_roi=roi)
+    axis = None if disc is None else (np.asarray(disc["normal"], np.float64), np.asarray(disc["centre"], np.float64))
+    return Isolation(registration=reg_views, fusion=fus_views, report=report, object_roi=roi, axis=axis)
 
 
 def _foreign_backgrounds(static: Sequence[np.ndarray], params: IsolationParams) -> list[int]:

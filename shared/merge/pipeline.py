@@ -126,7 +126,7 @@ def merge_views(
         angles = None if scanset.turntable_deg is None else scanset.turntable_deg[idx]
         return register_views([thinned[i] for i in idx], hints=[hints[i] for i in idx], turntable_deg=angles,
                               params=registration, drop_unregistered=drop_unregistered, names=[names[i] for i in idx],
-                              progress=lambda f: report_progress(0.55 * f))
+                              progress=lambda f: report_progress(0.55 * f), table_axis=iso.axis)
 
     reg, checks = register_checked(register, iso.registration, names,
                                    turntable=bool(iso.report["fixed_rig"] or scanset.turntable_deg is not None),

@@ -2,7 +2,10 @@
 
 Three steps:
 
-1. **Coarse**: the poses given as hints; or, for a turntable, the table's axis estimated from
+1. **Coarse**: the poses given as hints; or, on a fixed rig whose plate was found (``table_axis``),
+   rotations about the plate's axis, each view's angle given or found by a 1-D search that also
+   counts free-space violations (:mod:`shared.merge.axis_search`: feature matching settles at the
+   identity on a body of revolution such as a teapot's); or, for a turntable, the table's axis estimated from
    global registrations of neighbouring views and every view placed by its angle about it; or, with
    nothing given, global registration (FPFH features + RANSAC on coarsely downsampled clouds,
    Open3D) that grows a tree of views from view 0, trying each view's neighbours in scan order first.
@@ -45,6 +48,7 @@ from scipy.spatial import cKDTree
 from shared.core.errors import InputError
 from shared.core.threads import cpu_budget
 from shared.merge._kernels import point_to_plane_system, track_correspondences, voxel_representatives
+from shared.merge.axis_search import AxisView, poses_about_axis
 from shared.merge.geometry import (
     TurntableAxis,
     _about_axis,
@@ -522,6 +526,21 @@ def _turntable_init(S: list[Samples], feats: _Features, angles: np.ndarray, voxe
     return poses, axis
 
 
+def _axis_init(S: list[Samples], views: Sequence[ViewCloud], axis: tuple[np.ndarray, np.ndarray],
+               angles: np.ndarray | None, voxel: float, params: RegistrationParams) -> np.ndarray | None:
+    """Coarse poses about a known axis (:func:`shared.merge.axis_search.poses_about_axis`), or None
+    when a view cannot be placed that way."""
+    if any(v.range_image is None or v.K is None for v in views):
+        return None
+    search = [AxisView(s.xyz, s.normals, s.tree, s.target_normals, v.range_image, v.K) for s, v in zip(S, views, strict=True)]
+    poses, lost = poses_about_axis(search, axis[0], axis[1], 2.0 * voxel, params.normal_agreement, params.min_overlap,
+                                   None if angles is None else np.asarray(angles, float))
+    if lost:
+        log.info("turntable axis from the plate: views %s not placed by the angle search; feature matching", lost)
+        return None
+    return poses
+
+
 def _overlap_share(S: list[Samples], poses: np.ndarray, i: int, j: int, dist: float, cos_min: float,
                    count: int) -> float:
     """Share of about ``count`` of view i's samples that meet view j: a target within ``dist`` mm
@@ -641,6 +660,7 @@ def register_views(
     drop_unregistered: bool = False,
     names: Sequence[str] | None = None,
     progress: Callable[[float], None] | None = None,
+    table_axis: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Registration:
     """Register views (mm, own frames) into view 0's frame.
 
@@ -653,6 +673,10 @@ def register_views(
     drop_unregistered : leave views that register to nothing out instead of raising.
     names : view names for messages (default ``view N``).
     progress : called with the fraction done.
+    table_axis : a fixed rig's turntable axis known before registration (unit direction (3,), a point
+        (3,) mm, in the views' common frame: the plate's normal and centre): the coarse poses are
+        rotations about it (:mod:`shared.merge.axis_search`), the views' angles searched or given.
+        Without hints only; views it cannot place fall back to the feature matching.
     """
     params = params or RegistrationParams()
     names = list(names) if names is not None else [f"view {i}" for i in range(len(views))]
@@ -667,6 +691,8 @@ def register_views(
     have_hints = hints is not None and all(h is not None for h in hints)
     placed: dict[int, np.ndarray]
     attempts: dict[int, tuple[float, float, int]] = {}
+    prior = None if have_hints or table_axis is None else _axis_init(S, views, table_axis, turntable_deg, voxel,
+                                                                                params)
     if have_hints:
         assert hints is not None
         P0inv = np.linalg.inv(np.asarray(hints[0]))
@@ -674,6 +700,12 @@ def register_views(
         method = "pose hints + "
         placed = {v: init[v] for v in range(V)}
         tree_edges: list[tuple[int, int]] = []
+    elif prior is not None:
+        init = prior
+        method = "turntable axis from the plate, " + ("angles given" if turntable_deg is not None else
+                                                      "angles searched") + " + "
+        placed = {v: init[v] for v in range(V)}
+        tree_edges = []
     elif turntable_deg is not None:
         feats = _Features(S, coarse_voxel, params.seed)
         init, _ = _turntable_init(S, feats, np.asarray(turntable_deg, float), voxel, params)

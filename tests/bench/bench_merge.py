@@ -274,7 +274,8 @@ def _register_as_merge(views, ss, keep_support: bool = False):
 
     def register(idx: list[int]):
         angles = None if ss.turntable_deg is None else ss.turntable_deg[idx]
-        return register_views([thinned[i] for i in idx], turntable_deg=angles, names=[names[i] for i in idx])
+        return register_views([thinned[i] for i in idx], turntable_deg=angles, names=[names[i] for i in idx],
+                              table_axis=iso.axis)
 
     reg, checks = register_checked(register, iso.registration, names,
                                    turntable=bool(iso.report["fixed_rig"] or ss.turntable_deg is not None),
