@@ -1,7 +1,7 @@
 """``graylight simulate``: write a synthetic capture with ground truth (the virtual rig).
 
 ``graylight simulate --scene bunny --out DIR [--size 2048x1536] [--projector 1024x768] [--seed N]
-[--colour] [--bits 16] [--no-rows] [--no-inverses] [--force]`` writes a ``graycode-v1`` capture folder with
+[--colour] [--bits 16] [--response srgb|linear|gamma:G] [--no-rows] [--no-inverses] [--force]`` writes a ``graycode-v1`` capture folder with
 ``rig.json`` and ``truth.npz`` (see :mod:`shared.sim.simulate`). With ``--views N [--turntable | --orbit]``
 it writes a ``graylight-scanset-v1`` scan set of N captures with every view's true pose
 (:mod:`shared.sim.scanset`): a turntable set sees what a real one does (backdrop, table, the
@@ -47,6 +47,8 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--seed", type=int, default=0, help="seed of the rig, scene textures and sensor noise")
     p.add_argument("--colour", "--color", action="store_true", help="colour camera (BGR images)")
     p.add_argument("--bits", type=int, choices=(8, 16), default=8, help="bits per sample (8 or 16)")
+    p.add_argument("--response", default="srgb",
+                   help="camera response curve: srgb (default), linear or gamma:G (recorded in capture.json and truth.npz)")
     p.add_argument("--no-rows", action="store_true", help="capture column patterns only")
     p.add_argument("--no-inverses", action="store_true", help="leave out the inverse patterns")
     p.add_argument("--force", action="store_true", help="replace a non-empty output folder")
@@ -67,7 +69,8 @@ def run(args: argparse.Namespace) -> int:
 
     size = parse_size(args.size, "--size", lo=2)
     projector = parse_size(args.projector, "--projector", lo=2)
-    imaging = ImagingParams(colour=args.colour, bits=args.bits, rows=not args.no_rows, inverses=not args.no_inverses)
+    imaging = ImagingParams(colour=args.colour, bits=args.bits, rows=not args.no_rows, inverses=not args.no_inverses,
+                            response=args.response)
     t0 = time.perf_counter()
     if args.roi and args.views == 1 and not args.motion:
         raise InputError("--roi", "only a scan set (--views N) has a region of interest")

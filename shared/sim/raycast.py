@@ -441,25 +441,32 @@ def _gauss(seed, i):
 
 
 @numba.njit(**_NJIT)
-def _sensor(img, seed, full_well, read_noise, maxval, out):
-    scale = maxval / full_well
+def _sensor(img, seed, full_well, read_noise, maxval, codes, noise, out):
+    scale = 1.0 / full_well
     useed = np.uint64(seed)
+    nl = codes.shape[0] - 1
     for i in range(img.shape[0]):
         e = img[i] * full_well
         if e < 0.0:
             e = 0.0
-        # Shot noise (Poisson, Gaussian approximation) plus read noise, in electrons.
-        e = e + math.sqrt(e + read_noise * read_noise) * _gauss(useed, np.uint64(i))
-        dn = math.floor(e * scale + 0.5)
-        if dn < 0.0:
-            dn = 0.0
-        elif dn > maxval:
-            dn = maxval
-        out[i] = dn
+        if noise:
+            # Shot noise (Poisson, Gaussian approximation) plus read noise, in electrons.
+            e = e + math.sqrt(e + read_noise * read_noise) * _gauss(useed, np.uint64(i))
+        x = e * scale
+        if x < 0.0:
+            x = 0.0
+        elif x > 1.0:
+            x = 1.0  # full well: the response curve sees a clipped signal
+        if nl > 0:
+            # The camera's response curve: the stored code of the nearest fine linear step.
+            out[i] = codes[int(x * nl + 0.5)]
+        else:
+            out[i] = math.floor(x * maxval + 0.5)
 
 
-def sensor_readout(img: np.ndarray, full_well: float, read_noise: float, bits: int, seed: int) -> np.ndarray:
-    """Expose an image: shot and read noise, full-well clipping, quantisation.
+def sensor_readout(img: np.ndarray, full_well: float, read_noise: float, bits: int, seed: int,
+                   response_codes: np.ndarray | None = None, noise: bool = True) -> np.ndarray:
+    """Expose an image: shot and read noise, full-well clipping, the camera's response, quantisation.
 
     Parameters
     ----------
@@ -468,6 +475,9 @@ def sensor_readout(img: np.ndarray, full_well: float, read_noise: float, bits: i
     read_noise : electrons RMS
     bits : 8 or 16
     seed : noise seed (deterministic)
+    response_codes : (K,) uint16 stored value of each of K even steps of the linear signal over 0..1
+        for these ``bits`` (:func:`shared.sim.response.response_codes`); None or empty: linear
+    noise : add shot and read noise
 
     Returns
     -------
@@ -476,15 +486,18 @@ def sensor_readout(img: np.ndarray, full_well: float, read_noise: float, bits: i
     maxval = float((1 << bits) - 1)
     flat = np.ascontiguousarray(img, np.float32).ravel()
     out = np.empty(flat.shape[0], np.uint8 if bits == 8 else np.uint16)
-    _sensor(flat, int(seed) & 0x7FFFFFFFFFFFFFFF, float(full_well), float(read_noise), maxval, out)
+    codes = np.zeros(0, np.uint16) if response_codes is None else np.ascontiguousarray(response_codes, np.uint16)
+    _sensor(flat, int(seed) & 0x7FFFFFFFFFFFFFFF, float(full_well), float(read_noise), maxval, codes, bool(noise), out)
     return out.reshape(img.shape)
 
 
 @numba.njit(**_NJIT)
 def _shade_points(P, n, R, T, kp, dp, pw, ph, sm_depth, smk, power, blur0, aperture_px, zf, pix_scale,
-                  sid, ks_by_surface, shin_by_surface, sss_by_surface, u_out, v_out, lit_out, G_out, sigma_out,
-                  spec_out):
+                  vignetting, sid, ks_by_surface, shin_by_surface, sss_by_surface, u_out, v_out, lit_out, G_out,
+                  sigma_out, spec_out):
     fx, fy, cx, cy, skew = kp[0], kp[1], kp[2], kp[3], kp[4]
+    # Lens vignetting is radial about the principal point; 1 - vignetting at the farthest corner.
+    rc2 = max(max(cx + 0.5, pw - 0.5 - cx) ** 2 + max(cy + 0.5, ph - 0.5 - cy) ** 2, 1.0)
     k1, k2, p1, p2, k3 = dp[0], dp[1], dp[2], dp[3], dp[4]
     # Projector centre in the camera frame: C = -R^T T.
     C0 = -(R[0, 0] * T[0] + R[1, 0] * T[1] + R[2, 0] * T[2])
@@ -538,11 +551,13 @@ def _shade_points(P, n, R, T, kp, dp, pw, ph, sm_depth, smk, power, blur0, apert
             G_out[i] = 0.0
             spec_out[i] = 0.0
             continue
-        # Inverse square from the projector centre, cos(theta) at the surface, and the projector's
-        # own natural falloff towards its image corners (cos^3 of the off-axis angle).
+        # Inverse square from the projector centre, cos(theta) at the surface, the projector's
+        # natural falloff towards its image corners (cos^3 of the off-axis angle) and its lens
+        # vignetting (quadratic in the distance from the principal point, in projector pixels).
         fall = min(max(pz / d, 0.0), 1.0)
         inv2 = (1000.0 / d) ** 2
-        G_out[i] = power * cos_p * inv2 * fall * fall * fall
+        vig = 1.0 - vignetting * min(((u - cx) ** 2 + (v - cy) ** 2) / rc2, 1.0)
+        G_out[i] = power * cos_p * inv2 * fall * fall * fall * vig
         ks = ks_by_surface[sid[i]]
         if ks > 0.0:
             # Phong lobe around the mirror direction of the projector's light, seen from the camera.
@@ -559,7 +574,8 @@ def _shade_points(P, n, R, T, kp, dp, pw, ph, sm_depth, smk, power, blur0, apert
 def shade_points(P: np.ndarray, n: np.ndarray, R: np.ndarray, T: np.ndarray, Kp: np.ndarray, dist_p: np.ndarray,
                  proj_size: tuple[int, int], sm_depth: np.ndarray, sm_K: np.ndarray, power: float, blur0: float,
                  aperture_px: float, focus: float, pix_scale: float, sid: np.ndarray, ks_by_surface: np.ndarray,
-                 shin_by_surface: np.ndarray, sss_by_surface: np.ndarray | None = None) -> dict[str, np.ndarray]:
+                 shin_by_surface: np.ndarray, sss_by_surface: np.ndarray | None = None,
+                 vignetting: float = 0.0) -> dict[str, np.ndarray]:
     """How the projector lights camera-frame points: the per-point terms of the image model.
 
     Parameters
@@ -573,11 +589,14 @@ def shade_points(P: np.ndarray, n: np.ndarray, R: np.ndarray, T: np.ndarray, Kp:
     pix_scale : camera pixel footprint in projector pixels at equal depths (0.29 fx_p / fx_c)
     sid : (N,) int surface index; ks_by_surface, shin_by_surface : Phong coefficient and exponent per surface
     sss_by_surface : subsurface-scattering spread per surface (mm, Gaussian std), default none
+    vignetting : share of the projector's light its lens loses at the image corner farthest from
+        the principal point (quadratic in the radius), on top of the natural cos^3 falloff
 
     Returns
     -------
     dict with ``u``, ``v`` (N,) float64 projector pixel coordinates (NaN behind the projector),
-    ``lit`` (N,) bool, ``G`` (N,) float32 direct irradiance factor (0 unless lit), ``sigma`` (N,)
+    ``lit`` (N,) bool, ``G`` (N,) float32 direct irradiance factor (0 unless lit): ``power * cos(theta)
+    * (1000 / d)^2 * cos^3(off-axis) * (1 - vignetting * r^2)``, ``sigma`` (N,)
     float32 pattern blur (projector px), ``spec`` (N,) float32 specular factor (0 unless lit).
     """
     N = P.shape[0]
@@ -591,7 +610,7 @@ def shade_points(P: np.ndarray, n: np.ndarray, R: np.ndarray, T: np.ndarray, Kp:
     _shade_points(np.ascontiguousarray(P, np.float64), np.ascontiguousarray(n, np.float64),
                   np.ascontiguousarray(R, np.float64), np.asarray(T, np.float64).ravel(), kp, d,
                   float(proj_size[0]), float(proj_size[1]), sm_depth, smk, float(power), float(blur0),
-                  float(aperture_px), float(focus), float(pix_scale), np.asarray(sid, np.int64),
+                  float(aperture_px), float(focus), float(pix_scale), float(vignetting), np.asarray(sid, np.int64),
                   np.asarray(ks_by_surface, np.float64), np.asarray(shin_by_surface, np.float64),
                   np.zeros(len(ks_by_surface)) if sss_by_surface is None else np.asarray(sss_by_surface, np.float64),
                   out["u"], out["v"], out["lit"], out["G"], out["sigma"], out["spec"])

@@ -57,6 +57,7 @@ from shared.sim.scenes import (
     rotation_about,
 )
 from shared.sim.simulate import ImagingParams, make_rig, simulate_capture
+from shared.sim.truth import truth_file
 
 log = logging.getLogger(__name__)
 
@@ -89,12 +90,7 @@ class ScanSetTruth:
 
 def load_scanset_truth(path: str | os.PathLike[str]) -> ScanSetTruth:
     """Read a scan set's ``truth.npz`` (or the folder holding it)."""
-    p = Path(path)
-    if p.is_dir():
-        p = p / TRUTH_FILE
-    if not p.is_file():
-        raise InputError(p, "scan set ground-truth file not found")
-    with np.load(p) as z:
+    with np.load(truth_file(path, "scan set ground-truth file")) as z:
         return ScanSetTruth(**{k: z[k] for k in ("poses", "axis_direction", "axis_point", "angles_deg",
                                                  "mesh_vertices", "mesh_faces")})
 
@@ -183,12 +179,13 @@ def _turntable_stage(obj: MeshObject, point: np.ndarray, up: np.ndarray, e1: np.
 
 
 def _roi_about_axis(vertices: np.ndarray, point: np.ndarray, up: np.ndarray) -> Roi:
-    """The smallest sphere centred on the axis holding every vertex (4 % margin)."""
+    """The smallest sphere centred on the axis holding every vertex, with a margin (4 % and 6 mm)
+    for the decoder's noise at the silhouette."""
     h = (vertices - point) @ up
     cand = np.linspace(float(h.min()), float(h.max()), 201)
     radii = [float(np.max(np.linalg.norm(vertices - (point + up * c), axis=1))) for c in cand]
     k = int(np.argmin(radii))
-    return Roi(center=point + up * cand[k], radius=1.04 * radii[k])
+    return Roi(center=point + up * cand[k], radius=1.04 * radii[k] + 6.0)
 
 
 def turntable_scenes(scene: str, views: int, mode: str = "turntable", seed: int = 0

@@ -54,7 +54,10 @@ class Material:
 
     ``albedo`` is the diffuse RGB reflectance (0..1). ``variation`` (0..1) modulates it with a
     smooth procedural pattern of period ``wavelength`` mm (spheres and meshes; planes use their
-    texture). ``specular`` is the Phong coefficient relative to the diffuse scale (values above
+    texture). ``pattern`` (0..1) paints a solid colour texture over that (spheres and meshes):
+    patches about ``pattern_size`` mm across with sharp, wavy borders, each scaling the three
+    channels by its own factors in ``1 +- pattern`` (a known per-channel albedo with detail that a
+    blurred or view-mixed colour estimate cannot reproduce). ``specular`` is the Phong coefficient relative to the diffuse scale (values above
     ~1 saturate the sensor in the highlight) with exponent ``shininess``. ``subsurface`` (mm) is the
     spread of light under a translucent surface (wax, skin, marble): it blurs the projected pattern
     on that surface by a Gaussian of that standard deviation. ``interreflect`` lets a
@@ -64,6 +67,8 @@ class Material:
     albedo: tuple[float, float, float] = (0.7, 0.7, 0.7)
     variation: float = 0.0
     wavelength: float = 40.0
+    pattern: float = 0.0
+    pattern_size: float = 8.0
     specular: float = 0.0
     shininess: float = 40.0
     subsurface: float = 0.0
@@ -81,12 +86,42 @@ def _procedural(points_obj: np.ndarray, wavelength: float, seed: int) -> np.ndar
     return np.clip(acc / 2.2, -1.0, 1.0)
 
 
+def _mix64(h: np.ndarray) -> np.ndarray:
+    """splitmix64's finaliser: well-spread 64-bit hashes of uint64 keys."""
+    h = (h ^ (h >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    h = (h ^ (h >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return h ^ (h >> np.uint64(31))
+
+
+def _colour_patches(points_obj: np.ndarray, size: float, strength: float, seed: int) -> np.ndarray:
+    """Per-channel albedo factors (N, 3) float32 in ``1 +- strength``: a solid texture of patches.
+
+    Space (object frame, mm) is cut into cubic cells of ``size`` mm on a rotated grid whose
+    coordinates are first warped by a smooth field (so the borders on a surface are wavy, not
+    straight); every cell draws a shared and three per-channel uniforms from a hash of its index.
+    """
+    rng = np.random.default_rng(seed + 0x5EED)
+    q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    p = points_obj @ q
+    warp = np.stack([_procedural(points_obj, 2.5 * size, seed + 31 * k) for k in range(3)], axis=1)
+    cell = np.floor((p + 0.3 * size * warp) / size).astype(np.int64)
+    key = (cell[:, 0] * 73856093) ^ (cell[:, 1] * 19349663) ^ (cell[:, 2] * 83492791) ^ (seed * 2654435761)
+    h = _mix64(key.astype(np.uint64))
+    u = np.stack([((h >> np.uint64(16 * k)) & np.uint64(0xFFFF)).astype(np.float32) / 65535.0 for k in range(4)],
+                 axis=1)
+    mix = 0.5 * u[:, :1] + 0.5 * u[:, 1:]  # a shared lightness and a hue of its own per patch
+    return (1.0 + strength * (2.0 * mix - 1.0)).astype(np.float32)
+
+
 def _material_albedo(material: Material, points_obj: np.ndarray, seed: int) -> np.ndarray:
     base = np.asarray(material.albedo, np.float32)[None, :]
-    if material.variation <= 0:
-        return np.repeat(base, points_obj.shape[0], axis=0)
-    f = _procedural(points_obj, material.wavelength, seed).astype(np.float32)
-    return base * (1.0 + material.variation * f)[:, None]
+    out = np.repeat(base, points_obj.shape[0], axis=0)
+    if material.variation > 0:
+        f = _procedural(points_obj, material.wavelength, seed).astype(np.float32)
+        out = out * (1.0 + material.variation * f)[:, None]
+    if material.pattern > 0:
+        out = out * _colour_patches(points_obj, material.pattern_size, material.pattern, seed)
+    return out
 
 
 def rotation_from_axes(x_axis: np.ndarray, y_hint: np.ndarray) -> np.ndarray:
@@ -426,28 +461,33 @@ def _mesh_scene(
 
 
 def scene_bunny(seed: int = 0) -> Scene:
-    """Stanford bunny (~230 mm tall, marbled albedo) on a tiled floor before a printed wall: projector shadows."""
+    """Stanford bunny (~230 mm tall, marbled albedo with colour patches) on a tiled floor before a printed wall:
+    projector shadows."""
     return _mesh_scene("bunny", "stanford-bunny", 230.0, 1,
-                       Material(albedo=(0.75, 0.68, 0.55), variation=0.45, wavelength=35.0), seed)
+                       Material(albedo=(0.72, 0.64, 0.52), variation=0.35, wavelength=35.0, pattern=0.4,
+                                pattern_size=9.0), seed)
 
 
 def scene_teapot(seed: int = 0) -> Scene:
     """Glossy Utah teapot: saturating Phong highlights."""
     return _mesh_scene("teapot", "teapot", 180.0, 1,
-                       Material(albedo=(0.55, 0.2, 0.15), variation=0.1, specular=2.5, shininess=60.0), seed, yaw_deg=-30)
+                       Material(albedo=(0.55, 0.22, 0.17), variation=0.1, pattern=0.35, pattern_size=7.0,
+                                specular=2.5, shininess=60.0), seed, yaw_deg=-30)
 
 
 def scene_spot(seed: int = 0) -> Scene:
     """Keenan Crane's Spot cow, in translucent wax: subsurface scattering blurs the finest stripes."""
     return _mesh_scene("spot", "spot", 220.0, 1,
-                       Material(albedo=(0.8, 0.75, 0.7), variation=0.6, wavelength=50.0, subsurface=0.5), seed,
+                       Material(albedo=(0.8, 0.75, 0.7), variation=0.5, wavelength=50.0, pattern=0.35,
+                                pattern_size=12.0, subsurface=0.5), seed,
                        yaw_deg=150)
 
 
 def scene_fandisk(seed: int = 0) -> Scene:
     """Hoppe's fandisk: sharp creases."""
     return _mesh_scene("fandisk", "fandisk", 200.0, 1,
-                       Material(albedo=(0.6, 0.62, 0.65), variation=0.2), seed, yaw_deg=30)
+                       Material(albedo=(0.6, 0.62, 0.65), variation=0.2, pattern=0.4, pattern_size=10.0), seed,
+                       yaw_deg=30)
 
 
 def scene_plane(seed: int = 0) -> Scene:

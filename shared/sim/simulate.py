@@ -12,16 +12,32 @@ capture folder (``capture.json``, ``rig.json``, ``white.png``, ``black.png``, ``
   through the projector's distortion (OpenCV: projector column ``c`` spans ``[c - 0.5, c + 0.5)``);
 - ``lit`` bool: surface seen by the camera AND lit by the projector (inside its frame, facing it,
   not in its shadow);
-- ``surface`` int16: index of the scene surface seen (-1 none).
+- ``surface`` int16: index of the scene surface seen (-1 none);
+- ``labels`` int8: what the pixel sees, the surface's label (:mod:`shared.sim.scenes`): -1 none,
+  0 object, 1 turntable plate, 2 support (table top or floor), 3 turntable base, 4 backdrop;
+- ``albedo`` (H, W, 3) float32: the linear RGB diffuse albedo (0..1) the image was rendered with
+  (area-filtered over the pixel on planes; NaN where no surface);
+- ``irradiance`` float32: the linear white-minus-black signal per unit albedo, in fractions of full
+  scale: ``(1 - black_level) * cam_vignetting * frame * G`` with ``G = projector_power * cos(theta)
+  * (1000 mm / d)^2 * cos^3(off-axis angle) * (1 - projector_vignetting * r^2)`` (``d`` the distance
+  from the projector's centre, ``r`` the radius from its principal point relative to its farthest
+  corner, ``frame`` the blurred edge of the projector's image, ``cam_vignetting`` cos^4 of the
+  camera ray's angle); 0 where not lit, NaN where no surface;
+- ``response`` (0-d str): the camera response the images went through (:mod:`shared.sim.response`).
 
-Image formation (per pattern, in fractions of the sensor's full scale): projector irradiance with
-cos(theta) and inverse-square falloff, projector black level, defocus blur of the pattern that grows
+So ``linearise(white) - linearise(black) = albedo * irradiance`` (grey cameras: the albedo's luma
+0.299 R + 0.587 G + 0.114 B) up to sensor noise, camera blur, the specular lobe of glossy
+materials and inter-reflection: dividing out the projector's irradiance recovers the albedo.
+
+Image formation (per pattern, linear, in fractions of the sensor's full scale): projector irradiance
+with cos(theta), inverse-square falloff, cos^3 and lens vignetting, projector black level, defocus blur of the pattern that grows
 with distance from the projector's focus (Gaussian in projector pixels, tabulated per blur level),
 shadows by a projector shadow map, ambient light, textured and coloured albedo with pixel-area
 filtering, a Phong specular lobe that can saturate, subsurface scattering (extra pattern blur on
 translucent materials), one bounce of diffuse inter-reflection between
 planes that ask for it, camera vignetting (cos^4), optical blur, shot and read noise, full-well
-clipping and 8- or 16-bit quantisation; grey or colour (BGR PNG) images. Both devices have lens
+clipping, the camera's response curve (sRGB by default) and 8- or 16-bit quantisation; grey or
+colour (BGR PNG) images. Both devices have lens
 distortion: camera pixels are traced along their exact (undistorted) rays, and projector
 coordinates go through the projector's distortion model.
 
@@ -50,7 +66,7 @@ import tempfile
 import time
 from collections.abc import Collection
 from concurrent.futures import Future, ThreadPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -59,7 +75,7 @@ from scipy.ndimage import gaussian_filter1d
 
 from shared.core.errors import InputError
 from shared.formats.capture import Capture, load_capture, write_capture
-from shared.formats.rig import Device, Rig, save_rig
+from shared.formats.rig import Rig, save_rig
 from shared.scan.graycode import capture_for_names, pattern_sequence, stripe_bits
 from shared.sim.raycast import (
     cast_plane,
@@ -71,6 +87,8 @@ from shared.sim.raycast import (
     shade_points,
     undistort_grid,
 )
+from shared.sim.response import check_response, response_codes
+from shared.sim.rigs import make_rig
 from shared.sim.scenes import (
     LABEL_NONE,
     SCENES,
@@ -80,11 +98,12 @@ from shared.sim.scenes import (
     Sphere,
     TexturedPlane,
     build_scene,
-    rotation_about,
 )
+from shared.sim.truth import TRUTH_FILE, Truth, load_truth
 
 __all__ = [
     "SCENES",
+    "TRUTH_FILE",
     "ImagingParams",
     "Material",
     "MeshObject",
@@ -103,7 +122,6 @@ __all__ = [
 
 log = logging.getLogger(__name__)
 
-TRUTH_FILE = "truth.npz"
 RIG_FILE = "rig.json"
 
 
@@ -114,6 +132,11 @@ class ImagingParams:
     Attributes
     ----------
     projector_power : white-pattern signal of an albedo-1 surface facing the projector at 1 m
+        (on its axis, linear, before the camera's vignetting and response)
+    projector_vignetting : share of the projector's light its lens loses at the image corner
+        farthest from its principal point (quadratic in the radius), beyond the natural cos^3 falloff
+    response : the camera's response curve from linear signal to stored value:
+        ``"srgb"`` (default), ``"linear"`` or ``"gamma:G"`` (:mod:`shared.sim.response`)
     ambient : ambient signal of an albedo-1 surface (room light, lit from above)
     black_level : share of full power an "off" projector pixel still emits
     projector_blur : pattern blur (Gaussian sigma, projector pixels) at the focus distance
@@ -134,6 +157,8 @@ class ImagingParams:
     """
 
     projector_power: float = 0.85
+    projector_vignetting: float = 0.2
+    response: str = "srgb"
     ambient: float = 0.03
     black_level: float = 0.03
     projector_blur: float = 0.45
@@ -150,115 +175,6 @@ class ImagingParams:
     rows: bool = True
     inverses: bool = True
     shadow_map_scale: float | None = None
-
-
-@dataclass
-class Truth:
-    """Per-camera-pixel ground truth (see the module docstring for meanings and units).
-
-    ``labels``, ``albedo`` and ``irradiance`` are None only in truth files written before they existed.
-    """
-
-    depth: np.ndarray  # (H, W) float32
-    points: np.ndarray  # (H, W, 3) float32
-    normals: np.ndarray  # (H, W, 3) float32
-    proj_col: np.ndarray  # (H, W) float32
-    proj_row: np.ndarray  # (H, W) float32
-    lit: np.ndarray  # (H, W) bool
-    surface: np.ndarray  # (H, W) int16
-    labels: np.ndarray | None = None  # (H, W) int8, LABEL_* codes of shared.sim.scenes
-    albedo: np.ndarray | None = None  # (H, W, 3) float32 linear RGB, NaN where no surface
-    irradiance: np.ndarray | None = None  # (H, W) float32 full-scale fractions per unit albedo
-    response: str = "linear"  # the camera response the images went through (see camera_response)
-
-    def save(self, path: str | os.PathLike[str]) -> Path:
-        """Write ``truth.npz`` (uncompressed: it is written fast and read with ``np.load``)."""
-        p = Path(path)
-        extra = {k: v for k, v in (("labels", self.labels), ("albedo", self.albedo),
-                                   ("irradiance", self.irradiance)) if v is not None}
-        np.savez(p, depth=self.depth, points=self.points, normals=self.normals, proj_col=self.proj_col,
-                 proj_row=self.proj_row, lit=self.lit, surface=self.surface, response=np.array(self.response),
-                 **extra)
-        return p
-
-
-_TRUTH_KEYS = ("depth", "points", "normals", "proj_col", "proj_row", "lit", "surface")
-
-
-def load_truth(path: str | os.PathLike[str]) -> Truth:
-    """Read a ``truth.npz`` (or the capture folder holding one)."""
-    p = Path(path)
-    if p.is_dir():
-        p = p / TRUTH_FILE
-    if not p.is_file():
-        raise InputError(p, "ground-truth file not found")
-    with np.load(p) as z:
-        missing = [k for k in _TRUTH_KEYS if k not in z.files]
-        if missing:
-            raise InputError(p, f"not a ground-truth file: no {', '.join(missing)}")
-        extra = {k: z[k] for k in ("labels", "albedo", "irradiance") if k in z.files}
-        response = str(z["response"]) if "response" in z.files else "linear"
-        return Truth(**{k: z[k] for k in _TRUTH_KEYS}, **extra, response=response)
-
-
-# ---------------------------------------------------------------------------------------------
-# The rig
-
-
-def make_rig(
-    camera_size: tuple[int, int] = (2048, 1536),
-    projector_size: tuple[int, int] = (1024, 768),
-    seed: int = 0,
-    working_distance: float = 1000.0,
-    baseline: float = 220.0,
-    distortion: bool = True,
-    camera_fov_width: float = 490.0,
-    projector_throw: float = 1.55,
-) -> Rig:
-    """A realistic camera + projector rig in mm; ``seed`` perturbs every parameter slightly.
-
-    The camera sits at the origin looking down +Z; its focal length gives ``camera_fov_width`` mm of
-    view at ``working_distance`` whatever its resolution (so a 15 MP camera sees the same scene,
-    finer). The projector (throw ratio ``projector_throw``) sits ``baseline`` mm to the camera's
-    right, toed in so that its axis crosses the camera's at ``working_distance``. Both have small
-    lens distortion ``(k1, k2, p1, p2, k3)`` unless ``distortion`` is False.
-    """
-    rng = np.random.default_rng(seed)
-    cw, ch = camera_size
-    pw, ph = projector_size
-    fc = cw * working_distance / camera_fov_width * (1 + rng.uniform(-0.01, 0.01))
-    Kc = np.array([[fc, 0.0, cw / 2 - 0.5 + rng.uniform(-0.015, 0.015) * cw],
-                   [0.0, fc * (1 + rng.uniform(-0.001, 0.001)), ch / 2 - 0.5 + rng.uniform(-0.015, 0.015) * ch],
-                   [0.0, 0.0, 1.0]])
-    fp = pw * projector_throw * (1 + rng.uniform(-0.01, 0.01))
-    # Office projectors throw upwards: principal point below the image centre.
-    Kp = np.array([[fp, 0.0, pw / 2 - 0.5 + rng.uniform(-0.01, 0.01) * pw],
-                   [0.0, fp * (1 + rng.uniform(-0.001, 0.001)), ph * 0.58 + rng.uniform(-0.01, 0.01) * ph],
-                   [0.0, 0.0, 1.0]])
-    if distortion:
-        dc = np.array([-0.07, 0.11, 4e-4, -3e-4, -0.03]) * (1 + rng.uniform(-0.2, 0.2, 5))
-        dp = np.array([0.04, -0.05, -2e-4, 3e-4, 0.0]) * (1 + rng.uniform(-0.2, 0.2, 5))
-    else:
-        dc = np.zeros(5)
-        dp = np.zeros(5)
-    # Projector centre in the camera frame, and its orientation: toe-in towards the camera axis at
-    # the working distance, the principal point's offset taken into account so the projected
-    # image's centre lands there.
-    C = np.array([baseline, rng.uniform(-8, 8), rng.uniform(-10, 10)])
-    target = np.array([0.0, 0.0, working_distance])
-    z = target - C
-    z /= np.linalg.norm(z)
-    x = np.cross([0.0, 1.0, 0.0], z)
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    R_cam_from_proj = np.column_stack([x, y, z])
-    # Tilt so the projector's image centre (not its principal point) aims at the target.
-    tilt = np.degrees(np.arctan2(Kp[1, 2] - (ph / 2 - 0.5), fp))
-    R_cam_from_proj = R_cam_from_proj @ rotation_about([1, 0, 0], -tilt)
-    R_cam_from_proj = R_cam_from_proj @ rotation_about(rng.normal(size=3), rng.uniform(0.1, 0.4))
-    R = R_cam_from_proj.T
-    T = -R @ C
-    return Rig(camera=Device(cw, ch, Kc, dc), projector=Device(pw, ph, Kp, dp), R=R, T=T)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -416,6 +332,7 @@ class _Render:
     rig: Rig
     imaging: ImagingParams
     profiles: _Profiles
+    response_codes: np.ndarray = field(default_factory=lambda: np.zeros(0, np.uint16))  # empty: linear camera
 
 
 def _albedo(scene: Scene, surf_ids: np.ndarray, P: np.ndarray, rays: tuple[np.ndarray, np.ndarray],
@@ -468,7 +385,7 @@ def _projector_terms(rig: Rig, imaging: ImagingParams, P: np.ndarray, n: np.ndar
     return shade_points(
         P, n, rig.R, rig.T, p.K, p.dist, (p.width, p.height), sm.depth, sm.K, imaging.projector_power,
         imaging.projector_blur, imaging.projector_aperture * p.fx, imaging.projector_focus or focus,
-        0.29 * p.fx / rig.camera.fx, sid, ks, shin, sss,
+        0.29 * p.fx / rig.camera.fx, sid, ks, shin, sss, vignetting=imaging.projector_vignetting,
     )
 
 
@@ -504,10 +421,11 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
     proj_row = np.full(H * W, np.nan, np.float32)
     lit = np.zeros(H * W, np.bool_)
     albedo_map = np.full((H * W, 3), np.nan, np.float32)
+    irradiance = np.full(H * W, np.nan, np.float32)
+    sigma = np.empty(N, np.float32)
     if with_shading:
         A = np.empty((N, nc), np.float32)
         B = np.empty((N, nc), np.float32)
-        sigma = np.empty(N, np.float32)
         coef = np.zeros((N, nc), np.float32) if inter_planes else None
     t_flat, surf_flat, face_flat, rxf, ryf = t.ravel(), surf.ravel(), face.ravel(), rx.ravel(), ry.ravel()
     for c0 in range(0, N, chunk):
@@ -531,20 +449,22 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
         lit[idx] = pt["lit"]
         albedo = _albedo(scene, sv, P, (rx, ry), idx, W)
         albedo_map[idx] = albedo
-        if not with_shading:
-            continue
-        if nc == 1:
-            albedo = (albedo @ luma)[:, None]
         if imaging.vignetting:
             vign = (1.0 / (1.0 + rxf[idx] ** 2 + ryf[idx] ** 2) ** 2).astype(np.float32)
         else:
             vign = np.ones(len(idx), np.float32)
+        sl = slice(c0, c0 + len(idx))
+        sigma[sl] = pt["sigma"]
+        # White minus black per unit albedo (the projector frame's edge profile follows below).
+        irradiance[idx] = vign * (1.0 - imaging.black_level) * pt["G"]
+        if not with_shading:
+            continue
+        if nc == 1:
+            albedo = (albedo @ luma)[:, None]
         # Room light from above (camera -Y is roughly up in every scene).
         amb = (imaging.ambient * (0.65 + 0.35 * np.clip(-n[:, 1], 0, None))).astype(np.float32)
-        sl = slice(c0, c0 + len(idx))
         A[sl] = vign[:, None] * (pt["G"][:, None] * albedo + pt["spec"][:, None])
         B[sl] = vign[:, None] * amb[:, None] * albedo
-        sigma[sl] = pt["sigma"]
         if coef is not None:
             coef[sl] = vign[:, None] * albedo
     del t, face, t_flat, face_flat
@@ -552,11 +472,10 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
     truth = Truth(
         depth=depth.reshape(H, W), points=points.reshape(H, W, 3), normals=normals.reshape(H, W, 3),
         proj_col=proj_col.reshape(H, W), proj_row=proj_row.reshape(H, W), lit=lit.reshape(H, W), surface=surf,
-        labels=label_of[surf], albedo=albedo_map.reshape(H, W, 3),
+        labels=label_of[surf], albedo=albedo_map.reshape(H, W, 3), irradiance=irradiance.reshape(H, W),
+        response=imaging.response,
     )
     pg = _profiles_geometry(rig)
-    if not with_shading:
-        return _Render(truth=truth, shading=None, rig=rig, imaging=imaging, profiles=pg)
     levels, lvl = _sigma_levels(sigma)
     del sigma
     S = pg.per_px
@@ -576,6 +495,9 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
         off_u[sl], frac_u[sl], off_v[sl], frac_v[sl] = ou, fu, ov, fv
         fr_u[sl] = frame_u[ou] + fu * (frame_u[ou + 1] - frame_u[ou])
         fr_v[sl] = frame_v[ov] + fv * (frame_v[ov + 1] - frame_v[ov])
+    irradiance[index] *= fr_u * fr_v
+    if not with_shading:
+        return _Render(truth=truth, shading=None, rig=rig, imaging=imaging, profiles=pg)
     shading = _Shading(index=index, A=A, B=B, off_u=off_u, frac_u=frac_u, off_v=off_v, frac_v=frac_v,
                        frame_u=fr_u, frame_v=fr_v, sigmas=levels)
     if coef is not None:
@@ -583,7 +505,8 @@ def _render_setup(scene: Scene, rig: Rig, imaging: ImagingParams, with_shading: 
                                                levels, pg)
     t3 = time.perf_counter()
     log.info("virtual rig: rays+cast %.2fs, shadow map %.2fs, shading %.2fs", t1 - t0, t2 - t1, t3 - t2)
-    return _Render(truth=truth, shading=shading, rig=rig, imaging=imaging, profiles=pg)
+    return _Render(truth=truth, shading=shading, rig=rig, imaging=imaging, profiles=pg,
+                   response_codes=response_codes(imaging.response, imaging.bits))
 
 
 def _interreflection_setup(scene: Scene, rig: Rig, imaging: ImagingParams, sm: _ShadowMap, sh: _Shading,
@@ -727,11 +650,8 @@ def _render_image(r: _Render, axis: str, bit: int, inverse: bool, noise_seed: in
         img = cv2.GaussianBlur(img, (0, 0), im.camera_blur)
         if img.ndim == 2:
             img = img[:, :, None]
-    if im.noise:
-        out = sensor_readout(img, im.full_well, im.read_noise, im.bits, noise_seed)
-    else:
-        maxval = (1 << im.bits) - 1
-        out = np.clip(np.floor(img * maxval + 0.5), 0, maxval).astype(np.uint8 if im.bits == 8 else np.uint16)
+    out = sensor_readout(img, im.full_well, im.read_noise, im.bits, noise_seed, response_codes=r.response_codes,
+                         noise=im.noise)
     if nc == 3:
         return np.ascontiguousarray(out[:, :, ::-1])  # RGB -> BGR for cv2.imwrite
     return out[:, :, 0]
@@ -808,6 +728,7 @@ def simulate_capture(
     imaging = imaging or ImagingParams()
     if imaging.bits not in (8, 16):
         raise InputError("bits", f"must be 8 or 16, got {imaging.bits}")
+    check_response(imaging.response)
     _check_size((rig.camera.width, rig.camera.height))
     out = Path(out_dir).absolute()
     if out.exists() and (not out.is_dir() or any(out.iterdir())):

@@ -52,9 +52,13 @@ def test_roi_crop_keeps_the_object(small: Path) -> None:
     surf = truth.surface[cropped.pixel[:, 1], cropped.pixel[:, 0]]
     assert len(cropped) < len(view)
     assert np.mean(surf <= 1) > 0.97  # object (0) and turntable plate (1) only, the background cropped away
-    kept_obj = np.count_nonzero(surf == 0)
-    all_obj = np.count_nonzero(truth.surface[view.pixel[:, 1], view.pixel[:, 0]] == 0)
-    assert kept_obj == all_obj
+    # Every object point the decoder measured right (within 10 mm of the truth) is kept; a gross
+    # decoding error (one of 3577 here, 386 mm off) may fall outside the sphere.
+    true = truth.points[view.pixel[:, 1], view.pixel[:, 0]]
+    right = (truth.surface[view.pixel[:, 1], view.pixel[:, 0]] == 0) & (np.linalg.norm(view.xyz - true, axis=1) < 10)
+    w = truth.depth.shape[1]
+    kept = np.isin(view.pixel[:, 1] * w + view.pixel[:, 0], cropped.pixel[:, 1] * w + cropped.pixel[:, 0])
+    assert right.sum() > 1000 and kept[right].all()
 
 
 def test_cloud_view_in_metres_with_estimated_normals(tmp_path: Path) -> None:

@@ -14,6 +14,7 @@ from shared.formats.capture import load_capture
 from shared.formats.mesh import load_obj, parse_obj
 from shared.formats.rig import load_rig
 from shared.scan.graycode import gray_decode
+from shared.sim.response import linearise
 from shared.sim.scenes import Material, Scene, TexturedPlane, build_scene, rotation_about
 from shared.sim.simulate import (
     ImagingParams,
@@ -243,18 +244,25 @@ def _check_contract(small_bunny: Path) -> None:
     assert not [p for p in small_bunny.parent.iterdir() if p.name.endswith(".tmp")]
 
 
+def _linear(path: Path, response: str) -> np.ndarray:
+    """An 8-bit image's linear signal through the camera's response, in 8-bit steps of full scale."""
+    return 255.0 * linearise(_grey(_read(path)) / 255.0, response)
+
+
 def _check_unlit_pixels_show_no_stripes_and_lit_ones_do(small_bunny: Path) -> None:
     cap = load_capture(small_bunny)
     truth = load_truth(small_bunny)
+    assert truth.response == "srgb" == cap.extra["simulated"]["imaging"]["response"]
     k3 = np.ones((5, 5), np.uint8)
     shadow = cv2.erode((np.isfinite(truth.depth) & ~truth.lit).astype(np.uint8), k3).astype(bool)
     lit = cv2.erode(truth.lit.astype(np.uint8), k3).astype(bool)
     assert shadow.sum() > 2000
-    white, black = _grey(_read(cap.white)), _grey(_read(cap.black))
+    # Compared in the linear signal: the sRGB response stretches the noise of dark pixels.
+    white, black = _linear(cap.white, truth.response), _linear(cap.black, truth.response)
     assert np.abs(white - black)[shadow].mean() < 1.0
     bright = lit & (white - black > 40)
     for e in cap.columns[:4]:
-        diff = np.abs(_grey(_read(e.pattern)) - _grey(_read(e.inverse)))
+        diff = np.abs(_linear(e.pattern, truth.response) - _linear(e.inverse, truth.response))
         assert diff[shadow].mean() < 1.0
         assert np.median(diff[bright]) > 20
     # Black level and ambient: the black frame is not black where the projector reaches.
