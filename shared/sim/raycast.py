@@ -496,8 +496,6 @@ def _shade_points(P, n, R, T, kp, dp, pw, ph, sm_depth, smk, power, blur0, apert
                   vignetting, sid, ks_by_surface, shin_by_surface, sss_by_surface, u_out, v_out, lit_out, G_out,
                   sigma_out, spec_out):
     fx, fy, cx, cy, skew = kp[0], kp[1], kp[2], kp[3], kp[4]
-    # Lens vignetting is radial about the principal point; 1 - vignetting at the farthest corner.
-    rc2 = max(max(cx + 0.5, pw - 0.5 - cx) ** 2 + max(cy + 0.5, ph - 0.5 - cy) ** 2, 1.0)
     k1, k2, p1, p2, k3 = dp[0], dp[1], dp[2], dp[3], dp[4]
     # Projector centre in the camera frame: C = -R^T T.
     C0 = -(R[0, 0] * T[0] + R[1, 0] * T[1] + R[2, 0] * T[2])
@@ -553,10 +551,10 @@ def _shade_points(P, n, R, T, kp, dp, pw, ph, sm_depth, smk, power, blur0, apert
             continue
         # Inverse square from the projector centre, cos(theta) at the surface, the projector's
         # natural falloff towards its image corners (cos^3 of the off-axis angle) and its lens
-        # vignetting (quadratic in the distance from the principal point, in projector pixels).
+        # vignetting 1 + k1 r^2 (r the undistorted normalised radius, the tangent of that angle).
         fall = min(max(pz / d, 0.0), 1.0)
         inv2 = (1000.0 / d) ** 2
-        vig = 1.0 - vignetting * min(((u - cx) ** 2 + (v - cy) ** 2) / rc2, 1.0)
+        vig = max(1.0 + vignetting * ((px * px + py * py) / (pz * pz)), 0.0)
         G_out[i] = power * cos_p * inv2 * fall * fall * fall * vig
         ks = ks_by_surface[sid[i]]
         if ks > 0.0:
@@ -589,14 +587,14 @@ def shade_points(P: np.ndarray, n: np.ndarray, R: np.ndarray, T: np.ndarray, Kp:
     pix_scale : camera pixel footprint in projector pixels at equal depths (0.29 fx_p / fx_c)
     sid : (N,) int surface index; ks_by_surface, shin_by_surface : Phong coefficient and exponent per surface
     sss_by_surface : subsurface-scattering spread per surface (mm, Gaussian std), default none
-    vignetting : share of the projector's light its lens loses at the image corner farthest from
-        the principal point (quadratic in the radius), on top of the natural cos^3 falloff
+    vignetting : k1 of the projector lens's vignetting ``1 + k1 r^2``, r the undistorted
+        normalised radius ``|(x, y)| / z`` in the projector frame, on top of the natural cos^3 falloff
 
     Returns
     -------
     dict with ``u``, ``v`` (N,) float64 projector pixel coordinates (NaN behind the projector),
     ``lit`` (N,) bool, ``G`` (N,) float32 direct irradiance factor (0 unless lit): ``power * cos(theta)
-    * (1000 / d)^2 * cos^3(off-axis) * (1 - vignetting * r^2)``, ``sigma`` (N,)
+    * (1000 / d)^2 * cos^3(off-axis) * (1 + vignetting * r^2)``, ``sigma`` (N,)
     float32 pattern blur (projector px), ``spec`` (N,) float32 specular factor (0 unless lit).
     """
     N = P.shape[0]

@@ -19,10 +19,11 @@ capture folder (``capture.json``, ``rig.json``, ``white.png``, ``black.png``, ``
   (area-filtered over the pixel on planes; NaN where no surface);
 - ``irradiance`` float32: the linear white-minus-black signal per unit albedo, in fractions of full
   scale: ``(1 - black_level) * cam_vignetting * frame * G`` with ``G = projector_power * cos(theta)
-  * (1000 mm / d)^2 * cos^3(off-axis angle) * (1 - projector_vignetting * r^2)`` (``d`` the distance
-  from the projector's centre, ``r`` the radius from its principal point relative to its farthest
-  corner, ``frame`` the blurred edge of the projector's image, ``cam_vignetting`` cos^4 of the
-  camera ray's angle); 0 where not lit, NaN where no surface;
+  * (1000 mm / d)^2 * cos^3(off-axis angle) * (1 + projector_vignetting * r^2)`` (``d`` the distance
+  from the projector's centre, ``r`` the undistorted normalised radius in the projector's frame,
+  ``frame`` the blurred edge of the projector's image, ``cam_vignetting`` cos^4 of the camera
+  ray's angle); 0 where not lit, NaN where no surface. :func:`sim_radiometry` states the same for
+  a rig's ``radiometry``;
 - ``response`` (0-d str): the camera response the images went through (:mod:`shared.sim.response`).
 
 So ``linearise(white) - linearise(black) = albedo * irradiance`` (grey cameras: the albedo's luma
@@ -117,6 +118,7 @@ __all__ = [
     "make_rig",
     "render_pattern_images",
     "simulate_capture",
+    "sim_radiometry",
     "simulate_named",
 ]
 
@@ -133,8 +135,9 @@ class ImagingParams:
     ----------
     projector_power : white-pattern signal of an albedo-1 surface facing the projector at 1 m
         (on its axis, linear, before the camera's vignetting and response)
-    projector_vignetting : share of the projector's light its lens loses at the image corner
-        farthest from its principal point (quadratic in the radius), beyond the natural cos^3 falloff
+    projector_vignetting : k1 of the projector lens's vignetting ``1 + k1 r^2`` (r the undistorted
+        normalised radius from its principal point, the tangent of the off-axis angle), beyond the
+        natural cos^3 falloff: -1.1 loses about 20 % at the corners of :func:`make_rig`'s projector
     response : the camera's response curve from linear signal to stored value:
         ``"srgb"`` (default), ``"linear"`` or ``"gamma:G"`` (:mod:`shared.sim.response`)
     ambient : ambient signal of an albedo-1 surface (room light, lit from above)
@@ -157,7 +160,7 @@ class ImagingParams:
     """
 
     projector_power: float = 0.85
-    projector_vignetting: float = 0.2
+    projector_vignetting: float = -1.1
     response: str = "srgb"
     ambient: float = 0.03
     black_level: float = 0.03
@@ -697,6 +700,17 @@ def render_pattern_images(
 def compute_truth(scene: Scene, rig: Rig, imaging: ImagingParams | None = None) -> Truth:
     """Ground truth only (no images): depth, points, normals, projector coordinates, lit mask."""
     return _render_setup(scene, rig, imaging or ImagingParams(), with_shading=False).truth
+
+
+def sim_radiometry(imaging: ImagingParams | None = None) -> dict[str, object]:
+    """How this simulator forms images, as a rig's ``radiometry`` block (issue 23's rig contract):
+    the camera's response, the projector's cos^3 falloff, the camera's cos^4 vignetting when it is
+    on, and the projector lens's vignetting ``[k1]`` of ``1 + k1 r^2`` (r the undistorted
+    normalised projector radius). A scan divides them out to recover the albedo."""
+    imaging = imaging or ImagingParams()
+    return {"camera_response": imaging.response, "projector_falloff_cos_power": 3.0,
+            "camera_falloff_cos_power": 4.0 if imaging.vignetting else 0.0,
+            "projector_vignetting": [float(imaging.projector_vignetting)]}
 
 
 def _check_size(camera_size: tuple[int, int]) -> None:
