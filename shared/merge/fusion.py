@@ -35,6 +35,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from scipy.spatial import cKDTree
 
 from shared.core.errors import InputError
 from shared.core.threads import cpu_budget
@@ -63,7 +64,9 @@ class FusionParams:
     normal and the ray) are dropped: grazing samples carry most of a scan's error, and in a scan set
     another view sees the same surface head-on (measured on the virtual rig: dropping those below
     0.35 halves the merged RMS error). specular_ratio : a sample's albedo luminance over its cell's
-    median above which it is taken for a specular highlight and left out of the cell's albedo."""
+    median above which it is taken for a specular highlight and left out of the cell's albedo.
+    max_size_factor : no merged point's size exceeds this many median sizes, nor what the distance
+    to its neighbours supports (beyond twice the median)."""
 
     cell_factor: float = 1.0
     free_space_tolerance: float = 6.0
@@ -71,6 +74,7 @@ class FusionParams:
     min_confidence: float = 0.02
     min_view_cos: float = 0.35
     specular_ratio: float = 1.35
+    max_size_factor: float = 4.0
 
 
 @dataclass
@@ -237,10 +241,11 @@ def fuse_views(views: list[ViewCloud], poses: np.ndarray, params: FusionParams |
     fused_albedo = None
     if alb is not None and alb_w is not None:
         fused_albedo = _fuse_albedo(order, starts, alb, alb_w, params.specular_ratio)
+    capped = _cap_sizes(out_xyz, out_size, params.max_size_factor)
     stats = {"samples": n_in, "free_space_violations": n_free,
              "oblique": n_oblique,
              "low_confidence": max(0, int(n_in - n_free - n_oblique - n)),
-             "merged_points": int(C), "size_classes": int(len(np.unique(level[first]))),
+             "merged_points": int(C), "sizes_capped": capped, "size_classes": int(len(np.unique(level[first]))),
              "points_from_several_views": int(np.count_nonzero(out_count > 1))}
     if fused_albedo is not None:
         stats["albedo"] = fused_albedo[2]
@@ -282,6 +287,26 @@ def _fuse_albedo(order: np.ndarray, starts: np.ndarray, alb: np.ndarray, weight:
 
 #: The albedo fields a fused cloud adds after :data:`FUSED_DTYPE` when it carries albedo.
 ALBEDO_FIELDS = [("albedo_red", "u1"), ("albedo_green", "u1"), ("albedo_blue", "u1"), ("albedo_weight", "u1")]
+
+
+def _cap_sizes(xyz: np.ndarray, size: np.ndarray, factor: float) -> int:
+    """Shrink, in place, the sizes (C,) of merged points (C, 3) mm that their neighbourhood does not
+    support: a point larger than twice the median size gets the mean distance to its 4 nearest merged
+    points, clipped to [2, ``factor``] median sizes (an isolated sample of a sparse scan kept its own
+    huge spacing: on the real dragon sizes up to 37.3 mm against a median 0.58 mm). Returns how many
+    were shrunk."""
+    if len(size) < 8:
+        return 0
+    med = float(np.median(size))
+    big = np.flatnonzero(size > 2.0 * med)
+    if not len(big):
+        return 0
+    d, _ = cKDTree(xyz).query(xyz[big], k=5, workers=cpu_budget())
+    support = np.clip(d[:, 1:].mean(axis=1), 2.0 * med, factor * med).astype(np.float32)
+    new = np.minimum(size[big], support)
+    changed = int(np.count_nonzero(new < size[big]))
+    size[big] = new
+    return changed
 
 
 def write_fused(path: str | os.PathLike[str], cloud: FusedCloud, comments: tuple[str, ...] = ()) -> Path:

@@ -28,10 +28,12 @@ import numpy as np
 
 from shared.core.files import write_json_atomic
 from shared.formats.scanset import ScanSet, load_scanset
+from shared.merge.checks import Checks, register_checked
 from shared.merge.fusion import FusedCloud, FusionParams, fuse_views, write_fused
+from shared.merge.isolate import IsolationParams, isolate_object
 from shared.merge.meshing import MeshParams, reconstruct_mesh, simplify_lods, write_mesh
 from shared.merge.registration import Registration, RegistrationParams, register_views
-from shared.merge.views import ViewCloud, crop_to_roi, load_views
+from shared.merge.views import ViewCloud, load_views
 
 log = logging.getLogger(__name__)
 
@@ -96,6 +98,7 @@ def merge_views(
     registration: RegistrationParams | None = None,
     fusion: FusionParams | None = None,
     meshing: MeshParams | None = None,
+    isolation: IsolationParams | None = None,
     progress: Callable[[float], None] | None = None,
     timings: dict[str, float] | None = None,
     registered: Registration | None = None,
@@ -104,21 +107,34 @@ def merge_views(
 
     The stage after the per-view scans: the job service calls it with views rebuilt from the
     per-view stage outputs, :func:`merge_scanset` with views it decoded itself. ``registered``
-    skips the registration with one already made of these views (cropped to the scan set's roi).
+    skips the registration with one already made of these views (reduced to the object as
+    :func:`shared.merge.isolate.isolate_object` does); it is checked all the same. A registration
+    that fails its checks (:mod:`shared.merge.checks`) raises an
+    :class:`~shared.core.errors.InputError` naming the views before anything is written.
     """
     report_progress = progress or (lambda f: None)
     seconds = dict(timings or {})
     out_dir = Path(out_dir)
     names = [v.name for v in scanset.views]
     t0 = time.perf_counter()
-    cropped = [crop_to_roi(v, scanset.roi) for v in views]
-    reg = registered or register_views(registration_views(cropped, registration), hints=hints_mm(scanset),
-                                       turntable_deg=scanset.turntable_deg, params=registration,
-                                       drop_unregistered=drop_unregistered, names=names,
-                                       progress=lambda f: report_progress(0.55 * f))
+    iso = isolate_object(views, scanset, isolation)
+    t_iso = time.perf_counter()
+    hints = hints_mm(scanset)
+    thinned = registration_views(iso.registration, registration)
+
+    def register(idx: list[int]) -> Registration:
+        angles = None if scanset.turntable_deg is None else scanset.turntable_deg[idx]
+        return register_views([thinned[i] for i in idx], hints=[hints[i] for i in idx], turntable_deg=angles,
+                              params=registration, drop_unregistered=drop_unregistered, names=[names[i] for i in idx],
+                              progress=lambda f: report_progress(0.55 * f), table_axis=iso.axis)
+
+    reg, checks = register_checked(register, iso.registration, names,
+                                   turntable=bool(iso.report["fixed_rig"] or scanset.turntable_deg is not None),
+                                   angles_deg=scanset.turntable_deg, drop_unregistered=drop_unregistered,
+                                   registered=registered)
     t_reg = time.perf_counter()
     kept = [i for i in range(len(views)) if i not in reg.dropped]
-    fused = fuse_views([cropped[i] for i in kept], reg.poses[kept], fusion)
+    fused = fuse_views([iso.fusion[i] for i in kept], reg.poses[kept], fusion)
     t_fuse = time.perf_counter()
     report_progress(0.65)
     mesh, mesh_stats = reconstruct_mesh(fused.xyz, fused.normals, fused.rgb, fused.size, meshing)
@@ -126,12 +142,13 @@ def merge_views(
     report_progress(0.85)
     lods = simplify_lods(mesh, (meshing or MeshParams()).lods)
     t_lod = time.perf_counter()
-    seconds.update({"register": round(t_reg - t0, 3), "fuse": round(t_fuse - t_reg, 3),
+    seconds.update({"isolate": round(t_iso - t0, 3), "register": round(t_reg - t_iso, 3), "fuse": round(t_fuse - t_reg, 3),
                     "mesh": round(t_mesh - t_fuse, 3), "lods": round(t_lod - t_mesh, 3)})
     out_dir.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".merge-staging-", dir=out_dir))
     try:
-        files = _write_all(staging, out_dir, views, scanset, reg, fused, mesh, lods)
+        quality = _quality(checks, iso.report, fused)
+        files = _write_all(staging, out_dir, views, scanset, reg, fused, mesh, lods, quality)
         report = {
             "scanset": str(scanset.root), "views": len(views), "registered_views": len(kept),
             "dropped_views": [names[i] for i in reg.dropped], "method": reg.method,
@@ -142,6 +159,7 @@ def merge_views(
                              "loop_closure": reg.loop_closure,
                              "turntable_axis": None if reg.axis is None else reg.axis.to_json(),
                              "seconds": reg.seconds},
+            "quality": quality,
             "seconds": {**seconds, "write": 0.0},
             "files": {k: str(out_dir / v) for k, v in files.items()},
         }
@@ -158,12 +176,19 @@ def merge_views(
     return report
 
 
+def _quality(checks: Checks, isolation: dict[str, Any], fused: FusedCloud) -> dict[str, Any]:
+    """The ``quality`` block of ``report.json`` and ``registration.json``: the checks (per view RMS,
+    overlap, inliers and flags; per pair residuals; loop closure; the turn) and what was removed
+    before the registration (static, support and clutter samples; the object's sphere)."""
+    return {**checks.doc, "removed": isolation, "fused_sizes_capped": fused.stats.get("sizes_capped", 0)}
+
+
 def _write_all(staging: Path, out_dir: Path, views: Sequence[ViewCloud], scanset: ScanSet, reg: Registration,
-               fused: FusedCloud, mesh: Any, lods: list[Any]) -> dict[str, str]:
+               fused: FusedCloud, mesh: Any, lods: list[Any], quality: dict[str, Any]) -> dict[str, str]:
     names = [v.name for v in scanset.views]
     files = {"merged": MERGED_FILE, "registration": REGISTRATION_FILE, "mesh_ply": "mesh.ply", "mesh_glb": "mesh.glb"}
     write_fused(staging / MERGED_FILE, fused, comments=(f"graylight merge of {len(views)} views",))
-    write_json_atomic(staging / REGISTRATION_FILE, reg.to_json(names))
+    write_json_atomic(staging / REGISTRATION_FILE, {**reg.to_json(names), "quality": quality})
     write_mesh(staging / "mesh.ply", mesh)
     write_mesh(staging / "mesh.glb", mesh)
     for k, lod in enumerate(lods, start=1):
@@ -201,6 +226,7 @@ def merge_scanset(
     registration: RegistrationParams | None = None,
     fusion: FusionParams | None = None,
     meshing: MeshParams | None = None,
+    isolation: IsolationParams | None = None,
     progress: Callable[[float], None] | None = None,
 ) -> dict[str, Any]:
     """Run the whole merge of a scan set in-process; returns the report written to ``report.json``.
@@ -211,6 +237,7 @@ def merge_scanset(
     out_dir : output folder (see the module docstring for what it receives).
     drop_unregistered : leave out, with a warning, views that register to nothing (else an error).
     registration, fusion, meshing : parameters of the three algorithms.
+    isolation : parameters of the static and support removal (``keep_support`` keeps the plate's disc).
     progress : called with the overall fraction done in [0, 1].
     """
     report_progress = progress or (lambda f: None)
@@ -219,5 +246,6 @@ def merge_scanset(
     views = load_views(scanset, progress=lambda f: report_progress(0.4 * f))
     t_load = time.perf_counter()
     return merge_views(views, scanset, Path(out_dir), drop_unregistered=drop_unregistered, registration=registration,
-                       fusion=fusion, meshing=meshing, progress=lambda f: report_progress(0.4 + 0.6 * f),
+                       fusion=fusion, meshing=meshing, isolation=isolation,
+                       progress=lambda f: report_progress(0.4 + 0.6 * f),
                        timings={"load_views": round(t_load - t0, 3)})

@@ -2,7 +2,10 @@
 
 Three steps:
 
-1. **Coarse**: the poses given as hints; or, for a turntable, the table's axis estimated from
+1. **Coarse**: the poses given as hints; or, on a fixed rig whose plate was found (``table_axis``),
+   rotations about the plate's axis, each view's angle given or found by a 1-D search that also
+   counts free-space violations (:mod:`shared.merge.axis_search`: feature matching settles at the
+   identity on a body of revolution such as a teapot's); or, for a turntable, the table's axis estimated from
    global registrations of neighbouring views and every view placed by its angle about it; or, with
    nothing given, global registration (FPFH features + RANSAC on coarsely downsampled clouds,
    Open3D) that grows a tree of views from view 0, trying each view's neighbours in scan order first.
@@ -45,6 +48,17 @@ from scipy.spatial import cKDTree
 from shared.core.errors import InputError
 from shared.core.threads import cpu_budget
 from shared.merge._kernels import point_to_plane_system, track_correspondences, voxel_representatives
+from shared.merge.axis_search import AxisView, poses_about_axis
+from shared.merge.geometry import (
+    TurntableAxis,
+    _about_axis,
+    _rodrigues,
+    _rot_angle_deg,
+    _signed_angle,
+    _transform,
+    axis_from_poses,
+    pose_error,
+)
 from shared.merge.views import ViewCloud
 
 log = logging.getLogger(__name__)
@@ -137,22 +151,6 @@ class Samples:
 
 
 @dataclass
-class TurntableAxis:
-    """A rotation axis in the scan set's frame: ``direction`` (3,) unit, ``point`` (3,) mm on it,
-    the signed angle of every view about it in degrees and the RMS misfit of the poses to the model."""
-
-    direction: np.ndarray
-    point: np.ndarray
-    angles_deg: np.ndarray
-    rms_mm: float
-
-    def to_json(self) -> dict[str, Any]:
-        return {"direction": [round(float(v), 8) for v in self.direction],
-                "point_mm": [round(float(v), 5) for v in self.point],
-                "angles_deg": [round(float(v), 5) for v in self.angles_deg], "model_rms_mm": round(self.rms_mm, 5)}
-
-
-@dataclass
 class Registration:
     """The registered poses and how well each view fits (see the module docstring for ``poses``)."""
 
@@ -181,81 +179,12 @@ class Registration:
                     "inlier_share": round(float(self.inlier_share[i]), 4),
                 })
             views.append(entry)
-        return {"frame": "camera frame of view 0", "units": "mm", "convention": "X_set = R @ X_view + T",
+        first = next((i for i in range(len(names)) if i not in self.dropped), 0)
+        return {"frame": f"camera frame of view {first}", "units": "mm", "convention": "X_set = R @ X_view + T",
                 "method": self.method, "voxel_mm": round(self.voxel_mm, 4), "views": views, "edges": self.edges,
                 "turntable_axis": None if self.axis is None else self.axis.to_json(),
                 "loop_closure": self.loop_closure, "dropped": [names[i] for i in self.dropped],
                 "seconds": self.seconds}
-
-
-# --------------------------------------------------------------------------------------- geometry
-
-
-def _rodrigues(w: np.ndarray) -> np.ndarray:
-    th = float(np.linalg.norm(w))
-    if th < 1e-15:
-        return np.eye(3)
-    k = w / th
-    K = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
-    return np.eye(3) + np.sin(th) * K + (1 - np.cos(th)) * K @ K
-
-
-def _transform(P: np.ndarray, x: np.ndarray) -> np.ndarray:
-    return x @ P[:3, :3].T + P[:3, 3]
-
-
-def _rot_angle_deg(R: np.ndarray) -> float:
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
-def pose_error(P_est: np.ndarray, P_true: np.ndarray, points: np.ndarray) -> tuple[float, float]:
-    """Rotation error in degrees and the RMS displacement in mm of ``points`` (N, 3, view frame)
-    between two poses: the translation error measured on the object's own points."""
-    ang = _rot_angle_deg(P_est[:3, :3] @ P_true[:3, :3].T)
-    d = _transform(P_est, points) - _transform(P_true, points)
-    return ang, float(np.sqrt(np.mean(np.sum(d * d, axis=1))))
-
-
-def axis_from_poses(poses: np.ndarray, centre: np.ndarray | None = None) -> TurntableAxis:
-    """The common rotation axis of poses ``(V, 4, 4)`` that each rotate about one fixed axis.
-
-    The direction minimises ``sum |R_i a - a|^2`` (the null vector of the stacked ``R_i - I``), the
-    point solves ``(I - R_i) p = T_i`` in least squares and is moved along the axis to the foot of
-    ``centre`` (default: the origin). The direction's sign makes the first non-trivial angle positive.
-    """
-    M = np.zeros((3, 3))
-    for P in poses:
-        D = P[:3, :3] - np.eye(3)
-        M += D.T @ D
-    _, vecs = np.linalg.eigh(M)
-    a = vecs[:, 0]
-    A = np.concatenate([np.eye(3) - P[:3, :3] for P in poses] + [a[None, :]])
-    b = np.concatenate([P[:3, 3] for P in poses] + [np.zeros(1)])
-    p = np.linalg.lstsq(A, b, rcond=None)[0]
-    c = np.zeros(3) if centre is None else np.asarray(centre, float)
-    p = p + a * float(np.dot(c - p, a))
-    angles = np.array([_signed_angle(P[:3, :3], a) for P in poses])
-    big = np.flatnonzero(np.abs(angles) > 1.0)
-    if len(big) and angles[big[0]] < 0:
-        a = -a
-        angles = -angles
-    res = [np.linalg.norm(P[:3, 3] - (np.eye(3) - P[:3, :3]) @ p) for P in poses]
-    return TurntableAxis(direction=a, point=p, angles_deg=angles, rms_mm=float(np.sqrt(np.mean(np.square(res)))))
-
-
-def _signed_angle(R: np.ndarray, a: np.ndarray) -> float:
-    # Rotation angle of R about a (sign from the skew part).
-    s = 0.5 * np.dot(a, [R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1]])
-    c = 0.5 * (np.trace(R) - 1.0)
-    return float(np.degrees(np.arctan2(s, c)))
-
-
-def _about_axis(a: np.ndarray, p: np.ndarray, deg: float) -> np.ndarray:
-    P = np.eye(4)
-    R = _rodrigues(a * np.radians(deg))
-    P[:3, :3] = R
-    P[:3, 3] = p - R @ p
-    return P
 
 
 # --------------------------------------------------------------------------------------- sampling
@@ -529,8 +458,12 @@ def _accept(fit: _EdgeFit, voxel: float, params: RegistrationParams) -> bool:
 
 
 def _grow_tree(S: list[Samples], feats: _Features, placed: dict[int, np.ndarray], voxel: float,
-               params: RegistrationParams, order_hint: Sequence[int]) -> tuple[dict[int, np.ndarray], list[tuple[int, int]]]:
-    """Place every view by global registration to an already placed one (neighbours in scan order first)."""
+               params: RegistrationParams, order_hint: Sequence[int],
+               best: dict[int, tuple[float, float, int]] | None = None,
+               ) -> tuple[dict[int, np.ndarray], list[tuple[int, int]]]:
+    """Place every view by global registration to an already placed one (neighbours in scan order
+    first). ``best`` receives, per view, its best rejected fit: (overlap, RMS mm, the other view)."""
+    best = {} if best is None else best
     V = len(S)
     tree_edges: list[tuple[int, int]] = []
     pos = {v: k for k, v in enumerate(order_hint)}
@@ -547,6 +480,8 @@ def _grow_tree(S: list[Samples], feats: _Features, placed: dict[int, np.ndarray]
                 T_vu = feats.match(u, v)
                 T_fit, fit = _pair_fit(S, u, v, T_vu, voxel, params, start=3.0 * feats.voxel)
                 log.info("global %d<-%d: overlap %.2f rms %.3f mm", u, v, fit.overlap, fit.rms)
+                if fit.overlap > best.get(v, (-1.0, 0.0, 0))[0]:
+                    best[v] = (fit.overlap, fit.rms, u)
                 if _accept(fit, voxel, params):
                     placed[v] = placed[u] @ T_fit
                     tree_edges.append((u, v))
@@ -589,6 +524,21 @@ def _turntable_init(S: list[Samples], feats: _Features, angles: np.ndarray, voxe
     # s * (theta_v - theta_0).
     poses = np.stack([_about_axis(a, axis.point, s * float(angles[v] - angles[0])) for v in range(V)])
     return poses, axis
+
+
+def _axis_init(S: list[Samples], views: Sequence[ViewCloud], axis: tuple[np.ndarray, np.ndarray],
+               angles: np.ndarray | None, voxel: float, params: RegistrationParams) -> np.ndarray | None:
+    """Coarse poses about a known axis (:func:`shared.merge.axis_search.poses_about_axis`), or None
+    when a view cannot be placed that way."""
+    if any(v.range_image is None or v.K is None for v in views):
+        return None
+    search = [AxisView(s.xyz, s.normals, s.tree, s.target_normals, v.range_image, v.K) for s, v in zip(S, views, strict=True)]
+    poses, lost = poses_about_axis(search, axis[0], axis[1], 2.0 * voxel, params.normal_agreement, params.min_overlap,
+                                   None if angles is None else np.asarray(angles, float))
+    if lost:
+        log.info("turntable axis from the plate: views %s not placed by the angle search; feature matching", lost)
+        return None
+    return poses
 
 
 def _overlap_share(S: list[Samples], poses: np.ndarray, i: int, j: int, dist: float, cos_min: float,
@@ -710,6 +660,7 @@ def register_views(
     drop_unregistered: bool = False,
     names: Sequence[str] | None = None,
     progress: Callable[[float], None] | None = None,
+    table_axis: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> Registration:
     """Register views (mm, own frames) into view 0's frame.
 
@@ -722,6 +673,10 @@ def register_views(
     drop_unregistered : leave views that register to nothing out instead of raising.
     names : view names for messages (default ``view N``).
     progress : called with the fraction done.
+    table_axis : a fixed rig's turntable axis known before registration (unit direction (3,), a point
+        (3,) mm, in the views' common frame: the plate's normal and centre): the coarse poses are
+        rotations about it (:mod:`shared.merge.axis_search`), the views' angles searched or given.
+        Without hints only; views it cannot place fall back to the feature matching.
     """
     params = params or RegistrationParams()
     names = list(names) if names is not None else [f"view {i}" for i in range(len(views))]
@@ -735,6 +690,9 @@ def register_views(
     axis = None
     have_hints = hints is not None and all(h is not None for h in hints)
     placed: dict[int, np.ndarray]
+    attempts: dict[int, tuple[float, float, int]] = {}
+    prior = None if have_hints or table_axis is None else _axis_init(S, views, table_axis, turntable_deg, voxel,
+                                                                                params)
     if have_hints:
         assert hints is not None
         P0inv = np.linalg.inv(np.asarray(hints[0]))
@@ -742,6 +700,12 @@ def register_views(
         method = "pose hints + "
         placed = {v: init[v] for v in range(V)}
         tree_edges: list[tuple[int, int]] = []
+    elif prior is not None:
+        init = prior
+        method = "turntable axis from the plate, " + ("angles given" if turntable_deg is not None else
+                                                      "angles searched") + " + "
+        placed = {v: init[v] for v in range(V)}
+        tree_edges = []
     elif turntable_deg is not None:
         feats = _Features(S, coarse_voxel, params.seed)
         init, _ = _turntable_init(S, feats, np.asarray(turntable_deg, float), voxel, params)
@@ -750,7 +714,7 @@ def register_views(
         tree_edges = []
     else:
         feats = _Features(S, coarse_voxel, params.seed)
-        placed, tree_edges = _grow_tree(S, feats, {0: np.eye(4)}, voxel, params, list(range(V)))
+        placed, tree_edges = _grow_tree(S, feats, {0: np.eye(4)}, voxel, params, list(range(V)), attempts)
         method = "global FPFH+RANSAC tree + "
     t_coarse = time.perf_counter()
     report(0.5)
@@ -770,8 +734,14 @@ def register_views(
                 changed = True
     lost = [v for v in range(V) if v not in connected]
     if lost and not drop_unregistered:
+        found = [f"best fit {100 * attempts[v][0]:.0f} % overlap with {names[attempts[v][2]]} at "
+                 f"{attempts[v][1]:.2f} mm RMS" for v in lost if v in attempts]
+        hint = " (a view of another object?)" if found else ""
+        if turntable_deg is not None and not have_hints:
+            hint = " (its turntable angle may be wrong, or it shows another object)"
         raise InputError(", ".join(f"views[{v}] ({names[v]})" for v in lost),
-                         "overlaps no other view: it cannot be registered (--drop-unregistered leaves it out)")
+                         f"overlaps no other view{'; ' + '; '.join(found) if found else ''}{hint}: it cannot be "
+                         "registered (--drop-unregistered leaves it out)")
     if lost:
         log.warning("left out views that register to nothing: %s", ", ".join(names[v] for v in lost))
     kept = [v for v in range(V) if v in connected]

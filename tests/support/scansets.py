@@ -92,3 +92,20 @@ def plane_residuals(views: list, trees: list, poses: np.ndarray, i: int, j: int)
     m = views[j].normals[idx[ok]].astype(np.float64)
     agree = np.einsum("ij,ij->i", m, views[i].normals[ok].astype(np.float64) @ rel[:3, :3].T) > 0.7
     return np.einsum("ij,ij->i", m[agree], x[ok][agree] - views[j].xyz[idx[ok][agree]])
+
+
+def merged_label_shares(merged_xyz: np.ndarray, fused_views: list, poses: np.ndarray,
+                        labels: list[np.ndarray]) -> dict[str, float]:
+    """Share of the merged points (M, 3) mm per simulator label (``shared.sim.scenes.LABELS``): each
+    merged point takes the label of its nearest fused sample. ``fused_views``: the captured views
+    the fusion took (pixels in their range images), ``poses`` (V, 4, 4) the poses the merge used,
+    ``labels`` each view's (H, W) truth labels."""
+    from scipy.spatial import cKDTree
+
+    from shared.sim.scenes import LABELS
+
+    xyz = np.concatenate([v.xyz @ P[:3, :3].T + P[:3, 3] for v, P in zip(fused_views, poses, strict=True)])
+    lab = np.concatenate([lb[v.pixel[:, 1], v.pixel[:, 0]] for v, lb in zip(fused_views, labels, strict=True)])
+    _, idx = cKDTree(xyz).query(merged_xyz, workers=2)
+    counts = np.bincount(lab[idx].astype(np.int64) + 1, minlength=len(LABELS))
+    return {LABELS[k - 1]: float(c) / max(1, len(merged_xyz)) for k, c in enumerate(counts)}

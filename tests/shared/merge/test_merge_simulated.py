@@ -1,5 +1,9 @@
 """The multi-view merge against the virtual rig's truth: poses, turntable axis, coverage, accuracy, mesh.
 
+Every test runs as a real turntable capture looks: no ``roi`` (the scan set's crop is removed), so
+the backdrop, the floor and the plate are in every view and the merge must find the object itself
+(the issue's reproduction: before the static removal every view registered at about 0 deg, on the wall).
+
 The scan set is 8 turntable views of the bunny at 640x480 (the issue's figures are for 2048x1536,
 which costs minutes per run: the bench measures those). At 640x480 the fits have 3.2x fewer samples
 across the object, so the pose tolerances here are 0.05 deg / 0.15 mm with and without angles
@@ -8,6 +12,7 @@ across the object, so the pose tolerances here are 0.05 deg / 0.15 mm with and w
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 from pathlib import Path
@@ -21,12 +26,15 @@ from shared.core.errors import InputError
 from shared.formats.ply import write_ply
 from shared.formats.scanset import load_scanset, scanset_doc, write_scanset
 from shared.merge.fusion import read_fused
+from shared.merge.isolate import IsolationParams, isolate_object
+from shared.merge.meshing import MeshParams
 from shared.merge.pipeline import merge_views
 from shared.merge.registration import pose_error, register_views
-from shared.merge.views import crop_to_roi, load_views
+from shared.merge.views import load_views
 from shared.sim.scanset import load_scanset_truth, turntable_scenes
+from shared.sim.scenes import LABEL_OBJECT, LABEL_PLATE, LABEL_SUPPORT
 from shared.sim.simulate import load_truth
-from tests.support.scansets import cached_scanset
+from tests.support.scansets import cached_scanset, merged_label_shares
 
 pytestmark = pytest.mark.slow
 
@@ -40,15 +48,21 @@ def scanset_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 @pytest.fixture(scope="module")
 def loaded(scanset_dir: Path):
-    ss = load_scanset(scanset_dir)
+    ss = dataclasses.replace(load_scanset(scanset_dir), roi=None)  # what a real turntable capture looks like
     views = load_views(ss)
     truth = load_scanset_truth(scanset_dir)
     obj = []
     for spec in ss.views:
         t = load_truth(spec.path)
-        m = (t.surface == 0) & np.isfinite(t.depth)
+        m = (t.labels == LABEL_OBJECT) & np.isfinite(t.depth)
         obj.append(t.points[m].astype(np.float64))
     return ss, views, truth, obj
+
+
+@pytest.fixture(scope="module")
+def labels(loaded) -> list[np.ndarray]:
+    """Each view's (H, W) simulator labels (object, plate, support, base, backdrop)."""
+    return [load_truth(spec.path).labels for spec in loaded[0].views]
 
 
 def _check_poses(reg, truth, obj, max_deg: float, max_mm: float) -> None:
@@ -59,10 +73,15 @@ def _check_poses(reg, truth, obj, max_deg: float, max_mm: float) -> None:
     assert max(e[1] for e in errs) <= max_mm
 
 
+def _check_poses_of(poses, truth, obj, max_deg: float, max_mm: float) -> None:
+    errs = [pose_error(poses[i], truth.poses[i], obj[i]) for i in range(len(obj))]
+    print("pose errors (deg, mm):", [(round(d, 4), round(m, 4)) for d, m in errs])
+    assert max(e[0] for e in errs) <= max_deg and max(e[1] for e in errs) <= max_mm
+
+
 def test_turntable_angles_register_within_tolerance(loaded) -> None:
     ss, views, truth, obj = loaded
-    cropped = [crop_to_roi(v, ss.roi) for v in views]
-    reg = register_views(cropped, turntable_deg=ss.turntable_deg)
+    reg = register_views(isolate_object(views, ss).registration, turntable_deg=ss.turntable_deg)
     _check_poses(reg, truth, obj, 0.05, 0.15)
     axis_err = np.degrees(np.arccos(min(1.0, abs(float(np.dot(reg.axis.direction, truth.axis_direction))))))
     print(f"turntable axis {axis_err:.4f} deg from the truth; loop closure {reg.loop_closure}")
@@ -76,8 +95,7 @@ def test_turntable_angles_register_within_tolerance(loaded) -> None:
 
 def test_no_hints_register_within_tolerance(loaded) -> None:
     ss, views, truth, obj = loaded
-    cropped = [crop_to_roi(v, ss.roi) for v in views]
-    reg = register_views(cropped)
+    reg = register_views(isolate_object(views, dataclasses.replace(ss, turntable_deg=None)).registration)
     assert reg.method.startswith("global FPFH+RANSAC")
     _check_poses(reg, truth, obj, 0.05, 0.15)
 
@@ -99,20 +117,30 @@ def _dist_to(mesh: trimesh.Trimesh, pts: np.ndarray, n: int = 20000, seed: int =
     return scene.compute_distance(o3d.core.Tensor(pick.astype(np.float32))).numpy().astype(np.float64)
 
 
-def test_merge_covers_fuses_and_meshes(loaded, tmp_path: Path) -> None:
+def test_merge_covers_fuses_and_meshes(loaded, labels, tmp_path: Path) -> None:
     ss, views, truth, obj = loaded
     out = tmp_path / "out"
-    report = merge_views(views, ss, out)
+    report = merge_views(views, dataclasses.replace(ss, turntable_deg=None), out)  # no roi, no hints
     for name in ("merged.ply", "registration.json", "mesh.ply", "mesh.glb", "mesh_lod1.glb", "mesh_lod2.glb",
                  "mesh_lod3.glb", "report.json"):
         assert (out / name).is_file(), name
     assert sorted(p.name for p in (out / "ranges").iterdir()) == [f"view_{i:02d}.npz" for i in range(8)]
     assert not [p for p in out.iterdir() if p.name.startswith(".")]
-    reg_doc = json.loads((out / "registration.json").read_text())
-    poses = np.stack([np.block([[np.array(v["R"]), np.array(v["T"])[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
-                      for v in reg_doc["views"]])
+    poses = json_poses(out)
     rec = read_fused(out / "merged.ply")
     merged = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
+    # The right model: every view where it belongs, and almost nothing but the object in the cloud.
+    _check_poses_of(poses, truth, obj, 0.05, 0.15)
+    # What is object and what is static, by the simulator's per-pixel labels.
+    shares = merged_label_shares(merged, isolate_object(views, ss).fusion, poses, labels)
+    off_object = shares["plate"] + shares["support"] + shares["base"] + shares["backdrop"]
+    quality = report["quality"]
+    print(f"merged points by label: {({k: round(100 * v, 3) for k, v in shares.items()})} %; removed "
+          f"{quality['removed']['static']} static samples, object sphere {quality['removed']['object']}")
+    assert off_object <= 0.005 and shares["object"] >= 0.99
+    assert quality["passed"] and quality["removed"]["object"]["source"] == "found"
+    assert quality["removed"]["static"] > 0.5 * quality["removed"]["samples"]
+    assert [v["flags"] for v in quality["views"]] == [[]] * 8 and quality["loop_closure"]["closes"]
     assert set(np.unique(rec["view"])) == set(range(8))
     assert np.all(rec["confidence"] > 0)
     # Coverage of the object's surface that any view saw (true points in the set frame, truth poses).
@@ -128,8 +156,8 @@ def test_merge_covers_fuses_and_meshes(loaded, tmp_path: Path) -> None:
     surface = _true_surface(ss)
     rms_merged = float(np.sqrt(np.mean(_dist_to(surface, merged) ** 2)))
     singles = []
-    for v, P in zip(views, truth.poses, strict=True):
-        c = crop_to_roi(v, ss.roi)
+    for v, P in zip(isolate_object(views, ss).registration, truth.poses, strict=True):
+        c = v
         singles.append(float(np.sqrt(np.mean(_dist_to(surface, c.xyz @ P[:3, :3].T + P[:3, 3]) ** 2))))
     print(f"RMS point-to-surface: merged {rms_merged:.3f} mm, single views {[round(s, 3) for s in singles]}")
     assert rms_merged <= min(singles)
@@ -159,7 +187,9 @@ def test_view_that_overlaps_nothing(loaded, scanset_dir: Path, tmp_path: Path) -
         shutil.copytree(scanset_dir / name, tmp_path / name)
     shutil.copyfile(scanset_dir / "rig.json", tmp_path / "rig.json")
     doc = scanset_doc([{"capture": "view_00"}, {"capture": "view_01"}, {"cloud": "junk.ply", "name": "junk"}],
-                      rig="rig.json", roi=ss.roi)
+                      rig="rig.json", roi=turntable_scenes(SET["scene"], SET["views"], SET["mode"])[4])
+    # the simulator's crop: two captures and a cloud are not one fixed rig, so only a crop leaves
+    # the captures the object alone
     write_scanset(tmp_path, doc)
     ss2 = load_scanset(tmp_path)
     three = [views[0], views[1]]
@@ -174,3 +204,111 @@ def test_view_that_overlaps_nothing(loaded, scanset_dir: Path, tmp_path: Path) -
     report = merge_views(three, ss2, out, drop_unregistered=True)
     assert report["dropped_views"] == ["junk"] and report["registered_views"] == 2
     assert json.loads((out / "registration.json").read_text())["views"][2]["registered"] is False
+
+
+def _scanset_of(tmp_path: Path, captures: list[tuple[str, Path]], rig: Path, angles=None):
+    doc = scanset_doc([{"capture": str(p), "name": n} for n, p in captures], rig=str(rig), turntable_deg=angles)
+    write_scanset(tmp_path, doc)
+    return load_scanset(tmp_path)
+
+
+def test_all_backdrop_fails_saying_so(loaded, scanset_dir: Path, tmp_path: Path) -> None:
+    ss, views, truth, obj = loaded
+    empty = []
+    for spec, v in zip(ss.views, views, strict=True):
+        label = load_truth(spec.path).labels
+        backdrop = label >= LABEL_SUPPORT  # table, base and backdrop: what a turntable with nothing on it shows
+        keep = backdrop[v.pixel[:, 1], v.pixel[:, 0]]
+        e = v.subset(keep)
+        e.range_image = np.where(backdrop, v.range_image, np.nan).astype(np.float32)
+        empty.append(e)
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=r"^views: every view shows only geometry that does not turn .* all backdrop"):
+        merge_views(empty, ss, out)
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_identical_views_are_named(loaded, tmp_path: Path) -> None:
+    ss, views, truth, obj = loaded
+    twice = list(views)
+    twice[1] = dataclasses.replace(views[0], index=1, name="view_01")
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=r"^views\[0\] \(view_00\), views\[1\] \(view_01\): identical") as exc:
+        merge_views(twice, ss, out)
+    assert "\n" not in str(exc.value)
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_wrong_turntable_angle_is_named(loaded, tmp_path: Path) -> None:
+    ss, views, truth, obj = loaded
+    angles = ss.turntable_deg.copy()
+    angles[3] += 25.0  # one view's angle off by an offset
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=r"view_03") as exc:
+        merge_views(views, dataclasses.replace(ss, turntable_deg=angles), out)
+    print(exc.value)
+    assert "angle" in str(exc.value) and "\n" not in str(exc.value)
+    assert not out.exists() or not any(out.iterdir())
+
+
+def test_view_of_another_object_is_named_not_merged(loaded, scanset_dir: Path, tmp_path: Path) -> None:
+    ss, views, truth, obj = loaded
+    other_set = cached_scanset(tmp_path / "other", scene="teapot", views=2, mode="turntable", size=SET["size"],
+                               projector=SET["projector"])
+    captures = [(spec.name, spec.path) for spec in ss.views] + [("teapot", other_set / "view_01")]
+    ss9 = _scanset_of(tmp_path / "set", captures, scanset_dir / "rig.json")
+    from shared.merge.views import load_view
+
+    nine = [*views, load_view(ss9.views[8])]
+    out = tmp_path / "out"
+    with pytest.raises(InputError, match=r"views\[8\] \(teapot\)[,:]") as exc:
+        merge_views(nine, ss9, out)
+    print(exc.value)
+    assert "overlaps no other view" in str(exc.value) and "\n" not in str(exc.value)
+    assert not str(exc.value).startswith(tuple(f"views[{i}]" for i in range(8)))  # the bunny's views are not named
+    assert not out.exists() or not any(out.iterdir())
+    # --drop-unregistered leaves out exactly the foreign view; the other eight pass every check (before
+    # the foreign view's backdrop was kept out of the object's search, views 2 and 3 failed too and
+    # four of the eight were left out).
+    report = merge_views(nine, ss9, out, drop_unregistered=True, meshing=MeshParams(max_depth=6))  # the mesh: elsewhere
+    assert report["dropped_views"] == ["teapot"] and report["registered_views"] == 8
+    quality = report["quality"]
+    assert quality["passed"] and [v["flags"] for v in quality["views"][:8]] == [[]] * 8
+    assert quality["removed"]["foreign_background"] == ["teapot"]
+    # Measured 0.049 deg / 0.12 mm (the eight alone: 0.040 / 0.092); the bound here is where they belong,
+    # the accuracy is the other tests'.
+    _check_poses_of(json_poses(out)[:8], truth, obj, 0.1, 0.2)
+
+
+def json_poses(out: Path) -> np.ndarray:
+    """(V, 4, 4) the poses of ``registration.json`` in ``out`` (NaN for a view left out)."""
+    doc = json.loads((out / "registration.json").read_text())
+    return np.stack([np.block([[np.array(v["R"]), np.array(v["T"])[:, None]], [np.zeros((1, 3)), np.ones((1, 1))]])
+                     if "R" in v else np.full((4, 4), np.nan) for v in doc["views"]])
+
+
+def test_keep_support_keeps_the_plate_disc(loaded, labels) -> None:
+    """--keep-support adds the plate's disc to what is fused, and nothing else: judged by the
+    simulator's labels, and the disc's radius against the plate's true rim (the labelled plate
+    samples' largest distance from the true axis)."""
+    ss, views, truth, obj = loaded
+    iso = isolate_object(views, ss, IsolationParams(keep_support=True))
+    disc = iso.report["support_plane"]["disc"]
+    rim = []
+    for v, lab in zip(views, labels, strict=True):
+        plate = v.xyz[lab[v.pixel[:, 1], v.pixel[:, 0]] == LABEL_PLATE] - truth.axis_point
+        rim.append(np.linalg.norm(plate - np.outer(plate @ truth.axis_direction, truth.axis_direction), axis=1).max())
+    centre = np.array(disc["centre_mm"]) - truth.axis_point
+    off_axis = float(np.linalg.norm(centre - truth.axis_direction * (centre @ truth.axis_direction)))
+    print(f"plate disc radius {disc['radius_mm']:.2f} mm (true rim {max(rim):.2f} mm), centre {off_axis:.2f} mm "
+          "from the axis")
+    assert abs(disc["radius_mm"] - max(rim)) <= 0.03 * max(rim) and off_axis <= 0.03 * max(rim)
+    added = kept = 0
+    for reg_v, fus_v, lab in zip(iso.registration, iso.fusion, labels, strict=True):
+        extra = np.setdiff1d(fus_v.pixel[:, 1] * lab.shape[1] + fus_v.pixel[:, 0],
+                             reg_v.pixel[:, 1] * lab.shape[1] + reg_v.pixel[:, 0])
+        kept += int(np.count_nonzero(lab.ravel()[extra] == LABEL_PLATE))
+        added += len(extra)
+    print(f"support kept: {added} samples, {100 * kept / max(1, added):.2f} % on the plate")
+    assert added > 0 and kept >= 0.99 * added
+    assert iso.report["support_kept"] and sum(v["support_kept"] for v in iso.report["per_view"]) == added
