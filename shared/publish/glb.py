@@ -111,14 +111,29 @@ def inspect_glb(path: Path) -> GlbInfo:
                    tuple(float(v) for v in lo), tuple(float(v) for v in hi))
 
 
+def _draco_positions(path: Path, binary: bytes, view: dict) -> np.ndarray:
+    import DracoPy
+
+    start = view.get("byteOffset", 0)
+    try:
+        mesh = DracoPy.decode(binary[start:start + view["byteLength"]])
+    except Exception as exc:  # DracoPy raises its own failure types for a corrupt stream
+        raise InputError(path, f"its Draco geometry cannot be decoded ({type(exc).__name__})") from None
+    return np.asarray(mesh.points, np.float64).reshape(-1, 3)
+
+
 def glb_positions(path: Path) -> np.ndarray:
     """Every vertex position of a GLB's meshes, (N, 3) float64, in the file's units (node transforms
-    are not applied: Graylight's GLBs have none)."""
+    are not applied: Graylight's GLBs have none); Draco-compressed primitives are decoded."""
     doc, binary = _chunks(Path(path))
     acc, views = doc.get("accessors", []), doc.get("bufferViews", [])
     out = []
     for mesh in doc.get("meshes", []):
         for prim in mesh.get("primitives", []):
+            draco = prim.get("extensions", {}).get("KHR_draco_mesh_compression")
+            if draco is not None:  # the derivatives' geometry (shared.derive.gltf) is Draco-compressed
+                out.append(_draco_positions(path, binary, views[draco["bufferView"]]))
+                continue
             a = acc[prim["attributes"]["POSITION"]]
             v = views[a["bufferView"]]
             dtype = np.dtype(_DTYPES[a["componentType"]])

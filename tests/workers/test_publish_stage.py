@@ -84,7 +84,7 @@ def mv_job(tmp_path_factory: pytest.TempPathFactory):
     """A multiview job run to its end once for the module, with two derivative levels and a hostile
     title: (settings, artifact store, job, key, its publish folder)."""
     root = tmp_path_factory.mktemp("mv-job")
-    scanset = cached_scanset(tmp_path_factory.mktemp("mv-publish"), views=4, size=(320, 240), projector=(256, 192))
+    scanset = cached_scanset(tmp_path_factory.mktemp("mv-publish"), views=8, size=(320, 240), projector=(256, 192))
     settings = make_env(root / "svc").settings
     _store, arts, job, key = _run_job(settings, scanset, root / "set.zip", "multiview", MV_PARAMS)
     assert job.state == "succeeded", [(s.name, s.error) for s in job.stages if s.error]
@@ -140,9 +140,9 @@ def test_multiview_job_publishes_the_merged_object(mv_job, tmp_path: Path) -> No
     assert "<script>" not in page and "&lt;script&gt;alert(1)&lt;/script&gt;" in page
     doc = json.loads((out / "paradata.json").read_text())
     stages = sorted(a["stage"] for a in _activities(doc))
-    assert stages.count("mv_triangulate#3") == 1 and {"mv_merge", "derivatives", "publish"} <= set(stages)
+    assert stages.count("mv_triangulate#7") == 1 and {"mv_merge", "derivatives", "publish"} <= set(stages)
     jsonld.expand(doc)
-    assert len(qa["views"]) == 4 and qa["calibration"]["rig"].endswith("rig.json")
+    assert len(qa["views"]) == 8 and qa["calibration"]["rig"].endswith("rig.json")
 
 
 @pytest.mark.slow

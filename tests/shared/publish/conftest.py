@@ -13,7 +13,7 @@ from tests.support.scansets import cached_scanset
 
 @pytest.fixture(scope="session")
 def small_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return cached_scanset(tmp_path_factory.mktemp("publish-set"), views=4, size=(320, 240), projector=(256, 192))
+    return cached_scanset(tmp_path_factory.mktemp("publish-set"), views=8, size=(320, 240), projector=(256, 192))
 
 
 @pytest.fixture(scope="session")
