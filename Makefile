@@ -1,4 +1,4 @@
-# Graylight: `make demo` sets everything up and runs a real scan; `make test` runs the suite.
+# Graylight: `make demo` sets everything up and scans, merges and publishes a whole object; `make test` runs the suite.
 SHELL := /bin/bash
 PY ?= python3
 VENV := .venv
@@ -53,19 +53,31 @@ services:
 # The bunny scene needs the shared meshes (../shared/data); elsewhere the analytic spheres scene is used.
 DEMO_SCENE := $(if $(wildcard ../shared/data/meshes/stanford-bunny.obj),bunny,spheres)
 
+# The whole-object path, embedded (no server): a realistic simulated turntable set (plate,
+# turntable base, table and backdrop in view, no roi), merged, its textured Thumb and Low
+# derivatives, published for Voyager with paradata and a QA report, tiled and previewed.
+# 8 views at 640x480 keep it near a minute after set-up (see README: the figures).
+DEMO_VIEWS := 8
+DEMO_SIZE := 640x480
+
 demo: setup
 	@rm -rf demo && mkdir -p demo
-	$(BIN)/graylight simulate --scene $(DEMO_SCENE) --size 2048x1536 --out demo/capture
-	$(BIN)/graylight scan demo/capture --out demo/scan
-	$(BIN)/graylight tiles demo/scan/cloud.ply --out demo/tiles
-	$(BIN)/graylight preview demo/tiles --out demo/preview.mp4 --seconds 4
+	$(BIN)/graylight simulate --scene $(DEMO_SCENE) --views $(DEMO_VIEWS) --turntable --size $(DEMO_SIZE) --projector 512x384 --out demo/set
+	$(BIN)/graylight merge demo/set --out demo/merge
+	$(BIN)/graylight derivatives demo/merge --levels thumb,low
+	$(BIN)/graylight publish demo/merge --out demo/published --title "$(DEMO_SCENE) (simulated turntable scan)" --collection "Graylight demo" --identifier demo-0001
+	$(BIN)/graylight tiles demo/merge/merged.ply --out demo/merge/tiles
+	$(BIN)/graylight preview demo/merge/tiles --out demo/preview.mp4 --seconds 4
 	@echo
-	@echo "Demo finished ($(DEMO_SCENE) scene, embedded mode, no server):"
-	@echo "  capture (with rig.json and truth.npz)  demo/capture/"
-	@echo "  point cloud                            demo/scan/cloud.ply"
-	@echo "  range image and report                 demo/scan/range.npz, demo/scan/report.json"
-	@echo "  level-of-detail tiles (Potree 2.0)     demo/tiles/"
-	@echo "  preview flythrough and poster          demo/preview.mp4, demo/preview.png"
+	@echo "Demo finished ($(DEMO_SCENE) on a turntable, $(DEMO_VIEWS) views, embedded mode, no server):"
+	@echo "  scan set (views, rig, true poses)        demo/set/"
+	@echo "  registered, fused and meshed object      demo/merge/ (merged.ply, mesh.glb, registration.json)"
+	@echo "  textured derivatives (Thumb, Low)        demo/merge/mesh_thumb.glb, mesh_low.glb, derivatives.json"
+	@echo "  Voyager scene, paradata, quality report  demo/published/ (scene.svx.json, paradata.json, qa.html)"
+	@echo "  preview flythrough and poster            demo/preview.mp4, demo/preview.png"
+	@echo "  verdict: $$($(BIN)/python -c 'import json; print(json.load(open("demo/published/qa.json"))["verdict"]["line"])')"
+	@echo
+	@echo "Open it in the viewer:  $(BIN)/graylight view demo/merge"
 
 test: setup services
 	$(BIN)/python -m pytest -n $(PYTEST_WORKERS) --dist loadgroup -q tests
