@@ -208,8 +208,19 @@ def _flags(quality: dict[str, Any] | None) -> tuple[list[dict[str, Any]], list[s
     for flag in quality.get("flags", []) if isinstance(quality.get("flags"), list) else []:
         rows.append({"check": str(flag.get("name", flag)) if isinstance(flag, dict) else str(flag), "ok": False,
                      "detail": flag if isinstance(flag, dict) else {}})
-    if isinstance(quality.get("ok"), bool):
-        rows.append({"check": "overall", "ok": quality["ok"], "detail": {}})
+    # The turntable merge's block (shared.merge.checks): passed, the loop's closes, per-view flags, failures.
+    loop = quality.get("loop_closure")
+    if isinstance(loop, dict) and isinstance(loop.get("closes"), bool):
+        rows.append({"check": "loop closure", "ok": loop["closes"],
+                     "detail": {k: v for k, v in loop.items() if isinstance(v, int | float) and not isinstance(v, bool)}})
+    for v in quality.get("views", []) if isinstance(quality.get("views"), list) else []:
+        for flag in v.get("flags", []) if isinstance(v, dict) and isinstance(v.get("flags"), list) else []:
+            rows.append({"check": f"{v.get('name', v.get('view'))}: {flag}", "ok": False, "detail": {}})
+    for failure in quality.get("failures", []) if isinstance(quality.get("failures"), list) else []:
+        rows.append({"check": str(failure), "ok": False, "detail": {}})
+    for key in ("ok", "passed"):
+        if isinstance(quality.get(key), bool):
+            rows.append({"check": "overall", "ok": quality[key], "detail": {}})
     return rows, [f"registration check failed: {r['check']}" for r in rows if not r["ok"]]
 
 

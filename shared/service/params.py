@@ -243,7 +243,10 @@ def _label(value: Any, field: str) -> str:
 
 def _label_param(description: str) -> Param:
     """The object's title, collection or identifier, shown in its Voyager scene and quality report."""
-    return Param(_label, {"type": "string", "maxLength": MAX_LABEL_CHARS, "description": description})
+    # The pattern states the common case of check_label's refusal (C0/C1 controls); format, surrogate
+    # and private-use characters are refused too, with the same one-line error.
+    return Param(_label, {"type": "string", "maxLength": MAX_LABEL_CHARS, "pattern": "^[^\\u0000-\\u001f\\u007f-\\u009f]*$",
+                          "description": description + "; printable text (control and format characters are refused)"})
 
 
 #: The object as the museum names it (shared.publish.folder.ObjectMeta), for scan and multiview jobs.

@@ -242,3 +242,23 @@ def test_calibration_evidence_and_the_verdict(small_set: Path, tmp_path: Path) -
     (cap / "rig-report.json").write_text(json.dumps(report))
     assert _publish(tmp_path / "scan", tmp_path / "other") == 0
     assert "rms_px" not in json.loads((tmp_path / "other" / "qa.json").read_text())["calibration"]
+
+
+def test_publish_a_merge_that_graylight_derivatives_wrote_into(merged: Path, tmp_path: Path) -> None:
+    """``graylight derivatives`` then ``graylight publish`` on the same merge folder: the scene lists the
+    textured Draco levels as derivatives.json measured them (not the merge's LODs), and the report's
+    budget table and its note say so."""
+    work = tmp_path / "merge"
+    shutil.copytree(merged, work)
+    assert main(["derivatives", str(work), "--levels", "thumb:3000:128,low:8000:256"]) == 0
+    assert main(["publish", str(work), "--out", str(tmp_path / "web"), "--title", "t"]) == 0
+    made = json.loads((work / "derivatives.json").read_text())
+    scene = json.loads((tmp_path / "web" / "scene.svx.json").read_text())
+    assert list(svx_validator().iter_errors(scene)) == []
+    assets = [d["assets"][0] for d in scene["models"][0]["derivatives"]]
+    assert [(a["uri"], a["byteSize"], a["numFaces"], a["imageSize"]) for a in assets] == [
+        (lv["file"], lv["bytes"], lv["faces"], lv["texture_px"]) for lv in made["levels"]]
+    qa = json.loads((tmp_path / "web" / "qa.json").read_text())
+    assert [r["file"] for r in qa["derivatives"]] == ["mesh_thumb.glb", "mesh_low.glb"]
+    assert qa["derivative_set"]["made_by"] == "graylight derivatives"
+    assert "Levels: graylight derivatives" in (tmp_path / "web" / "qa.html").read_text()
