@@ -212,14 +212,16 @@ def _occlusion(m: UVMesh, rays: int, reach: float) -> np.ndarray:
 
 def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices: np.ndarray,
               master_normals: np.ndarray, params: BakeParams | None = None, chunk: int = 1 << 20,
-              photo: PhotoSource | None = None) -> Maps:
+              photo: PhotoSource | None = None, master_bridged: np.ndarray | None = None) -> Maps:
     """Bake base colour, normal, occlusion and bridged maps of a level (see the module docstring).
 
     m : the level with its atlas; colours : the samples; master_vertices (M, 3), master_normals
     (M, 3): the master mesh the normal map carries the detail of. Texels are baked ``chunk`` at a
     time, so the memory beyond the maps themselves stays bounded at any texture size. ``photo``:
     base colour from the views' photographs (:mod:`shared.derive.photo`) wherever a view sees the
-    texel, the cloud's colour elsewhere.
+    texel, the cloud's colour elsewhere. ``master_bridged`` (M,) bool: the master's own bridged
+    flag (``mesh.ply``'s ``bridged`` property); a texel whose nearest master vertex carries it is
+    marked bridged too.
     """
     params = params or BakeParams()
     t0 = time.perf_counter()
@@ -273,6 +275,8 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
         bridged[sl] = d[:, 0] > params.bridge_factor * sigma
         # Normal map: the master's normals in the level's tangent frame.
         d, nb = mtree.query(P, k=4, workers=workers)
+        if master_bridged is not None:
+            bridged[sl] |= master_bridged[nb[:, 0]]
         w = 1.0 / np.maximum(d, 1e-9)
         hi = np.einsum("nk,nkj->nj", w, master_normals[nb].astype(np.float64))
         hi /= np.maximum(np.linalg.norm(hi, axis=1, keepdims=True), 1e-30)

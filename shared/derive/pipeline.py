@@ -44,7 +44,7 @@ from shared.formats.ply import read_ply
 
 log = logging.getLogger(__name__)
 
-__all__ = ["REPORT_FILE", "load_master", "make_derivatives", "simplify_to"]
+__all__ = ["REPORT_FILE", "load_bridged", "load_master", "make_derivatives", "simplify_to"]
 
 REPORT_FILE = "derivatives.json"
 COLOUR_MODES = ("photo", "albedo", "shaded")
@@ -68,6 +68,24 @@ def load_master(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     if getattr(tm.visual, "kind", None) == "vertex":
         colours = np.asarray(tm.visual.vertex_colors)[:, :3].astype(np.uint8)
     return v, f, colours
+
+
+def load_bridged(path: Path, vertices: int) -> np.ndarray | None:
+    """The master's per-vertex ``bridged`` flag (V,) bool from ``mesh.ply``
+    (:mod:`shared.merge.meshing`), or None when the file has none (older merges)."""
+    from shared.formats.ply import read_header
+
+    try:
+        header = read_header(path)
+    except (InputError, ValueError):
+        return None
+    if "bridged" not in (header.dtype.names or ()):
+        return None
+    import trimesh
+
+    raw = trimesh.load(path, force="mesh", process=False).metadata.get("_ply_raw", {})
+    flag = np.asarray(raw.get("vertex", {}).get("data", {})["bridged"]).astype(bool)
+    return flag if len(flag) == vertices else None
 
 
 def simplify_to(vertices: np.ndarray, faces: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
@@ -115,13 +133,14 @@ def _colour_source(merge_dir: Path, colour: str, master: tuple[np.ndarray, np.nd
 
 def _level(level: Level, v: np.ndarray, f: np.ndarray, colours: ColourSource, master_v: np.ndarray,
            master_n: np.ndarray, staging: Path, params: BakeParams, colour_mode: str,
-           photo: PhotoSource | None = None) -> dict[str, Any]:
+           photo: PhotoSource | None = None, master_bridged: np.ndarray | None = None) -> dict[str, Any]:
     t0 = time.perf_counter()
     lv, lf = simplify_to(v, f, level.faces)
     t1 = time.perf_counter()
     uvm = unwrap(lv, lf, level.texture_px, params.padding_px)
     t2 = time.perf_counter()
-    maps = bake_maps(uvm, level.texture_px, colours, master_v, master_n, params, photo=photo)
+    maps = bake_maps(uvm, level.texture_px, colours, master_v, master_n, params, photo=photo,
+                     master_bridged=master_bridged)
     t3 = time.perf_counter()
     q = level.jpeg_quality
     textures = {"base_colour": encode_jpeg(maps.base_colour, q), "normal": encode_jpeg(maps.normal, max(q, 80)),
@@ -173,18 +192,22 @@ def make_derivatives(merge_dir: Path, out_dir: Path | None = None, levels: str |
     for w in warnings:
         log.warning("derivatives: %s", w)
     mn = vertex_normals(mv, mf)
+    flag = load_bridged(merge_dir / "mesh.ply", len(mv))
     out_dir.mkdir(parents=True, exist_ok=True)
     staging = Path(tempfile.mkdtemp(prefix=".derivatives-", dir=out_dir))
     try:
         # Each level from the master, largest first (a coarser level from a finer one would be
         # faster, but each level's own quadric error is measured against the master this way).
-        results = [_level(lv, mv, mf, source, mv, mn, staging, params, colour, photo) for lv in plan]
+        results = [_level(lv, mv, mf, source, mv, mn, staging, params, colour, photo, flag) for lv in plan]
         # The master's own vertices where no sample is near: surface Poisson bridged without data.
         d, nb = cKDTree(source.xyz).query(mv, workers=cpu_budget())
         bridged = d > params.bridge_factor * np.maximum(source.size[nb], 1e-6)
+        if flag is not None:
+            bridged |= flag  # the merge's own flag, measured against every sample
         report: dict[str, Any] = {
             "master": {"faces": int(len(mf)), "vertices": int(len(mv)),
-                       "bridged_vertex_share": round(float(bridged.mean()), 5)},
+                       "bridged_vertex_share": round(float(bridged.mean()), 5),
+                       "bridged_flag": "mesh.ply" if flag is not None else "from the cloud"},
             "colour": colour, "colour_baked": "photo" if photo is not None else source.kind, "warnings": warnings, "levels": results,
             "seconds": round(time.perf_counter() - t0, 3),
         }
