@@ -238,12 +238,12 @@ def load_photo_source(merge_dir: Path, scanset_dir: Path | None = None,
     try:
         scanset = load_scanset(Path(scanset_dir))
     except InputError as exc:
-        return None, f"the scan set cannot be read ({exc})"
+        return None, f"the scan set cannot be read: {exc.problem}"
     entries = {e.get("name"): e for e in reg.get("views", []) if isinstance(e, dict)}
     try:
         views = _photographed_views(scanset, entries, reg_path)
     except InputError as exc:
-        return None, f"a view's photographs cannot be read ({exc})"
+        return None, f"a view's photographs cannot be read: {exc.problem}"
     if not views:
         return None, "no registered captured view has photographs"
     return PhotoSource(views=views, params=params or PhotoParams()), None
