@@ -27,13 +27,12 @@ def test_a_highlight_seen_by_one_view_is_left_out_and_unseen_points_say_so() -> 
 
 @pytest.mark.slow
 def test_photograph_bake_beats_the_cloud_and_the_per_vertex_colour(tmp_path_factory: pytest.TempPathFactory) -> None:
-    from shared.derive._raster import rasterise_uv
     from shared.derive.bake import bake_maps, unwrap, vertex_normals
     from shared.derive.photo import load_photo_source
     from shared.derive.pipeline import _colour_source, load_master, simplify_to
     from shared.merge.pipeline import merge_scanset
     from shared.scan.albedo import linear_from_srgb
-    from shared.sim.scanset import turntable_scenes
+    from tests.support.derive_scene import texel_truth
     from tests.support.scansets import cached_scanset
 
     folder = cached_scanset(tmp_path_factory.mktemp("photo-set"), scene="bunny", views=8, size=(480, 360),
@@ -49,14 +48,7 @@ def test_photograph_bake_beats_the_cloud_and_the_per_vertex_colour(tmp_path_fact
     vn = vertex_normals(v, f)
     baked = {"cloud": bake_maps(m, S, cloud, v, vn), "photo": bake_maps(m, S, cloud, v, vn, photo=photo)}
     assert baked["photo"].stats["photo"]["texels_seen_share"] > 0.9
-    fid = np.full((S, S), -1, np.int32)
-    bary = np.zeros((S, S, 3), np.float32)
-    rasterise_uv(m.uv, m.faces, S, fid, bary)
-    cov = fid >= 0
-    P = np.einsum("nk,nkj->nj", bary[cov], m.vertices[m.faces[fid[cov]]])
-    obj = turntable_scenes("bunny", 8)[0][0].surfaces[0]  # view 0's frame is the set's
-    on = cKDTree(obj.placed.vertices).query(P)[0] < 3.0  # the bunny, not the plate
-    truth = obj.albedo_at(P).astype(np.float64)[on]
+    cov, P, on, truth = texel_truth(m, S)  # texels on the bunny (not the plate) and the renderer's albedo there
     luma = np.array([0.2126, 0.7152, 0.0722])
 
     def mae(est: np.ndarray) -> float:
