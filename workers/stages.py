@@ -300,7 +300,7 @@ def run_derivatives(ctx: StageContext) -> dict[str, Any]:
     options = ctx.params.get("derivatives")
     options = options if isinstance(options, dict) else {}
     report = make_derivatives(ctx.inputs["mv_merge"], ctx.out_dir, levels=options.get("levels"),
-                              colour=options.get("colour", "albedo"))
+                              colour=options.get("colour", "photo"), scanset=ctx.capture_dir)
     return _jsonable({"colour": report["colour_baked"], "warnings": report["warnings"],
                       "levels": [{k: lv[k] for k in ("level", "file", "faces", "texture_px", "bytes")}
                                  for lv in report["levels"]]})
