@@ -12,8 +12,8 @@ holds the merge's ``registration.json`` with the turntable axis, as a multi-view
 from __future__ import annotations
 
 import json
+import time
 from collections.abc import Iterator
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -22,81 +22,94 @@ from fastapi import FastAPI, Header, HTTPException
 from fastapi.responses import FileResponse
 
 from services.viewer import routes
-from shared.formats.ply import write_ply
+from tests.support.turntable_object import AXIS, write_cylinder_cloud, write_cylinder_glb
 from tests.support.viewer_browser import Page, Server, built_viewer, chromium
 
 pytestmark = pytest.mark.slow
 
 KEY = "merged-key-5c1"
-#: The turntable axis as registration.json gives it (down the image and a little away, the bunny's).
-AXIS = np.array([0.0, 0.9445, 0.3284]) / np.linalg.norm([0.0, 0.9445, 0.3284])
 CENTRE = np.array([6.0, -5.0, 140.0])
-RADIUS, HEIGHT = 30.0, 90.0
 SIZE = (480, 360)
 BG = np.array([0.08, 0.09, 0.11]) * 255
-
-
-def _merged_cloud(path: Path, n: int = 120_000) -> None:
-    rng = np.random.default_rng(3)
-    ang = rng.uniform(0, 2 * np.pi, n)
-    h = rng.uniform(-HEIGHT / 2, HEIGHT / 2, n)
-    up = -AXIS
-    x = np.cross(up, [1.0, 0.0, 0.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(up, x)
-    radial = np.cos(ang)[:, None] * x + np.sin(ang)[:, None] * y
-    xyz = CENTRE + RADIUS * radial + h[:, None] * up
-    colour = np.where((h > 0)[:, None], [[220, 30, 30]], [[30, 30, 220]]).astype(np.uint8)
-    # Splat sizes as a merge writes them: the sample spacing, not a scanner's depth ratio.
-    write_ply(path, xyz.astype(np.float32), colour, radial.astype(np.float32), np.full(n, 0.9, np.float32))
+#: The points' colours (top, bottom) and the derivatives' texture colours, told apart on screen.
+POINTS = ((220, 30, 30), (30, 30, 220))
+TEXTURE = ((220, 200, 40), (40, 200, 120))
 
 
 @pytest.fixture(scope="module")
-def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Server]:
+def served(tmp_path_factory: pytest.TempPathFactory) -> Iterator[tuple[Server, list[str]]]:
     from shared.render.octree import build_tiles
 
     root = tmp_path_factory.mktemp("viewer-merged")
-    _merged_cloud(root / "merged.ply")
-    build_tiles(root / "merged.ply", root / "job" / "tiles", workers=1, max_leaf=8000)
-    (root / "job" / "registration.json").write_text(json.dumps(
+    write_cylinder_cloud(root / "merged.ply", CENTRE, *POINTS)
+    job_dir = root / "job"
+    build_tiles(root / "merged.ply", job_dir / "tiles", workers=1, max_leaf=8000)
+    (job_dir / "registration.json").write_text(json.dumps(
         {"frame": "view 0 camera", "turntable_axis": {"direction": AXIS.tolist(), "point_mm": CENTRE.tolist()}}))
+    for level, px in (("thumb", 16), ("low", 64), ("medium", 128)):
+        write_cylinder_glb(job_dir / f"mesh_{level}.glb", CENTRE, *TEXTURE, texture_px=px)
     built_viewer()
     app = FastAPI()
     app.include_router(routes.create_router())
-    job_dir = root / "job"
+    log: list[str] = []
 
     @app.get("/v1/jobs/{job}/artifacts")
     def listing(job: str, authorization: str | None = Header(None)) -> dict:
         if authorization != f"Bearer {KEY}":
             raise HTTPException(401, "missing or wrong API key")
         arts = [{"name": f"tiles/{p.name}", "stage": "tiles"} for p in (job_dir / "tiles").iterdir()]
-        return {"job": job, "name": "turntable", "artifacts": [*arts, {"name": "mv_merge/registration.json",
-                                                                        "stage": "mv_merge"}]}  # fmt: skip
+        arts.append({"name": "mv_merge/registration.json", "stage": "mv_merge"})
+        if job == "textured":  # the derivatives stage's published files
+            arts += [{"name": p.name, "stage": "derivatives", "size": p.stat().st_size} for p in job_dir.glob("mesh_*.glb")]
+        return {"job": job, "name": "turntable", "artifacts": arts}
 
     @app.get("/v1/jobs/{job}/artifacts/{name:path}")
     def artifact(job: str, name: str, authorization: str | None = Header(None)) -> FileResponse:
         if authorization != f"Bearer {KEY}":
             raise HTTPException(401, "missing or wrong API key")
+        log.append(name)
         path = (job_dir / name.removeprefix("mv_merge/")).resolve()
         if not path.is_relative_to(job_dir) or not path.is_file():
             raise HTTPException(404, f"{name} not found")
         return FileResponse(path)
 
     with Server(app) as server:
-        yield server
+        yield server, log
 
 
-def test_a_merged_job_opens_framed_with_the_turntable_axis_up(served: Server, tmp_path: Path) -> None:
+def _halves(img: np.ndarray, top: tuple[int, int, int], bottom: tuple[int, int, int]) -> tuple[np.ndarray, np.ndarray]:
+    """Pixels near each colour up to shading (the hue kept: the colour's direction in RGB)."""
+    out = []
+    for c in (top, bottom):
+        c = np.asarray(c, float)
+        v = img.astype(float)
+        norm = np.linalg.norm(v, axis=2) + 1e-9
+        out.append(((v @ (c / np.linalg.norm(c))) / norm > 0.985) & (norm > 60))
+    return out[0], out[1]
+
+
+def _check_upright_and_framed(img: np.ndarray, top, bottom) -> None:
+    up_px, down_px = _halves(img, top, bottom)
+    assert up_px.sum() > 1000 and down_px.sum() > 1000, (up_px.sum(), down_px.sum())
+    assert np.nonzero(up_px)[0].mean() < np.nonzero(down_px)[0].mean() - 20, "the turntable's top is not up"
+    obj = np.abs(img.astype(float) - BG).sum(axis=2) > 60
+    rows, cols = np.nonzero(obj.any(axis=1))[0], np.nonzero(obj.any(axis=0))[0]
+    # Framed: all of it inside the frame (no disc covering the screen), and not a speck.
+    assert rows[0] > 2 and rows[-1] < SIZE[1] - 3 and cols[0] > 2 and cols[-1] < SIZE[0] - 3, (rows[[0, -1]], cols[[0, -1]])
+    assert rows[-1] - rows[0] > 0.4 * SIZE[1] and obj.mean() < 0.6, (rows[-1] - rows[0], obj.mean())
+
+
+def test_a_merged_job_opens_framed_with_the_turntable_axis_up(served) -> None:
+    server, _ = served
     with chromium() as browser:
-        page = Page(browser, f"{served.url}/viewer/job1?edl=0#key={KEY}", size=SIZE)
+        page = Page(browser, f"{server.url}/viewer/plain?edl=0#key={KEY}", size=SIZE)
         try:
             state = page.wait_idle()
             img = page.capture()
             errors = list(page.errors)
         finally:
             page.close()
-    out = Path("/tmp/graylight-viewer-merged.png")
-    cv2.imwrite(str(out), cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
+    cv2.imwrite("/tmp/graylight-viewer-merged.png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
     assert errors == [] and state["error"] is None and state["notice"] is None, (errors, state)
     assert state["merged"] is not None and state["settings"]["grazing"] is False
     cam = state["camera"]
@@ -106,12 +119,33 @@ def test_a_merged_job_opens_framed_with_the_turntable_axis_up(served: Server, tm
     # The camera stands beside the object, not at the origin under it.
     eye = np.asarray(cam["position"], float)
     assert np.linalg.norm(eye) > 50 and abs(float((eye - CENTRE) @ -AXIS)) < np.linalg.norm(eye - CENTRE) * 0.5
-    red = (img[..., 0] > 120) & (img[..., 2] < 100)
-    blue = (img[..., 2] > 120) & (img[..., 0] < 100)
-    assert red.sum() > 1000 and blue.sum() > 1000, (red.sum(), blue.sum())
-    assert np.nonzero(red)[0].mean() < np.nonzero(blue)[0].mean() - 20, "the turntable's top is not up"
-    obj = np.abs(img.astype(float) - BG).sum(axis=2) > 60
-    rows, cols = np.nonzero(obj.any(axis=1))[0], np.nonzero(obj.any(axis=0))[0]
-    # Framed: all of it inside the frame (no disc covering the screen), and not a speck.
-    assert rows[0] > 2 and rows[-1] < SIZE[1] - 3 and cols[0] > 2 and cols[-1] < SIZE[0] - 3, (rows[[0, -1]], cols[[0, -1]])
-    assert rows[-1] - rows[0] > 0.4 * SIZE[1] and obj.mean() < 0.6, (rows[-1] - rows[0], obj.mean())
+    _check_upright_and_framed(img, *POINTS)
+
+
+def test_a_job_with_derivatives_opens_on_the_textured_low_level_and_the_points_are_one_toggle_away(served) -> None:
+    server, log = served
+    with chromium() as browser:
+        page = Page(browser, f"{server.url}/viewer/textured?edl=0#key={KEY}", size=SIZE)
+        try:
+            t0 = time.perf_counter()
+            state = page.wait_idle()
+            seconds = time.perf_counter() - t0
+            mesh_img = page.capture()
+            points_state = page.set(mesh=False)
+            points_img = page.capture()
+            errors = list(page.errors)
+        finally:
+            page.close()
+    cv2.imwrite("/tmp/graylight-viewer-textured.png", cv2.cvtColor(mesh_img, cv2.COLOR_RGB2BGR))
+    cv2.imwrite("/tmp/graylight-viewer-textured-points.png", cv2.cvtColor(points_img, cv2.COLOR_RGB2BGR))
+    assert errors == [] and state["error"] is None and state["notice"] is None, (errors, state)
+    mesh = state["mesh"]
+    # Low, Medium (finest first); Thumb left out; Low loaded first and, at this size, kept.
+    assert [lv["name"] for lv in mesh["levels"]] == ["mesh_medium.glb", "mesh_low.glb"], mesh["levels"]
+    assert mesh["shown"] and mesh["drawn"] == "mesh_low.glb", mesh
+    assert [n for n in log if n.endswith(".glb")][0] == "mesh_low.glb", log
+    _check_upright_and_framed(mesh_img, *TEXTURE)  # drawn by its texture: the points' colours are others
+    assert _halves(mesh_img, *POINTS)[0].sum() < 50
+    assert points_state["mesh"]["shown"] is False
+    _check_upright_and_framed(points_img, *POINTS)
+    print(f"textured job page idle in {seconds:.1f} s")

@@ -24,6 +24,7 @@ import { glMatrix, mat4 } from "gl-matrix";
 import { Camera, Controls, type NavMode, parseVector } from "./camera";
 import { DecoderUnavailable } from "./decode";
 import { selectNodes, type Selection, type ViewInfo } from "./lod";
+import { derivativePx } from "./derivative";
 import { MeshLayer, orderLevels } from "./mesh";
 import { type TileNode, TileSource } from "./potree";
 import { type DrawItem, type FrameSettings, type GpuNode, Renderer } from "./renderer";
@@ -686,6 +687,16 @@ async function attachMesh(viewer: Viewer, p: URLSearchParams, config: PageConfig
       if (!a.name.includes("/") || !chosen.has(file(a.name))) chosen.set(file(a.name), a);
     }
     const base = listUrl.toString().replace(/\/$/, "");
+    // Textured derivatives (the derivatives stage's published names) win over the untextured
+    // master and its LODs; Thumb (a catalogue thumbnail) only when there is nothing finer.
+    const derived = arts.filter((a) => !a.name.includes("/") && derivativePx(a.name) !== null);
+    const shown = derived.length > 1 ? derived.filter((a) => a.name !== "mesh_thumb.glb") : derived;
+    if (shown.length) {
+      chosen.clear();
+      for (const a of shown) chosen.set(a.name, a);
+      // The object itself is what a merged job opens on; the points are one toggle (M) away.
+      if (!p.has("showmesh")) viewer.settings.mesh = true;
+    }
     levels = orderLevels([...chosen.entries()].map(([f, a]) => ({ name: f, path: a.name, size: a.size }))).map((a) => ({
       url: `${base}/${a.path.split("/").map(encodeURIComponent).join("/")}`,
       name: a.name,

@@ -16,39 +16,16 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shared.derive.gltf import encode_jpeg, write_textured_glb
 from shared.service.jobs import graph_for
+from tests.support.turntable_object import AXIS, write_cylinder_glb
 
-#: The turntable axis as registration.json gives it (pointing down the image, as the bunny's does).
-AXIS = np.array([0.0, 0.9445, 0.3284]) / np.linalg.norm([0.0, 0.9445, 0.3284])
 CENTRE = np.array([10.0, -5.0, 900.0])
-RADIUS, HEIGHT = 30.0, 90.0
 BG = np.array([18, 18, 24])
 
 
 def _cylinder(folder: Path) -> Path:
-    import trimesh
-
-    cyl = trimesh.creation.cylinder(radius=RADIUS, height=HEIGHT, sections=64)
-    cyl = cyl.subdivide().subdivide()  # vertices along the side, so the colour boundary is sharp in UV
-    v = np.asarray(cyl.vertices, np.float64)
-    h = v[:, 2] / HEIGHT + 0.5  # 0 at the bottom, 1 at the top
-    uv = np.column_stack([np.arctan2(v[:, 1], v[:, 0]) / (2 * np.pi) + 0.5, 1.0 - h]).astype(np.float64)
-    # The cylinder's +z (its top) along "up" = -AXIS, in the merge's frame.
-    up = -AXIS
-    x = np.cross(up, [1.0, 0.0, 0.0])
-    x /= np.linalg.norm(x)
-    rot = np.column_stack([x, np.cross(up, x), up])
-    world = v @ rot.T + CENTRE
-    tex = np.zeros((64, 64, 3), np.uint8)
-    tex[:32] = (220, 30, 30)  # v < 0.5: the top half (glTF's v runs down the image)
-    tex[32:] = (30, 30, 220)
-    normal = np.full((64, 64, 3), (128, 128, 255), np.uint8)
     glb = folder / "mesh_low.glb"
-    write_textured_glb(glb, world, np.asarray(cyl.faces), uv, np.asarray(cyl.vertex_normals) @ rot.T,
-                       {"base_colour": encode_jpeg(tex, 95), "normal": encode_jpeg(normal, 95),
-                        "occlusion": encode_jpeg(np.full((64, 64, 3), 255, np.uint8), 95)},
-                       {"units": "mm", "level": "low"})  # fmt: skip
+    write_cylinder_glb(glb, CENTRE, (220, 30, 30), (30, 30, 220))
     (folder / "registration.json").write_text(json.dumps(
         {"turntable_axis": {"direction": AXIS.tolist(), "point_mm": CENTRE.tolist()}}))  # fmt: skip
     return glb
