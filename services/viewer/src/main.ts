@@ -610,6 +610,10 @@ function bindUi(viewer: Viewer, p: URLSearchParams): void {
       s[key] = el.checked;
       viewer.invalidate();
     });
+    // A merged cloud turns grazing widening off after the panel is built (Viewer.setMerged).
+    window.addEventListener("graylight-settings", () => {
+      el.checked = s[key];
+    });
   }
   const sizingEl = $<HTMLSelectElement>("sizing");
   if (sizingEl) {
