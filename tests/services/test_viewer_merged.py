@@ -99,16 +99,26 @@ def _check_upright_and_framed(img: np.ndarray, top, bottom) -> None:
     assert rows[-1] - rows[0] > 0.4 * SIZE[1] and obj.mean() < 0.6, (rows[-1] - rows[0], obj.mean())
 
 
-def test_a_merged_job_opens_framed_with_the_turntable_axis_up(served) -> None:
-    server, _ = served
+def _open(server: Server, job: str, toggle: bool = False) -> tuple[list[dict], list[np.ndarray], list[str], float]:
+    """States and frames of a job's page as it opens (and, with ``toggle``, with the mesh hidden),
+    its console errors and the seconds it took to become idle."""
     with chromium() as browser:
-        page = Page(browser, f"{server.url}/viewer/plain?edl=0#key={KEY}", size=SIZE)
+        page = Page(browser, f"{server.url}/viewer/{job}?edl=0#key={KEY}", size=SIZE)
         try:
-            state = page.wait_idle()
-            img = page.capture()
-            errors = list(page.errors)
+            t0 = time.perf_counter()
+            states = [page.wait_idle()]
+            seconds = time.perf_counter() - t0
+            frames = [page.capture()]
+            if toggle:
+                states.append(page.set(mesh=False))
+                frames.append(page.capture())
+            return states, frames, list(page.errors), seconds
         finally:
             page.close()
+
+
+def test_a_merged_job_opens_framed_with_the_turntable_axis_up(served) -> None:
+    (state,), (img,), errors, _ = _open(served[0], "plain")
     cv2.imwrite("/tmp/graylight-viewer-merged.png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR))
     assert errors == [] and state["error"] is None and state["notice"] is None, (errors, state)
     assert state["merged"] is not None and state["settings"]["grazing"] is False
@@ -124,18 +134,7 @@ def test_a_merged_job_opens_framed_with_the_turntable_axis_up(served) -> None:
 
 def test_a_job_with_derivatives_opens_on_the_textured_low_level_and_the_points_are_one_toggle_away(served) -> None:
     server, log = served
-    with chromium() as browser:
-        page = Page(browser, f"{server.url}/viewer/textured?edl=0#key={KEY}", size=SIZE)
-        try:
-            t0 = time.perf_counter()
-            state = page.wait_idle()
-            seconds = time.perf_counter() - t0
-            mesh_img = page.capture()
-            points_state = page.set(mesh=False)
-            points_img = page.capture()
-            errors = list(page.errors)
-        finally:
-            page.close()
+    (state, points_state), (mesh_img, points_img), errors, seconds = _open(server, "textured", toggle=True)
     cv2.imwrite("/tmp/graylight-viewer-textured.png", cv2.cvtColor(mesh_img, cv2.COLOR_RGB2BGR))
     cv2.imwrite("/tmp/graylight-viewer-textured-points.png", cv2.cvtColor(points_img, cv2.COLOR_RGB2BGR))
     assert errors == [] and state["error"] is None and state["notice"] is None, (errors, state)
