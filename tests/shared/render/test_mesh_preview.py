@@ -101,3 +101,26 @@ def test_a_broken_derivative_is_a_one_line_error_naming_it(tmp_path: Path, probl
     with pytest.raises(InputError) as err:
         read_glb(glb)
     assert "mesh_low.glb" in str(err.value) and "\n" not in str(err.value)
+
+
+def test_the_preview_stage_adapter_reads_the_merge_and_the_derivatives_when_given(tmp_path: Path) -> None:
+    """workers.stages.run_preview: a multi-view job's inputs (tiles, mv_merge, derivatives) give
+    the textured preview; without the derivatives input it renders the tiles' points."""
+    from shared.render.octree import build_tiles
+    from tests.support.turntable_object import write_cylinder_cloud
+    from workers.stages import StageContext, run_preview
+
+    merge, derived = tmp_path / "mv_merge", tmp_path / "derivatives"
+    derived.mkdir()
+    merge.mkdir()
+    write_cylinder_glb(derived / "mesh_low.glb", CENTRE, (220, 30, 30), (30, 30, 220))
+    (merge / "registration.json").write_text(json.dumps({"turntable_axis": {"direction": AXIS.tolist()}}))
+    write_cylinder_cloud(tmp_path / "merged.ply", CENTRE, (220, 30, 30), (30, 30, 220), n=20_000)
+    build_tiles(tmp_path / "merged.ply", tmp_path / "tiles", workers=1)
+    params = {"preview": {"size": [160, 90], "seconds": 0.25, "fps": 8}}
+    inputs = {"tiles": tmp_path / "tiles", "mv_merge": merge, "derivatives": derived}
+    textured = run_preview(StageContext("j", "multiview", "preview", params, None, inputs, tmp_path / "a"))
+    assert textured["mesh"] == "mesh_low.glb" and textured["up"] == [round(float(v), 6) for v in -AXIS]
+    del inputs["derivatives"]
+    points = run_preview(StageContext("j", "multiview", "preview", params, None, inputs, tmp_path / "b"))
+    assert "mesh" not in points and points["points"] > 0
