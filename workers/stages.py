@@ -143,7 +143,9 @@ def run_preview(ctx: StageContext) -> dict[str, Any]:
     from shared.render.stages import preview_stage
 
     options = PreviewOptions.from_mapping(ctx.params.get("preview"))
-    return _jsonable(preview_stage(ctx.inputs["tiles"], ctx.out_dir / "preview.mp4", options, progress=ctx.progress))
+    # A multi-view job's preview: the merge's turntable axis up, its textured derivative when made.
+    return _jsonable(preview_stage(ctx.inputs["tiles"], ctx.out_dir / "preview.mp4", options, progress=ctx.progress,
+                                   merge_dir=ctx.inputs.get("mv_merge"), derivatives_dir=ctx.inputs.get("derivatives")))
 
 
 def run_export(ctx: StageContext) -> dict[str, Any]:

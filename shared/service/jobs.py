@@ -30,7 +30,7 @@ from __future__ import annotations
 import hashlib
 import json
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from enum import StrEnum
 from typing import Any
 
@@ -155,6 +155,9 @@ class StageSpec:
     # Short names a published file is also served under, as (alias, file): a multi-view job's
     # merged.ply is its cloud.ply, so every kind answers the same links.
     aliases: tuple[tuple[str, str], ...] = ()
+    # Upstream stages read when the job runs them and left out of the inputs when it does not
+    # (a multi-view preview uses the derivatives unless {"derivatives": false}).
+    optional: tuple[str, ...] = ()
     # The stage's share of a job's work, relative to the others (job progress weighs each
     # stage's own fraction by it): its typical run time in units of a scan's triangulation, at
     # full size (a 15 MP capture, an 8-view set, the default 1280x720 10 s preview: decode about
@@ -257,8 +260,10 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("tiles_plan", "render", ("mv_merge",), 7200, switch="render", params=("tiles",), weight=0.5),
         StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan", weight=1.5),
         StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
-        StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
-                  params=("preview", "preview_epoch"), switch="render", weight=6.0),
+        # The merged model orbits its turntable axis (mv_merge's registration.json), drawn as
+        # its textured derivative when the job makes them (else as the tiles' points).
+        StageSpec("preview", "render", ("tiles", "mv_merge", "derivatives"), 7200, publish=("preview.mp4", "preview.png"),
+                  params=("preview", "preview_epoch"), switch="render", weight=6.0, optional=("derivatives",)),
         # The merged cloud in the interchange formats, as a scan's cloud is.
         StageSpec("export", "cpu", ("mv_merge",), 7200, publish=EXPORT_FILES, switch="export", version=2, weight=2.0),
         StageSpec("publish", "cpu", (CAPTURE, "mv_merge"), 1800, publish=PUBLISH_FILES, weight=1.0),
@@ -289,7 +294,11 @@ def graph_for(kind: str, params: Mapping[str, Any] | None = None) -> tuple[Stage
     for spec in GRAPHS[kind]:
         if spec.switch is not None and params.get(spec.switch, True) is False:
             continue
-        if all(d in names for d in spec.depends_on):
+        missing = [d for d in spec.depends_on if d not in names]
+        if missing and all(d in spec.optional for d in missing):
+            spec = replace(spec, inputs=tuple(i for i in spec.inputs if i not in missing))
+            missing = []
+        if not missing:
             kept.append(spec)
             names.add(spec.name)
     return tuple(kept)
