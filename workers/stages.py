@@ -143,7 +143,9 @@ def run_preview(ctx: StageContext) -> dict[str, Any]:
     from shared.render.stages import preview_stage
 
     options = PreviewOptions.from_mapping(ctx.params.get("preview"))
-    return _jsonable(preview_stage(ctx.inputs["tiles"], ctx.out_dir / "preview.mp4", options, progress=ctx.progress))
+    # A multi-view job's preview: the merge's turntable axis up, its textured derivative when made.
+    return _jsonable(preview_stage(ctx.inputs["tiles"], ctx.out_dir / "preview.mp4", options, progress=ctx.progress,
+                                   merge_dir=ctx.inputs.get("mv_merge"), derivatives_dir=ctx.inputs.get("derivatives")))
 
 
 def run_export(ctx: StageContext) -> dict[str, Any]:
@@ -300,7 +302,7 @@ def run_derivatives(ctx: StageContext) -> dict[str, Any]:
     options = ctx.params.get("derivatives")
     options = options if isinstance(options, dict) else {}
     report = make_derivatives(ctx.inputs["mv_merge"], ctx.out_dir, levels=options.get("levels"),
-                              colour=options.get("colour", "albedo"))
+                              colour=options.get("colour", "photo"), scanset=ctx.capture_dir)
     return _jsonable({"colour": report["colour_baked"], "warnings": report["warnings"],
                       "levels": [{k: lv[k] for k in ("level", "file", "faces", "texture_px", "bytes")}
                                  for lv in report["levels"]]})

@@ -214,14 +214,25 @@ class Intake:
                 except Exception as exc:  # the refusal is what the client must hear
                     log.warning("could not remove object %s of a refused request: %s", key[:12], exc)
 
-    def resolve_ref(self, ref: str) -> tuple[str, str]:
-        """A reference to a capture already in storage: (capture_ref, capture_key)."""
+    def resolve_ref(self, ref: str, kind: str, stored: _Stored) -> tuple[str, str]:
+        """A reference to a capture already in storage: (capture_ref, capture_key). What a worker
+        will unpack of it counts against the key's stored bytes while its job runs (issue 21),
+        as an uploaded archive's does: a folder's bytes, or a local archive's inflated total read
+        from its headers (which also refuses a bomb here, before any worker unpacks it). An
+        archive on a remote store is bounded by the worker's limits as it inflates, uncounted."""
         clean = ref.strip().strip("/")
         if not clean or any(clean.startswith(p) for p in _PRIVATE_PREFIXES) or clean in ("objects", "uploads"):
             raise InputError("capture_ref", f"{excerpt(repr(ref))} is not a reference to a capture in storage")
         try:
-            self.arts.ref_path(clean)
+            path = self.arts.ref_path(clean)
             key = self.arts.ref_fingerprint(clean)
+            info = self.arts.ref_info(clean)
+            if info.get("type") == "directory":
+                stored.unpacked[key] = sum(int(i.get("size") or 0)
+                                           for i in self.arts.fs.find(path, detail=True).values())  # fmt: skip
+            elif self.arts.is_local:
+                local = Path(self.arts.fs._strip_protocol(path))
+                stored.unpacked[key] = inspect_archive(local, self.limits, label=clean, require=root_file(kind)).total_bytes
         except ArtifactError as exc:
             raise InputError("capture_ref", str(exc)) from None
         except FileNotFoundError:
@@ -317,7 +328,7 @@ class Intake:
             elif ref:
                 if len(ref) > MAX_REF_CHARS:
                     raise InputError("capture_ref", f"longer than {MAX_REF_CHARS} characters")
-                cref, ckey = await run_in_threadpool(self.resolve_ref, ref)
+                cref, ckey = await run_in_threadpool(self.resolve_ref, ref, kind, stored)
                 name = name or _ref_name(ref)
             else:
                 raise InputError("capture", "a zip or tar file is required in this multipart field")
@@ -345,7 +356,7 @@ class Intake:
                 cref, ckey, label = await self._finished_upload(body.upload_id, key, kind, stored)
                 name = name or label
             elif body.capture_ref:
-                cref, ckey = await run_in_threadpool(self.resolve_ref, body.capture_ref)
+                cref, ckey = await run_in_threadpool(self.resolve_ref, body.capture_ref, kind, stored)
                 name = name or _ref_name(body.capture_ref)
             else:
                 raise InputError("body", "give upload_id or capture_ref (or send multipart with a capture file)")
@@ -406,15 +417,16 @@ class Intake:
         await run_in_threadpool(self.quota.admit, key, len(refs), 0)  # early refusal
         news: list[NewJob] = []
         rejected: list[dict[str, str]] = []
+        stored = _Stored()
         for ref in refs:
             try:
                 if len(ref) > MAX_REF_CHARS:
                     raise InputError("capture_ref", f"longer than {MAX_REF_CHARS} characters")
-                cref, ckey = await run_in_threadpool(self.resolve_ref, ref)
+                cref, ckey = await run_in_threadpool(self.resolve_ref, ref, kind, stored)
             except InputError as exc:
                 # The reference is quoted once, as an excerpt; the error says what is wrong with it.
                 rejected.append({"capture": excerpt(ref), "error": excerpt(exc.problem, 400)})
                 continue
             news.append(self.new_job(kind, cref, ckey, ref.strip()[:300], params))
-        jobs = await run_in_threadpool(self.make_jobs, key, news, name, _Stored())
+        jobs = await run_in_threadpool(self.make_jobs, key, news, name, stored)
         return name, [j.id for j in jobs], rejected

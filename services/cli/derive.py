@@ -17,7 +17,7 @@ def _cmd_derivatives(args: argparse.Namespace) -> int:
     from shared.derive.pipeline import make_derivatives
 
     report = make_derivatives(Path(args.merge_dir), Path(args.out) if args.out else None, levels=args.levels,
-                              colour=args.colour)
+                              colour=args.colour, scanset=Path(args.scanset) if args.scanset else None)
     for w in report["warnings"]:
         print(f"warning: {w}")
     for lv in report["levels"]:
@@ -37,9 +37,11 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--out", help="output folder (default: the merge folder)")
     p.add_argument("--levels", help="levels: names (thumb,low,medium,high,highest) or NAME:FACES:PX, comma-separated "
                                     "(default: thumb,low,medium,high)")
-    p.add_argument("--colour", choices=("albedo", "shaded"), default="albedo",
-                   help="bake the albedo from the projector's light (default; the shaded colour where there is none) "
-                        "or the shaded white-frame colour")
+    p.add_argument("--colour", choices=("photo", "albedo", "shaded"), default="photo",
+                   help="photo (default): the albedo from the views' photographs at their resolution (the cloud's "
+                        "where no view sees a texel); albedo: the fused cloud's albedo; shaded: the white-frame colour")
+    p.add_argument("--scanset", help="the scan set whose photographs are baked (default: the one the merge's "
+                                     "report.json names)")
     p.set_defaults(func=_cmd_derivatives)
 
 

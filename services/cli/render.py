@@ -60,8 +60,10 @@ def _preview(args: argparse.Namespace) -> int:
     options = PreviewOptions(path=args.path if camera is None else "auto", size=parse_size(args.size, "--size"),
                              seconds=args.seconds, fps=args.fps, camera=camera, camera_where=args.path)
     with progress_bar("preview") as progress:  # frames rendered
+        merge = Path(args.merge) if args.merge else None
         report = preview_stage(Path(args.tiles), Path(args.out), options.checked("--"), renderer=args.renderer,
-                               progress=progress)  # fmt: skip
+                               progress=progress, merge_dir=merge,
+                               derivatives_dir=Path(args.derivatives) if args.derivatives else merge)  # fmt: skip
     print(
         f"{report['frames']} frames {report['width']}x{report['height']} at {report['fps']} fps "
         f"({report['renderer']} renderer, {report['render_fps']:.1f} frames/s) in {report['elapsed_seconds']:.1f} s"
@@ -104,4 +106,7 @@ def register(subparsers: argparse._SubParsersAction) -> None:
         default="auto",
         help="auto: OpenGL on a hardware GPU, else the CPU rasteriser (default)",
     )
+    p.add_argument("--merge", default=None, help="the merge these tiles are of: orbit its turntable axis "
+                   "(registration.json), kept up, and draw its textured derivative (mesh_<level>.glb) if it has one")
+    p.add_argument("--derivatives", default=None, help="folder of the textured derivatives (default: the --merge folder)")
     p.set_defaults(func=_preview)

@@ -16,6 +16,9 @@ await build({
   outdir: assets,
   bundle: true,
   format: "esm",
+  // Dynamic imports (three's GLTFLoader for textured derivatives) become chunks loaded on demand.
+  splitting: true,
+  chunkNames: "chunks/[name]-[hash]",
   target: "es2020",
   minify: true,
   sourcemap: true,
@@ -23,4 +26,8 @@ await build({
   logLevel: "warning",
 });
 await copyFile(join(here, "src", "style.css"), join(assets, "viewer.css"));
+// Google's Draco decoder (WebAssembly) from three's npm package, served beside the bundle: no CDN.
+const draco = join(here, "node_modules", "three", "examples", "jsm", "libs", "draco");
+await mkdir(join(assets, "draco"), { recursive: true });
+for (const f of ["draco_decoder.wasm", "draco_wasm_wrapper.js"]) await copyFile(join(draco, f), join(assets, "draco", f));
 await copyFile(join(here, "src", "index.html"), join(dist, "index.html"));

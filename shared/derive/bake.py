@@ -37,9 +37,12 @@ from scipy.spatial import cKDTree
 from shared.core.errors import InputError
 from shared.core.threads import cpu_budget
 from shared.derive._raster import rasterise_uv
+from shared.derive.photo import PhotoSource
 from shared.scan.albedo import encode_srgb, linear_from_srgb
 
 log = logging.getLogger(__name__)
+
+_LUMA = np.array([0.2126, 0.7152, 0.0722])
 
 __all__ = ["BakeParams", "ColourSource", "Maps", "UVMesh", "bake_maps", "unwrap", "vertex_normals"]
 
@@ -208,12 +211,17 @@ def _occlusion(m: UVMesh, rays: int, reach: float) -> np.ndarray:
 
 
 def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices: np.ndarray,
-              master_normals: np.ndarray, params: BakeParams | None = None, chunk: int = 1 << 20) -> Maps:
+              master_normals: np.ndarray, params: BakeParams | None = None, chunk: int = 1 << 20,
+              photo: PhotoSource | None = None, master_bridged: np.ndarray | None = None) -> Maps:
     """Bake base colour, normal, occlusion and bridged maps of a level (see the module docstring).
 
     m : the level with its atlas; colours : the samples; master_vertices (M, 3), master_normals
     (M, 3): the master mesh the normal map carries the detail of. Texels are baked ``chunk`` at a
-    time, so the memory beyond the maps themselves stays bounded at any texture size.
+    time, so the memory beyond the maps themselves stays bounded at any texture size. ``photo``:
+    base colour from the views' photographs (:mod:`shared.derive.photo`) wherever a view sees the
+    texel, the cloud's colour elsewhere. ``master_bridged`` (M,) bool: the master's own bridged
+    flag (``mesh.ply``'s ``bridged`` property); a texel whose nearest master vertex carries it is
+    marked bridged too.
     """
     params = params or BakeParams()
     t0 = time.perf_counter()
@@ -231,6 +239,14 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
     mtree = cKDTree(master_vertices)
     T_f, B_f = _tangent_frames(m)
     ao_v = _occlusion(m, params.ao_rays, params.ao_reach)
+    scene = None
+    photo_seen = 0
+    if photo is not None:
+        import open3d as o3d
+
+        scene = o3d.t.geometry.RaycastingScene()
+        scene.add_triangles(np.ascontiguousarray(m.vertices, np.float32), np.ascontiguousarray(m.faces, np.uint32))
+        photo.solve_gains(m.vertices, m.normals.astype(np.float64), scene)
     t2 = time.perf_counter()
     lut = linear_from_srgb(np.arange(256, dtype=np.float32) / 255.0)
     colour = np.empty((len(idx), 3), np.uint8)
@@ -256,13 +272,24 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
         w = np.exp(-0.5 * (d / sigma[:, None]) ** 2) * facing
         w[:, 0] += 1e-6  # never all zero: the nearest sample stands in
         lin = np.einsum("nk,nkc->nc", w, lut[colours.rgb[nb]]) / w.sum(axis=1, keepdims=True)
-        colour[sl] = encode_srgb(lin)
         bridged[sl] = d[:, 0] > params.bridge_factor * sigma
         # Normal map: the master's normals in the level's tangent frame.
         d, nb = mtree.query(P, k=4, workers=workers)
+        if master_bridged is not None:
+            bridged[sl] |= master_bridged[nb[:, 0]]
         w = 1.0 / np.maximum(d, 1e-9)
         hi = np.einsum("nk,nkj->nj", w, master_normals[nb].astype(np.float64))
         hi /= np.maximum(np.linalg.norm(hi, axis=1, keepdims=True), 1e-30)
+        # Photographs: the master's normal divides the projector's cosine (the level's is too coarse).
+        if photo is not None:
+            lin_p, seen = photo.colour(P, np.where((np.einsum("ij,ij->i", hi, N) < 0.17)[:, None], N, hi), scene)
+            if seen.any() and (~seen).any():
+                # Texels no view sees keep the cloud's colour, brought to the photographs' scale.
+                lc, lp = lin[seen] @ _LUMA, lin_p[seen] @ _LUMA
+                lin[~seen] *= float(np.median(lp) / max(float(np.median(lc)), 1e-6))
+            lin[seen] = lin_p[seen]
+            photo_seen += int(seen.sum())
+        colour[sl] = encode_srgb(lin)
         T = T_f[fid] - N * np.einsum("ij,ij->i", T_f[fid], N)[:, None]
         T /= np.maximum(np.linalg.norm(T, axis=1, keepdims=True), 1e-30)
         sign = np.sign(np.einsum("ij,ij->i", np.cross(N, T), B_f[fid]))
@@ -294,8 +321,10 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
         "texels_covered_share": round(len(idx) / (S * S), 4),
         "bridged_share": round(float(bridged.mean()), 4),
         "mean_occlusion": round(1 - occlusion_sum / len(idx), 4),
-        "colour": colours.kind,
+        "colour": colours.kind if photo is None else "photo",
         "seconds": {"raster": round(t1 - t0, 3), "occlusion": round(t2 - t1, 3), "texels": round(t3 - t2, 3),
                     "fill": round(time.perf_counter() - t3, 3)},
     }
+    if photo is not None:
+        stats["photo"] = {"texels_seen_share": round(photo_seen / len(idx), 4), **photo.stats}
     return Maps(base_colour=base, normal=normal, occlusion=occl, bridged=bmask, covered=covered, stats=stats)

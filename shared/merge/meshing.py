@@ -6,7 +6,9 @@
   that is coarser, capped by ``max_depth``). Poisson closes every hole with a smooth
   surface; the result is **trimmed** where the samples do not support it: a vertex farther than
   ``trim_factor`` local sample sizes from every sample goes, with its faces. Vertex colours are the
-  nearest sample's.
+  nearest sample's. A kept vertex farther than ``bridge_factor`` local sample sizes from every
+  sample lies on surface Poisson made up across a gap: it is **flagged bridged** (a ``bridged``
+  uchar vertex property in ``mesh.ply``, 1 bridged, 0 measured), so nobody takes it for data.
 - :func:`simplify_lods`: quadric decimation with ``fast-simplification`` to 1/4, 1/16, 1/64 of
   the faces, each level from the one before (colours carried over from the nearest
   full-resolution vertex).
@@ -39,6 +41,8 @@ class MeshParams:
     cell (sets the depth with the thinned cloud's step). samples_per_node, point_weight, iters :
     screened Poisson's own parameters (``iters``: Gauss-Seidel relaxations per octree level).
     trim_factor : a vertex farther than this many local sample sizes from every sample is trimmed.
+    bridge_factor : a kept vertex farther than this many local sample sizes from every sample is
+    flagged bridged (not measured).
     lods : face-count fractions of the level-of-detail meshes. max_points : a larger cloud is thinned on
     a grid to about this many points before the reconstruction. threads : Poisson's OpenMP threads
     (measured here on a busy 2-core machine, load 5-6: 2 threads took 3-10x the CPU time of 1 with
@@ -61,6 +65,7 @@ class MeshParams:
     samples_per_node: float = 1.5
     point_weight: float = 4.0
     trim_factor: float = 3.0
+    bridge_factor: float = 1.5
     lods: tuple[float, ...] = (1 / 4, 1 / 16, 1 / 64)
     threads: int = 1
     max_points: int = 400_000
@@ -69,22 +74,26 @@ class MeshParams:
 
 @dataclass
 class ColouredMesh:
-    """vertices (V, 3) float64 mm, faces (F, 3) int64, colours (V, 3) uint8."""
+    """vertices (V, 3) float64 mm, faces (F, 3) int64, colours (V, 3) uint8; bridged (V,) bool
+    (surface made up across a gap, no sample near) or None when not known."""
 
     vertices: np.ndarray
     faces: np.ndarray
     colours: np.ndarray
+    bridged: np.ndarray | None = None
 
     @property
     def n_faces(self) -> int:
         return int(len(self.faces))
 
 
-def _compact(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray) -> ColouredMesh:
+def _compact(vertices: np.ndarray, faces: np.ndarray, colours: np.ndarray,
+             bridged: np.ndarray | None = None) -> ColouredMesh:
     used = np.zeros(len(vertices), bool)
     used[faces.ravel()] = True
     remap = np.cumsum(used) - 1
-    return ColouredMesh(vertices=vertices[used], faces=remap[faces].astype(np.int64), colours=colours[used])
+    return ColouredMesh(vertices=vertices[used], faces=remap[faces].astype(np.int64), colours=colours[used],
+                        bridged=None if bridged is None else bridged[used])
 
 
 def _thin(xyz: np.ndarray, normals: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray, float]:
@@ -145,8 +154,11 @@ def reconstruct_mesh(xyz: np.ndarray, normals: np.ndarray, rgb: np.ndarray, size
     faces = faces[ok[faces].all(axis=1)]
     if len(faces) == 0:
         raise InputError("merged cloud", "the Poisson surface has no face near the samples")
-    mesh = _compact(verts, faces, np.asarray(rgb, np.uint8)[nearest])
-    stats = {"depth": depth, "poisson_points": int(len(pxyz)), "faces_poisson": int(n_raw), "faces": mesh.n_faces, "vertices": int(len(mesh.vertices))}
+    bridged = d > params.bridge_factor * np.maximum(size[nearest], 1e-6)
+    mesh = _compact(verts, faces, np.asarray(rgb, np.uint8)[nearest], bridged)
+    stats = {"depth": depth, "poisson_points": int(len(pxyz)), "faces_poisson": int(n_raw), "faces": mesh.n_faces,
+             "vertices": int(len(mesh.vertices)), "bridged_vertex_share": round(float(bridged[np.unique(faces)].mean()), 5),
+             "bridge_factor": params.bridge_factor}
     log.info("Poisson depth %d: %d faces, %d after trimming", depth, n_raw, mesh.n_faces)
     return mesh, stats
 
@@ -181,7 +193,8 @@ def simplify_lods(mesh: ColouredMesh, fractions: tuple[float, ...] = (1 / 4, 1 /
 
 
 def write_mesh(path: str | os.PathLike[str], mesh: ColouredMesh) -> Path:
-    """Write a mesh as ``.ply`` or ``.glb`` (by the name's suffix), atomically."""
+    """Write a mesh as ``.ply`` or ``.glb`` (by the name's suffix), atomically; a PLY keeps the
+    ``bridged`` flag as a uchar vertex property when the mesh has it."""
     import trimesh
 
     path = Path(path)
@@ -190,6 +203,8 @@ def write_mesh(path: str | os.PathLike[str], mesh: ColouredMesh) -> Path:
         raise ValueError(f"unsupported mesh format {path.suffix!r}")
     rgba = np.concatenate([mesh.colours, np.full((len(mesh.colours), 1), 255, np.uint8)], axis=1)
     tm = trimesh.Trimesh(vertices=mesh.vertices, faces=mesh.faces, vertex_colors=rgba, process=False)
+    if kind == "ply" and mesh.bridged is not None:
+        tm.vertex_attributes["bridged"] = mesh.bridged.astype(np.uint8)
     with atomic_file(path, suffix=f".tmp.{kind}") as tmp:
         tm.export(tmp, file_type=kind)
     return path

@@ -418,6 +418,7 @@ def make_path(
     aspect: float = 16 / 9,
     camera: KeyframePath | None = None,
     camera_where: str = "params.preview.camera",
+    up=DEFAULT_UP,
 ) -> list[CameraPose]:
     """``"auto"``, ``"arc"``, ``"orbit"``, ``"dolly"`` or the path of a local JSON keyframe file;
     ``camera`` (validated keyframes, :func:`parse_camera_doc`), when given, wins, and its errors
@@ -437,7 +438,8 @@ def make_path(
     if name == "arc":
         return arc_path(points, frames, aspect=aspect)
     if name == "orbit":
-        return orbit_path(box_min, box_max, frames, points=points, aspect=aspect)
+        # ``up``: the object's up (a turntable's axis), which the orbit turns around.
+        return orbit_path(box_min, box_max, frames, points=points, aspect=aspect, up=up)
     if str(spec) == "dolly":
         return dolly_path(box_min, box_max, frames)
     return load_path_file(Path(spec), frames, box_min, box_max)

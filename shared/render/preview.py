@@ -30,6 +30,7 @@ from shared.core.errors import InputError
 from shared.formats.potree import PotreeTiles, open_tiles, tight_bounds
 from shared.render._shading import shade_kernel
 from shared.render.camera_path import DEFAULT_UP, SCANNER, CameraPose, KeyframePath, make_path
+from shared.render.mesh_preview import MeshRenderer, read_glb
 from shared.render.options import PREVIEW_DEFAULTS, PreviewOptions
 from shared.render.raster import Camera, GLRasterizer, NodeTable, Rasterizer, select_nodes
 
@@ -259,10 +260,16 @@ def render_preview(
     progress: Callable[[float], None] | None = None,
     camera: KeyframePath | None = None,
     camera_where: str = "params.preview.camera",
+    mesh: Path | None = None,
+    up: np.ndarray | None = None,
 ) -> dict:
     """Render a flythrough of ``tiles_dir`` to ``out_path`` (MP4) and its poster PNG.
 
     ``camera`` (validated keyframes) wins over ``path``; its errors name ``camera_where``.
+    ``mesh``: a textured derivative GLB of the same object (:mod:`shared.render.mesh_preview`)
+    drawn as triangles with OpenGL instead of the tiles' points; ``up`` (3,) the object's up
+    (the turntable axis), which the orbit turns around and keeps up on screen (default: -y,
+    view 0's image up). The mesh's path is the orbit unless ``path`` or ``camera`` says otherwise.
 
     ``renderer`` is "auto" (OpenGL when a hardware GPU is there, else the CPU rasteriser),
     "cpu" or "gl". ``edl``: eye-dome lighting strength of the CPU frames (None: 0 when the
@@ -270,8 +277,6 @@ def render_preview(
     ``progress`` is called with the fraction of frames written. Returns a report: video, poster, frames, width, height, fps, seconds,
     points (loaded), mean_points_per_frame, render_seconds, render_fps, elapsed_seconds.
     """
-    import imageio_ffmpeg
-
     t0 = time.perf_counter()
     width, height, frames = check_video_args(size, seconds, fps)
     if budget < 1:
@@ -279,18 +284,16 @@ def render_preview(
     if renderer not in ("auto", "cpu", "gl"):
         raise InputError("renderer", f"must be auto, cpu or gl, got {renderer!r}")
     out_path = Path(out_path)
+    up = np.asarray(DEFAULT_UP if up is None else up, np.float64)
+    if mesh is not None:
+        return _render_mesh_preview(Path(mesh), out_path, str(path), width, height, frames, fps, up, progress, camera,
+                                    camera_where, t0)  # fmt: skip
     tiles = open_tiles(Path(tiles_dir), decoders=tilenode.DECODERS)  # plain or octree-coded nodes
     scene = load_scene(tiles)
     if edl is None:  # shading: the normals when the tiles have them, else eye-dome lighting
         edl = 0.0 if scene.lit else DEFAULT_EDL
     poses = make_path(path, scene.bounds_min, scene.bounds_max, frames, points=frame_sample(scene),
-                      aspect=width / height, camera=camera, camera_where=camera_where)  # fmt: skip
-    out_path.parent.mkdir(parents=True, exist_ok=True)
-    poster_path = out_path.with_suffix(".png")
-    tmp_video = out_path.with_name(f".{out_path.stem}.{os.getpid()}.tmp.mp4")
-    tmp_poster = out_path.with_name(f".{out_path.stem}.{os.getpid()}.tmp.png")
-    render_s = 0.0
-    drawn = 0
+                      aspect=width / height, camera=camera, camera_where=camera_where, up=up)  # fmt: skip
     gl = None
     if renderer == "gl":
         gl = GLRasterizer(width, height)
@@ -298,15 +301,49 @@ def render_preview(
         gl = hardware_gl(width, height)
     used = "cpu" if gl is None else f"opengl: {gl.renderer}"
     try:
+        drawn, render_s = encode_frames(render_frames(scene, poses, width, height, budget, edl, gl), out_path,
+                                        width, height, frames, fps, progress)  # fmt: skip
+    finally:
+        if gl is not None:
+            gl.release()
+    return {
+        "video": str(out_path),
+        "poster": str(out_path.with_suffix(".png")),
+        "frames": frames,
+        "width": width,
+        "height": height,
+        "fps": fps,
+        "seconds": frames / fps,
+        "points": scene.points,
+        "renderer": used,
+        "mean_points_per_frame": drawn / frames,
+        "render_seconds": render_s,
+        "render_fps": frames / render_s if render_s > 0 else 0.0,
+        "elapsed_seconds": time.perf_counter() - t0,
+    }
+
+
+def encode_frames(it, out_path: Path, width: int, height: int, frames: int, fps: float,
+                  progress: Callable[[float], None] | None) -> tuple[int, float]:
+    """Encode ``frames`` (rgb (H, W, 3) uint8, count drawn) pairs of ``it`` to ``out_path``
+    (H.264 MP4) and the first as its poster PNG, both under temporary names renamed when
+    complete; returns (total drawn, seconds spent rendering)."""
+    import imageio_ffmpeg
+
+    out_path.parent.mkdir(parents=True, exist_ok=True)
+    poster_path = out_path.with_suffix(".png")
+    tmp_video = out_path.with_name(f".{out_path.stem}.{os.getpid()}.tmp.mp4")
+    tmp_poster = out_path.with_name(f".{out_path.stem}.{os.getpid()}.tmp.png")
+    render_s = 0.0
+    drawn = 0
+    try:
         writer = imageio_ffmpeg.write_frames(
             str(tmp_video), (width, height), fps=fps, codec="libx264", pix_fmt_in="rgb24",
             pix_fmt_out="yuv420p", macro_block_size=1, quality=None, ffmpeg_log_level="error",
             output_params=["-preset", "veryfast", "-crf", "23", "-movflags", "+faststart"],
         )  # fmt: skip
         writer.send(None)
-        it = None
         try:
-            it = render_frames(scene, poses, width, height, budget, edl, gl)
             for k in range(frames):
                 t1 = time.perf_counter()
                 rgb, n = next(it)
@@ -319,10 +356,7 @@ def render_preview(
                 if progress is not None:
                     progress((k + 1) / frames)
         finally:
-            if it is not None:
-                it.close()
-            if gl is not None:
-                gl.release()
+            it.close()
             writer.close()
         os.replace(tmp_video, out_path)
         os.replace(tmp_poster, poster_path)
@@ -330,18 +364,28 @@ def render_preview(
         tmp_video.unlink(missing_ok=True)
         tmp_poster.unlink(missing_ok=True)
         raise
+    return drawn, render_s
+
+
+def _render_mesh_preview(glb: Path, out_path: Path, path: str, width: int, height: int, frames: int, fps: float,
+                         up: np.ndarray, progress, camera: KeyframePath | None, camera_where: str, t0: float) -> dict:
+    """:func:`render_preview` of a textured mesh (see there)."""
+    tm = read_glb(glb)
+    lo, hi = tm.vertices.min(axis=0), tm.vertices.max(axis=0)
+    sample = tm.vertices[:: max(1, len(tm.vertices) // FRAMING_POINTS)]
+    # "auto" is the orbit: a derivative is of a merged model, seen from all around.
+    poses = make_path("orbit" if path == "auto" else path, lo, hi, frames, points=sample, aspect=width / height,
+                      camera=camera, camera_where=camera_where, up=up)  # fmt: skip
+    mr = MeshRenderer(tm, width, height)
+    try:
+        _, render_s = encode_frames(((rgb, 0) for rgb in mr.frames(poses)), out_path, width, height, frames, fps,
+                                    progress)  # fmt: skip
+    finally:
+        mr.release()
     return {
-        "video": str(out_path),
-        "poster": str(poster_path),
-        "frames": frames,
-        "width": width,
-        "height": height,
-        "fps": fps,
-        "seconds": frames / fps,
-        "points": scene.points,
-        "renderer": used,
-        "mean_points_per_frame": drawn / frames,
-        "render_seconds": render_s,
-        "render_fps": frames / render_s if render_s > 0 else 0.0,
+        "video": str(out_path), "poster": str(out_path.with_suffix(".png")), "frames": frames, "width": width,
+        "height": height, "fps": fps, "seconds": frames / fps, "points": 0, "mesh": glb.name,
+        "triangles": int(len(tm.faces)), "up": [round(float(v), 6) for v in up], "renderer": f"opengl mesh: {mr.renderer}",
+        "mean_points_per_frame": 0.0, "render_seconds": render_s, "render_fps": frames / render_s if render_s > 0 else 0.0,
         "elapsed_seconds": time.perf_counter() - t0,
     }

@@ -42,8 +42,15 @@ def preview_stage(
     *,
     renderer: str = "auto",
     progress: Callable[[float], None] | None = None,
+    merge_dir: Path | None = None,
+    derivatives_dir: Path | None = None,
 ) -> dict:
     """Render a preview flythrough of ``tiles_dir`` to ``out_path`` (MP4) plus a poster PNG.
+
+    A merged model (``merge_dir``, its ``registration.json``) turns around its turntable axis,
+    kept up; with its textured derivatives (``derivatives_dir`` holding ``mesh_<level>.glb``)
+    the preview draws the one that suits the frame size as triangles
+    (:mod:`shared.render.mesh_preview`) rather than the tiles' points.
 
     ``options``: path, size, seconds and fps (:class:`~shared.render.options.PreviewOptions`);
     ``renderer``: "auto" (OpenGL on a hardware GPU, else the CPU rasteriser), "cpu" or "gl";
@@ -51,10 +58,13 @@ def preview_stage(
     """
     # Imported here: the preview's OpenCV, shading and rasteriser modules cost a tile build
     # (``graylight tiles``, a tiles task) half a second of start-up it does not need.
+    from shared.render.mesh_preview import pick_derivative, turntable_up
     from shared.render.preview import render_preview
 
+    up = turntable_up(Path(merge_dir) / "registration.json") if merge_dir is not None else None
+    mesh = pick_derivative(Path(derivatives_dir), *options.size) if derivatives_dir is not None else None
     return render_preview(
         Path(tiles_dir), Path(out_path), path=options.path, size=options.size, seconds=options.seconds,
         fps=options.fps, renderer=renderer, camera=options.camera, camera_where=options.camera_where,
-        progress=progress,
+        progress=progress, mesh=mesh, up=up,
     )  # fmt: skip

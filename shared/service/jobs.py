@@ -155,8 +155,8 @@ class StageSpec:
     # Short names a published file is also served under, as (alias, file): a multi-view job's
     # merged.ply is its cloud.ply, so every kind answers the same links.
     aliases: tuple[tuple[str, str], ...] = ()
-    # Upstream stages read when the job runs them: a job that switches one off runs this stage
-    # without it (the publish stage reads the derivatives, else falls back to the merge's LODs).
+    # Upstream stages read when the job runs them and left out of the inputs when it does not
+    # (a multi-view preview uses the derivatives unless {"derivatives": false}).
     optional: tuple[str, ...] = ()
     # The stage's share of a job's work, relative to the others (job progress weighs each
     # stage's own fraction by it): its typical run time in units of a scan's triangulation, at
@@ -263,8 +263,10 @@ GRAPHS: dict[str, tuple[StageSpec, ...]] = {
         StageSpec("tiles_plan", "render", ("mv_merge",), 7200, switch="render", params=("tiles",), weight=0.5),
         StageSpec("tiles_chunk", "render", ("tiles_plan",), 7200, switch="render", fanout_from="tiles_plan", weight=1.5),
         StageSpec("tiles", "render", ("tiles_plan", "tiles_chunk"), 7200, switch="render"),
-        StageSpec("preview", "render", ("tiles",), 7200, publish=("preview.mp4", "preview.png"),
-                  params=("preview", "preview_epoch"), switch="render", weight=6.0),
+        # The merged model orbits its turntable axis (mv_merge's registration.json), drawn as
+        # its textured derivative when the job makes them (else as the tiles' points).
+        StageSpec("preview", "render", ("tiles", "mv_merge", "derivatives"), 7200, publish=("preview.mp4", "preview.png"),
+                  params=("preview", "preview_epoch"), switch="render", weight=6.0, optional=("derivatives",)),
         # The merged cloud in the interchange formats, as a scan's cloud is.
         StageSpec("export", "cpu", ("mv_merge",), 7200, publish=EXPORT_FILES, switch="export", version=2, weight=2.0),
         # Publishes the derivatives when the job makes them, else the merge's own levels.
@@ -297,10 +299,11 @@ def graph_for(kind: str, params: Mapping[str, Any] | None = None) -> tuple[Stage
     for spec in GRAPHS[kind]:
         if spec.switch is not None and params.get(spec.switch, True) is False:
             continue
-        missing = tuple(d for d in spec.optional if d not in names)
-        if missing:
+        missing = [d for d in spec.depends_on if d not in names]
+        if missing and all(d in spec.optional for d in missing):
             spec = replace(spec, inputs=tuple(i for i in spec.inputs if i not in missing))
-        if all(d in names for d in spec.depends_on):
+            missing = []
+        if not missing:
             kept.append(spec)
             names.add(spec.name)
     return tuple(kept)

@@ -197,7 +197,7 @@ _DERIVATIVE_LEVELS = ("thumb", "low", "medium", "high", "highest")
 _DERIVATIVES_SCHEMA: dict[str, Any] = {
     "description": "false leaves out the textured derivatives; an object chooses them",
     "anyOf": [{"type": "boolean"}, {"type": "object", "additionalProperties": False, "properties": {
-        "colour": {"enum": ["albedo", "shaded"]},
+        "colour": {"enum": ["photo", "albedo", "shaded"]},
         "levels": {"type": "array", "minItems": 1, "maxItems": 5, "items": {"anyOf": [
             {"enum": list(_DERIVATIVE_LEVELS)},
             {"type": "object", "additionalProperties": False, "required": ["name"], "properties": {
@@ -216,8 +216,8 @@ def _derivatives(value: Any, field: str) -> Any:
     unknown = set(value) - {"levels", "colour"}
     if unknown:
         raise InputError(f"{field}.{sorted(unknown)[0]}", "unknown field (accepted: levels, colour)")
-    if value.get("colour", "albedo") not in ("albedo", "shaded"):
-        raise InputError(f"{field}.colour", f"must be albedo or shaded, got {value.get('colour')!r}")
+    if value.get("colour", "photo") not in ("photo", "albedo", "shaded"):
+        raise InputError(f"{field}.colour", f"must be photo, albedo or shaded, got {value.get('colour')!r}")
     if "levels" in value:
         levels = value["levels"]
         if not isinstance(levels, list) or not levels:

@@ -4,7 +4,9 @@ PostgreSQL, a tmpfs that really fills, and a real worker."""
 
 from __future__ import annotations
 
+import shutil
 import threading
+import zipfile
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -189,3 +191,27 @@ def test_unpacked_captures_are_removed_when_jobs_end(capture: Path, tmp_path: Pa
         assert states == ["succeeded", "failed"], [store.get_job(i).error for i in ids]
         cache = senv.settings.cache_dir / "captures"
         assert not any(cache.iterdir()) if cache.is_dir() else True, sorted(cache.iterdir())
+
+
+def test_a_capture_refs_unpacked_size_counts_against_the_key(capture: Path, tmp_path: Path) -> None:
+    """A capture in the store's inbox is unpacked by a worker as an upload is: what it inflates to
+    counts against the key's stored bytes (read from the archive's headers at intake), so a small
+    archive of a large capture is refused 507 when the key cannot hold what it unpacks to."""
+    archive = jobsvc.capture_zip(capture, tmp_path / "cap.zip")
+    with zipfile.ZipFile(archive, "a", zipfile.ZIP_DEFLATED) as z:  # notes that deflate about 10:1
+        z.writestr("notes.txt", "".join(f"turn {i:07d}: plate level, lamp warm\n" for i in range(60_000)))
+    with zipfile.ZipFile(archive) as z:
+        inflated = sum(i.file_size for i in z.infolist())
+    packed = archive.stat().st_size
+    assert inflated > 2 * packed  # the test means something: the packed size alone would pass
+    for limit, expected in ((packed + (inflated - packed) // 2, 507), (inflated + packed + (1 << 20), 201)):
+        senv = jobsvc.make_env(tmp_path / f"svc{limit}", GRAYLIGHT_KEY_MAX_STORED_BYTES=str(limit))
+        inbox = Path(senv.settings.storage_url) / "inbox"
+        inbox.mkdir(parents=True)
+        shutil.copyfile(archive, inbox / "cap.zip")
+        with TestClient(create_app(senv.settings)) as client:
+            auth = {"Authorization": f"Bearer {JobStore(senv.settings.database_url).create_key('k')[1]}"}
+            r = client.post("/v1/jobs", headers=auth, json={"capture_ref": "inbox/cap.zip", "params": {"render": False}})
+            assert r.status_code == expected, (limit, r.status_code, r.text[:300])
+            if expected == 507:
+                assert "GRAYLIGHT_KEY_MAX_STORED_BYTES" in r.json()["detail"]

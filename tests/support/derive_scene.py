@@ -42,3 +42,23 @@ def write_scene(folder: Path, faces_subdiv: int = 5, points: int = 300_000, albe
     kw = {"albedo": alb, "albedo_weight": np.full(len(pts), 200, np.uint8)} if albedo else {}
     write_ply(folder / "merged.ply", pts.astype(np.float32), rgb=shaded, normals=normals, size=size, **kw)
     return folder
+
+
+def texel_truth(m, S: int, scene: str = "bunny", views: int = 8) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The covered texels of a level's atlas (``m``: a :class:`shared.derive.bake.UVMesh`) at ``S``
+    px against a simulated turntable scene's object: (cov (S, S) bool, P (n, 3) texel surface
+    points in view 0's frame, on (n,) bool texels on the object (not the plate), truth (k, 3)
+    float64 linear albedo of the texels on the object)."""
+    from scipy.spatial import cKDTree
+
+    from shared.derive._raster import rasterise_uv
+    from shared.sim.scanset import turntable_scenes
+
+    fid = np.full((S, S), -1, np.int32)
+    bary = np.zeros((S, S, 3), np.float32)
+    rasterise_uv(m.uv, m.faces, S, fid, bary)
+    cov = fid >= 0
+    P = np.einsum("nk,nkj->nj", bary[cov], m.vertices[m.faces[fid[cov]]])
+    obj = turntable_scenes(scene, views)[0][0].surfaces[0]  # view 0's frame is the set's
+    on = cKDTree(obj.placed.vertices).query(P)[0] < 3.0
+    return cov, P, on, obj.albedo_at(P).astype(np.float64)[on]

@@ -55,6 +55,8 @@ export interface GlbMesh {
   /** World-space bounding box of every draw (after node transforms). */
   min: [number, number, number];
   max: [number, number, number];
+  /** Material maps of a textured derivative (derivative.ts; UVs at shader location 3). */
+  maps?: { base?: TexImageSource; normal?: TexImageSource; occlusion?: TexImageSource };
 }
 
 const MAGIC = 0x46546c67; // "glTF"

@@ -10,7 +10,9 @@
  * Other parameters: budget (points), fov (degrees), sizing (seed|fixed), px (fixed splat
  * pixels), scale (splat diameter in sample sizes), edl (0|1), hq (0|1), grazing (1|0: widen
  * splats by 1 / cos of the scanner's incidence angle, from normals; on by default), scanner (x,y,z world, default
- * the origin), mode (fly|orbit),
+ * the origin), mode (fly|orbit), merged (1: a merged cloud, no scanner position: no grazing widening, the
+ * camera frames it from view 0's side with `axis` (x,y,z, the turntable axis) up; a job whose artifacts
+ * hold registration.json is merged without asking),
  * pos and look (x,y,z world), up (x,y,z or -y etc.), bg (hex colour), ui (0 hides the panel).
  * Mesh: `mesh` (a .glb URL; repeated for level-of-detail meshes, finest first), else a job's
  * `mesh.glb` / `mesh_lod*.glb` artifacts; showmesh (0|1: start with the mesh shown), meshpoints
@@ -22,6 +24,7 @@ import { glMatrix, mat4 } from "gl-matrix";
 import { Camera, Controls, type NavMode, parseVector } from "./camera";
 import { DecoderUnavailable } from "./decode";
 import { selectNodes, type Selection, type ViewInfo } from "./lod";
+import { derivativePx } from "./derivative";
 import { MeshLayer, orderLevels } from "./mesh";
 import { type TileNode, TileSource } from "./potree";
 import { type DrawItem, type FrameSettings, type GpuNode, Renderer } from "./renderer";
@@ -50,6 +53,8 @@ interface Settings {
 }
 
 const MAX_CONCURRENT_LOADS = 6;
+/** Field of view (degrees) a merged cloud opens with: a photographer's normal lens. */
+const MERGED_FOV = 45;
 const MIN_NODE_PX = 24;
 
 function params(): URLSearchParams {
@@ -113,6 +118,13 @@ class Viewer {
   error: string | null = null;
   /** The mesh and its levels of detail, when the job or the page has one. */
   mesh: MeshLayer | null = null;
+  /**
+   * Set for a merged cloud (a multi-view job: its artifacts hold `registration.json`; or
+   * `merged=1`): it has no single scanner position, so the camera neither starts at the origin
+   * (view 0's camera) nor widens splats by a scanner's incidence angle; `up` is the turntable
+   * axis, signed to point up in view 0's image.
+   */
+  merged: { up: [number, number, number] } | null = null;
   /** The last non-fatal problem (a mesh that failed to load), shown in one line. */
   notice: string | null = null;
   private loaded = new Set<TileNode>();
@@ -200,11 +212,26 @@ class Viewer {
     this.invalidate();
   }
 
-  /** Initial view: from the URL, else framing the cloud as seen from the scanner's side. */
+  /** Mark the cloud merged (see `merged`), with its turntable axis when known; re-frames an open cloud. */
+  setMerged(axis: [number, number, number] | null, p: URLSearchParams): void {
+    let up: [number, number, number] = axis && Math.hypot(...axis) > 0 ? axis : [0, -1, 0];
+    const n = Math.hypot(...up);
+    up = up.map((v) => v / n) as [number, number, number];
+    if (up[1] > 0) up = up.map((v) => -v) as [number, number, number];
+    this.merged = { up };
+    // Grazing widening assumes the scanner at `scanner`: off unless asked for.
+    if (!p.has("grazing")) this.settings.grazing = false;
+    if (this.source) this.placeCamera(p);
+    window.dispatchEvent(new Event("graylight-settings"));
+    this.invalidate();
+  }
+
+  /** Initial view: from the URL, else framing the cloud as seen from the scanner's side (a
+   * merged cloud: from view 0's side, level with its turntable axis up). */
   private placeCamera(p: URLSearchParams): void {
     const src = this.source!;
     const cam = this.camera;
-    cam.setUp(parseVector(p.get("up")) ?? [0, -1, 0]);
+    cam.setUp(parseVector(p.get("up")) ?? this.merged?.up ?? [0, -1, 0]);
     const o = src.origin;
     const center: [number, number, number] = [0, 1, 2].map((i) => o[i] + (src.tightMin[i] + src.tightMax[i]) / 2) as [
       number,
@@ -217,6 +244,23 @@ class Viewer {
     const look = parseVector(p.get("look"));
     if (pos) {
       cam.lookAt(pos, look ?? center);
+    } else if (this.merged) {
+      // No scanner: look across the axis from view 0's side (-z), 20 degrees above level, at the
+      // distance where the bounding sphere fits the narrower of the two fields of view.
+      if (!p.has("fov")) this.settings.fov = MERGED_FOV;
+      cam.fovDeg = this.settings.fov;
+      const up = cam.up.map((v) => v / Math.hypot(...cam.up));
+      const along = -up[2];
+      let h = [-up[0] * along, -up[1] * along, -1 - up[2] * along];
+      if (Math.hypot(...h) < 1e-6) h = [1, 0, 0];
+      h = h.map((v) => v / Math.hypot(...h));
+      const el = (20 * Math.PI) / 180;
+      const dir = [0, 1, 2].map((i) => Math.cos(el) * h[i] + Math.sin(el) * up[i]);
+      const aspect = this.canvas.clientWidth / Math.max(1, this.canvas.clientHeight) || 1;
+      const halfV = (this.settings.fov * Math.PI) / 360;
+      const half = Math.min(halfV, Math.atan(Math.tan(halfV) * aspect));
+      const dist = radius / Math.sin(half);
+      cam.lookAt([0, 1, 2].map((i) => center[i] + dir[i] * dist) as [number, number, number], center);
     } else if (Math.hypot(...center) < 3 * radius && !src.tightMin.every((v, i) => v <= -o[i] && -o[i] <= src.tightMax[i])) {
       // A scan in its scanner's frame: start where the scanner stood, looking at the cloud, with a
       // field of view that frames it (unless one was asked for).
@@ -487,6 +531,8 @@ class Viewer {
       decoderWorkers: this.source?.decoder.size ?? 0,
       camera: { position: this.camera.position, forward: this.camera.forward(), mode: this.camera.mode, fov: this.camera.fovDeg },
       settings: { ...this.settings },
+      merged: this.merged,
+      up: this.camera.up,
       maxPointPx: this.renderer.maxPointPx,
       notice: this.notice,
       mesh: this.mesh ? { shown: this.settings.mesh, ...this.mesh.state() } : null,
@@ -564,6 +610,10 @@ function bindUi(viewer: Viewer, p: URLSearchParams): void {
       s[key] = el.checked;
       viewer.invalidate();
     });
+    // A merged cloud turns grazing widening off after the panel is built (Viewer.setMerged).
+    window.addEventListener("graylight-settings", () => {
+      el.checked = s[key];
+    });
   }
   const sizingEl = $<HTMLSelectElement>("sizing");
   if (sizingEl) {
@@ -612,6 +662,7 @@ async function attachMesh(viewer: Viewer, p: URLSearchParams, config: PageConfig
   const headersFor = (url: string): Record<string, string> =>
     key && new URL(url, document.baseURI).origin === location.origin ? { Authorization: `Bearer ${key}` } : {};
   const urls = p.getAll("mesh").filter((u) => u.trim());
+  if (p.get("merged") === "1") viewer.setMerged(parseVector(p.get("axis")), p);
   let levels: { url: string; name?: string; bytes?: number | null }[] = [];
   if (urls.length) {
     levels = urls.map((u) => ({ url: new URL(u, document.baseURI).toString() }));
@@ -623,6 +674,9 @@ async function attachMesh(viewer: Viewer, p: URLSearchParams, config: PageConfig
     const list = (await response.json()) as { name?: string; artifacts?: { name: string; stage?: string; size?: number }[] };
     if (list.name && !p.get("name")) showName(list.name);
     const arts = list.artifacts ?? [];
+    // A multi-view job (its merge published registration.json): merged, axis up.
+    const reg = arts.find((a) => a.name === "registration.json") ?? arts.find((a) => /^[^/]+\/registration\.json$/.test(a.name));
+    if (reg) await markMerged(viewer, p, new URL(`${listUrl.toString().replace(/\/$/, "")}/${reg.name}`), headersFor);
     // mesh.glb by its short (published) name, else as STAGE/mesh.glb; the levels of detail from
     // the same stage, by short name if published, else STAGE/mesh_lodN.glb.
     const file = (name: string) => name.slice(name.lastIndexOf("/") + 1);
@@ -637,6 +691,16 @@ async function attachMesh(viewer: Viewer, p: URLSearchParams, config: PageConfig
       if (!a.name.includes("/") || !chosen.has(file(a.name))) chosen.set(file(a.name), a);
     }
     const base = listUrl.toString().replace(/\/$/, "");
+    // Textured derivatives (the derivatives stage's published names) win over the untextured
+    // master and its LODs; Thumb (a catalogue thumbnail) only when there is nothing finer.
+    const derived = arts.filter((a) => !a.name.includes("/") && derivativePx(a.name) !== null);
+    const shown = derived.length > 1 ? derived.filter((a) => a.name !== "mesh_thumb.glb") : derived;
+    if (shown.length) {
+      chosen.clear();
+      for (const a of shown) chosen.set(a.name, a);
+      // The object itself is what a merged job opens on; the points are one toggle (M) away.
+      if (!p.has("showmesh")) viewer.settings.mesh = true;
+    }
     levels = orderLevels([...chosen.entries()].map(([f, a]) => ({ name: f, path: a.name, size: a.size }))).map((a) => ({
       url: `${base}/${a.path.split("/").map(encodeURIComponent).join("/")}`,
       name: a.name,
@@ -646,6 +710,27 @@ async function attachMesh(viewer: Viewer, p: URLSearchParams, config: PageConfig
   if (!levels.length) return;
   viewer.setMesh(levels, headersFor);
   bindMeshUi(viewer, levels[0].url, headersFor(levels[0].url));
+}
+
+/**
+ * Mark the viewer's cloud merged, with the turntable axis of the merge's registration.json when
+ * it has one (a merge without a turntable: view 0's up). A registration that cannot be read
+ * still marks it merged (the cloud has no scanner either way) and says so in one line.
+ */
+async function markMerged(viewer: Viewer, p: URLSearchParams, url: URL, headersFor: (url: string) => Record<string, string>): Promise<void> {
+  let axis: [number, number, number] | null = null;
+  try {
+    const r = await fetch(url, { headers: headersFor(url.toString()) });
+    if (!r.ok) throw new Error(`HTTP ${r.status}`);
+    const doc = (await r.json()) as { turntable_axis?: { direction?: unknown } | null };
+    const d = doc.turntable_axis?.direction;
+    if (Array.isArray(d) && d.length === 3 && d.every((v) => typeof v === "number" && Number.isFinite(v))) {
+      axis = d as [number, number, number];
+    }
+  } catch (err) {
+    viewer.warn(`registration.json not read (${err instanceof Error ? err.message : String(err)}): the view keeps view 0's up`);
+  }
+  viewer.setMerged(axis, p);
 }
 
 /** The mesh section of the panel: the toggle, points-with-mesh, and a download of the finest level. */

@@ -13,6 +13,7 @@
  * and reported by `onError` in one line; the other levels and the point view carry on.
  */
 
+import { derivativePx, parseDerivative } from "./derivative";
 import { type GlbMesh, parseGlb } from "./gltf";
 import type { GpuMesh, Renderer } from "./renderer";
 
@@ -77,6 +78,10 @@ export class MeshLayer {
 
   /** Estimated triangles of a level: exact when loaded, else scaled from a loaded level. */
   estimate(level: MeshLevel): number {
+    // A textured derivative's detail is its maps (Low, Medium and High have the same faces):
+    // about a quarter of an atlas's texels face the camera, so a level is worth its texels / 4.
+    const px = derivativePx(level.name);
+    if (px !== null) return (px * px) / 4;
     if (level.triangles !== null) return level.triangles;
     const known = this.levels.find((l) => l.triangles !== null && l.bytes);
     if (known && level.bytes && known.bytes) return (known.triangles! * level.bytes) / known.bytes;
@@ -161,7 +166,7 @@ export class MeshLayer {
     if (!response.ok) throw new Error(`HTTP ${response.status} ${response.statusText}`.trim());
     const buffer = await response.arrayBuffer();
     level.bytes = buffer.byteLength;
-    return parseGlb(buffer);
+    return derivativePx(level.name) !== null ? parseDerivative(buffer) : parseGlb(buffer);
   }
 
   state(): Record<string, unknown> {
@@ -184,6 +189,8 @@ export class MeshLayer {
 /** Order mesh artifacts finest first: `mesh.glb`, then `mesh_lod1.glb`, `mesh_lod2.glb` ... */
 export function orderLevels<T extends { name: string }>(levels: T[]): T[] {
   const rank = (name: string) => {
+    const px = derivativePx(name);
+    if (px !== null) return -Math.log2(px); // derivatives: finest maps first
     const m = /(?:^|\/)mesh(?:_lod(\d+))?\.glb$/.exec(name);
     return m ? (m[1] ? Number(m[1]) : 0) : Infinity;
   };

@@ -29,7 +29,12 @@ export interface GpuMesh {
   draws: { vao: WebGLVertexArrayObject; draw: MeshDraw }[];
   triangles: number;
   bytes: number;
+  /** Base colour, normal and occlusion maps (texture units MAP_UNIT + 0, 1, 2), null where absent. */
+  maps: (WebGLTexture | null)[];
 }
+
+/** First texture unit of the mesh maps (the point and EDL passes use the units below). */
+const MAP_UNIT = 4;
 
 export interface DrawItem {
   gpu: GpuNode;
@@ -235,12 +240,34 @@ export class Renderer {
     }
     gl.bindVertexArray(null);
     gl.bindBuffer(gl.ARRAY_BUFFER, null);
+    const maps = [mesh.maps?.base, mesh.maps?.normal, mesh.maps?.occlusion].map((img) => {
+      if (!img) return null;
+      const tex = gl.createTexture()!;
+      gl.activeTexture(gl.TEXTURE0 + MAP_UNIT);
+      gl.bindTexture(gl.TEXTURE_2D, tex);
+      // glTF's UV origin is the image's top-left: rows go up as stored (no flip).
+      gl.pixelStorei(gl.UNPACK_FLIP_Y_WEBGL, false);
+      gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA8, gl.RGBA, gl.UNSIGNED_BYTE, img);
+      gl.generateMipmap(gl.TEXTURE_2D);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR_MIPMAP_LINEAR);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE);
+      gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+      return tex;
+    });
+    gl.bindTexture(gl.TEXTURE_2D, null);
+    gl.activeTexture(gl.TEXTURE0);
+    const mapBytes = [mesh.maps?.base, mesh.maps?.normal, mesh.maps?.occlusion].reduce(
+      (sum, img) => sum + (img ? ((img as { width: number }).width * (img as { height: number }).height * 16) / 3 : 0),
+      0,
+    );
     const gpu: GpuMesh = {
       vertexBuffer,
       indexBuffer,
       draws,
       triangles: mesh.triangles,
-      bytes: mesh.vertexBytes.byteLength + mesh.indexBytes.byteLength,
+      bytes: mesh.vertexBytes.byteLength + mesh.indexBytes.byteLength + mapBytes,
+      maps,
     };
     const error = gl.getError();
     if (error !== gl.NO_ERROR) {
@@ -255,6 +282,7 @@ export class Renderer {
     for (const d of mesh.draws) gl.deleteVertexArray(d.vao);
     gl.deleteBuffer(mesh.vertexBuffer);
     if (mesh.indexBuffer) gl.deleteBuffer(mesh.indexBuffer);
+    for (const t of mesh.maps) if (t) gl.deleteTexture(t);
   }
 
   private drawMeshes(program: Program, meshes: GpuMesh[], s: FrameSettings): void {
@@ -268,6 +296,15 @@ export class Renderer {
     const modelView = mat4.create();
     const normal = mat3.create();
     for (const mesh of meshes) {
+      ["uBaseMap", "uNormalMap", "uOcclusionMap"].forEach((name, k) => {
+        gl.activeTexture(gl.TEXTURE0 + MAP_UNIT + k);
+        gl.bindTexture(gl.TEXTURE_2D, mesh.maps[k]);
+        gl.uniform1i(program.loc(name), MAP_UNIT + k);
+      });
+      gl.activeTexture(gl.TEXTURE0);
+      gl.uniform1i(program.loc("uHasBaseMap"), mesh.maps[0] ? 1 : 0);
+      gl.uniform1i(program.loc("uHasNormalMap"), mesh.maps[1] ? 1 : 0);
+      gl.uniform1i(program.loc("uHasOcclusionMap"), mesh.maps[2] ? 1 : 0);
       for (const { vao, draw } of mesh.draws) {
         // view * node in float64, rounded to float32 once.
         mat4.multiply(modelView, s.view as mat4, draw.matrix as unknown as mat4);

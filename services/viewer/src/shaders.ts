@@ -167,13 +167,16 @@ export const MESH_VS = `
 layout(location = 0) in vec3 aPosition;
 layout(location = 1) in vec4 aColor;
 layout(location = 2) in vec3 aNormal;
+layout(location = 3) in vec2 aUv;
 uniform mat4 uModelView;
 uniform mat4 uProjection;
 uniform mat3 uNormalMatrix;
 out vec3 vViewPos;
 out vec3 vNormal;
 out vec3 vColor;
+out vec2 vUv;
 void main() {
+  vUv = aUv;
   vec4 viewPos = uModelView * vec4(aPosition, 1.0);
   vViewPos = viewPos.xyz;
   vNormal = uNormalMatrix * aNormal;
@@ -187,14 +190,38 @@ precision highp float;
 in vec3 vViewPos;
 in vec3 vNormal;
 in vec3 vColor;
+in vec2 vUv;
 uniform int uHasNormal;
+uniform sampler2D uBaseMap;
+uniform sampler2D uNormalMap;
+uniform sampler2D uOcclusionMap;
+uniform int uHasBaseMap;
+uniform int uHasNormalMap;
+uniform int uHasOcclusionMap;
 ${PASS_OUTPUTS}
 void main() {
   vec3 n = uHasNormal == 1 ? vNormal : cross(dFdx(vViewPos), dFdy(vViewPos));
   float len = length(n);
   vec3 toEye = normalize(-vViewPos);
+  if (len > 0.0 && uHasNormalMap == 1) {
+    // Tangent-space normal map with a per-pixel cotangent frame (screen-space derivatives of
+    // position and UV): the derivatives store no tangents. glTF's v runs down the image.
+    vec3 nn = n / len;
+    if (dot(nn, toEye) < 0.0) nn = -nn;
+    vec3 dp1 = dFdx(vViewPos), dp2 = dFdy(vViewPos);
+    vec2 du1 = dFdx(vUv), du2 = dFdy(vUv);
+    vec3 dp2perp = cross(dp2, nn), dp1perp = cross(nn, dp1);
+    vec3 t = dp2perp * du1.x + dp1perp * du2.x;
+    vec3 b = dp2perp * du1.y + dp1perp * du2.y;
+    float inv = inversesqrt(max(max(dot(t, t), dot(b, b)), 1e-30));
+    vec3 tn = texture(uNormalMap, vUv).xyz * 2.0 - 1.0;
+    vec3 m = t * inv * tn.x - b * inv * tn.y + nn * tn.z;
+    if (length(m) > 0.0) { n = m; len = length(m); }
+  }
   float lambert = len > 0.0 ? abs(dot(n / len, toEye)) : 1.0;
-  vec3 c = vColor * (0.25 + 0.75 * lambert);
+  vec3 base = uHasBaseMap == 1 ? texture(uBaseMap, vUv).rgb : vColor;
+  float ao = uHasOcclusionMap == 1 ? texture(uOcclusionMap, vUv).r : 1.0;
+  vec3 c = base * (0.25 * ao + 0.75 * lambert * mix(1.0, ao, 0.5));
 #ifdef PASS_COLOR
   oColor = vec4(c, 1.0);
   oDepth = -vViewPos.z;

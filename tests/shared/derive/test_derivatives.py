@@ -31,7 +31,7 @@ def scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
 @pytest.fixture(scope="module")
 def derived(scene: Path, tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, dict]:
     out = tmp_path_factory.mktemp("derived")
-    return out, make_derivatives(scene, out, levels=LEVELS_SPEC)
+    return out, make_derivatives(scene, out, levels=LEVELS_SPEC, colour="albedo")
 
 
 def test_levels_default_to_voyagers_and_nonsense_budgets_are_refused() -> None:
@@ -145,11 +145,21 @@ def test_every_glb_passes_the_khronos_validator(derived, tmp_path: Path) -> None
 def test_colour_fallbacks_and_bad_input(scene: Path, tmp_path: Path) -> None:
     # No albedo in the cloud: the shaded colour, with a warning.
     plain = write_scene(tmp_path / "plain", faces_subdiv=3, points=20_000, albedo=False)
-    report = make_derivatives(plain, tmp_path / "o1", levels="t:500:128")
+    report = make_derivatives(plain, tmp_path / "o1", levels="t:500:128", colour="albedo")
     assert report["colour_baked"] == "shaded" and "no albedo" in report["warnings"][0]
+    # The default bakes the views' photographs; a merge without them (no registration.json here)
+    # bakes the cloud's colour and says why.
+    report = make_derivatives(plain, tmp_path / "o1b", levels="t:500:128")
+    assert report["colour"] == "photo" and report["colour_baked"] == "shaded"
+    assert "no photographs to bake from (no registration.json" in report["warnings"][0]
+    (plain / "registration.json").write_text('{"views": [{"name": "v0", "registered": true, "R": [[1, 0, 0]], '
+                                             '"T": [0, 0, 0]}]}')
+    (plain / "report.json").write_text('{"scanset": "%s"}' % (tmp_path / "gone"))
+    report = make_derivatives(plain, tmp_path / "o1c", levels="t:500:128")
+    assert "the scan set cannot be read" in report["warnings"][0]
     # No cloud at all: the master's vertex colours.
     (plain / "merged.ply").unlink()
-    report = make_derivatives(plain, tmp_path / "o2", levels="t:500:128")
+    report = make_derivatives(plain, tmp_path / "o2", levels="t:500:128", colour="albedo")
     assert report["colour_baked"] == "mesh" and "vertex colours" in report["warnings"][0]
     with pytest.raises(InputError, match="colour"):
         make_derivatives(plain, tmp_path / "o3", colour="glossy")

@@ -207,7 +207,12 @@ def test_view_that_overlaps_nothing(loaded, scanset_dir: Path, tmp_path: Path) -
 
 
 def _scanset_of(tmp_path: Path, captures: list[tuple[str, Path]], rig: Path, angles=None):
-    doc = scanset_doc([{"capture": str(p), "name": n} for n, p in captures], rig=str(rig), turntable_deg=angles)
+    """A scan set of the given captures: hard-linked into its folder, since a scan set names only
+    paths inside it (the confinement rule)."""
+    for n, p in captures:
+        shutil.copytree(p, tmp_path / n)
+    shutil.copyfile(rig, tmp_path / "rig.json")
+    doc = scanset_doc([{"capture": n, "name": n} for n, _p in captures], rig="rig.json", turntable_deg=angles)
     write_scanset(tmp_path, doc)
     return load_scanset(tmp_path)
 

@@ -1,0 +1,266 @@
+"""Base colour from the views' photographs at their own resolution.
+
+Each surface point (a texel's, or a master vertex's) takes its albedo from the views that see it:
+
+- **albedo per photograph pixel**: the view's white and black frames at the pixel the point
+  projects to (bilinear in linear light), divided by the projector's irradiance at the point
+  itself (:func:`shared.scan.albedo.estimate_albedo` with the view's radiometry from its rig), so
+  the colour comes from the photographs at the camera's resolution and not from the cloud's
+  samples; one reference distance for every view, so the views agree in scale;
+- **visibility** against the mesh: a ray from the view's camera centre (its pose in
+  ``registration.json``) to the point must not hit the mesh before it (Open3D ray casting: a
+  z-buffer per view without rasterising one);
+- **weights**: the cosine to the camera times the cosine to the projector (angle), the inverse
+  square of the camera distance relative to the view's median (distance: a nearer view has the
+  finer footprint) and the white-minus-black contrast relative to the view's median (what the
+  decoder's confidence is made of: a dim, noisy pixel decodes badly and colours badly);
+- **highlights** rejected by disagreement: a view whose luminance is above ``specular_ratio``
+  times the weighted median of the views that see the point is left out (a highlight follows the
+  projector and camera, so it is seen by one view, not all);
+- **brightness levelled across seams** with one gain per view (Waechter et al. 2014, 'Let There
+  Be Color!', reduced to its global term): each view's gain is the median ratio, over the points it
+  shares with others, of the consensus to its own estimate; two rounds, geometric mean 1.
+
+Points no view sees keep the cloud's colour (the caller's fallback).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from shared.core.errors import InputError
+from shared.core.files import read_json
+from shared.formats.images import read_colour
+from shared.formats.rig import Rig, load_rig
+from shared.formats.scanset import ScanSet, load_scanset
+from shared.scan.albedo import estimate_albedo, params_for_rig
+from shared.scan.pipeline import ingest_stage
+
+log = logging.getLogger(__name__)
+
+__all__ = ["PhotoParams", "PhotoSource", "load_photo_source"]
+
+_LUMA = np.array([0.2126, 0.7152, 0.0722])
+
+
+@dataclass(frozen=True)
+class PhotoParams:
+    """specular_ratio : a view brighter than this times the points' weighted median luminance is a
+    highlight. min_cos_camera : smallest cosine between the normal and the direction to the camera
+    (about 78 degrees). visibility_tol_mm : how far in front of the point the mesh may be hit and
+    still count as the point itself (the level's facets lie off the true surface by its
+    simplification error). gain_samples : surface points the per-view gains are solved on."""
+
+    specular_ratio: float = 1.35
+    min_cos_camera: float = 0.2
+    visibility_tol_mm: float = 1.0
+    gain_samples: int = 60_000
+
+
+@dataclass
+class _View:
+    name: str
+    rig: Rig
+    white: np.ndarray  # (H, W, 3) uint8
+    black: np.ndarray
+    R: np.ndarray  # view -> set rotation (3, 3)
+    T: np.ndarray  # (3,) mm
+    scale_mm: float
+    gain: float = 1.0
+
+
+@dataclass
+class PhotoSource:
+    """The photographed views of a merge with their poses; :meth:`colour` gives linear albedo."""
+
+    views: list[_View]
+    params: PhotoParams = field(default_factory=PhotoParams)
+    reference_distance_mm: float = 1.0
+    stats: dict = field(default_factory=dict)
+
+    def _per_view(self, P: np.ndarray, N: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray]:
+        """(V, n, 3) linear albedo before gains and (V, n) weights (0: not seen) of points P, N (set frame, mm)."""
+        import open3d as o3d
+
+        V, n = len(self.views), len(P)
+        alb = np.zeros((V, n, 3), np.float32)
+        wts = np.zeros((V, n), np.float32)
+        for k, view in enumerate(self.views):
+            s = view.scale_mm
+            X = (P - view.T) @ view.R  # the view's camera frame, mm
+            Nv = N @ view.R
+            cam = view.rig.camera
+            z = X[:, 2]
+            front = z > 1e-6
+            to_cam = -X / np.maximum(np.linalg.norm(X, axis=1, keepdims=True), 1e-12)
+            cos_c = np.einsum("ij,ij->i", Nv, to_cam)
+            ok = front & (cos_c > self.params.min_cos_camera)
+            uv = cv2.projectPoints((X[ok] / s).reshape(-1, 1, 3), np.zeros(3), np.zeros(3),
+                                   np.asarray(cam.K, np.float64), np.asarray(cam.dist, np.float64))[0].reshape(-1, 2)
+            idx = np.flatnonzero(ok)
+            inside = (uv[:, 0] >= 0) & (uv[:, 1] >= 0) & (uv[:, 0] <= cam.width - 1) & (uv[:, 1] <= cam.height - 1)
+            idx, uv = idx[inside], uv[inside]
+            if len(idx) == 0:
+                continue
+            # Visibility: the ray from the camera centre to the point meets nothing closer.
+            centre = view.T
+            d = P[idx] - centre
+            dist = np.linalg.norm(d, axis=1)
+            rays = np.concatenate([np.repeat(centre[None], len(idx), 0), d / dist[:, None]], 1).astype(np.float32)
+            t_hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy()
+            seen = t_hit >= dist - self.params.visibility_tol_mm
+            idx, uv, dist = idx[seen], uv[seen], dist[seen]
+            if len(idx) == 0:
+                continue
+            white = _bilinear_u8(view.white, uv)
+            black = _bilinear_u8(view.black, uv)
+            prm = replace(params_for_rig(view.rig), reference_distance=self.reference_distance_mm / s)
+            est = estimate_albedo(white, black, X[idx] / s, Nv[idx], view.rig, prm)
+            good = est.weight > 0
+            idx, dist = idx[good], dist[good]
+            a = est.albedo[good]
+            sig = (prm.response.lut()[white[good]] - prm.response.lut()[black[good]]) @ _LUMA
+            contrast = sig / max(float(np.median(sig)), 1e-6)
+            w = cos_c[idx] * est.weight[good] * (np.median(dist) / dist) ** 2 * np.clip(contrast, 0.0, 2.0)
+            alb[k, idx] = a
+            wts[k, idx] = np.maximum(w, 0.0)
+        return alb, wts
+
+    def _combine(self, alb: np.ndarray, wts: np.ndarray, gains: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+        """Weighted mean over views after gains and highlight rejection: (n, 3), seen (n,), rejected count."""
+        a = alb * gains[:, None, None]
+        lum = a @ _LUMA  # (V, n)
+        w = wts.copy()
+        med = _weighted_median(lum, w)
+        several = (w > 0).sum(axis=0) >= 2
+        glint = (lum > self.params.specular_ratio * med[None]) & (w > 0) & several[None]
+        w[glint] = 0.0
+        total = w.sum(axis=0)
+        seen = total > 0
+        out = np.einsum("vn,vnc->nc", w, a) / np.maximum(total, 1e-30)[:, None]
+        return out.astype(np.float32), seen, int(glint.sum())
+
+    def solve_gains(self, P: np.ndarray, N: np.ndarray, scene) -> None:
+        """Per-view gains on a sample of surface points (see the module docstring)."""
+        rng = np.random.default_rng(0)
+        if len(P) > self.params.gain_samples:
+            pick = rng.choice(len(P), self.params.gain_samples, replace=False)
+            P, N = P[pick], N[pick]
+        # One reference distance for all views (the median distance from view 0's projector), so
+        # their albedos share a scale before the gains level what remains.
+        v0 = self.views[0]
+        proj = -np.asarray(v0.rig.R, np.float64).T @ np.asarray(v0.rig.T, np.float64).ravel() * v0.scale_mm
+        self.reference_distance_mm = float(np.median(np.linalg.norm(P - (v0.R @ proj + v0.T), axis=1)))
+        alb, wts = self._per_view(P, N, scene)
+        gains = np.ones(len(self.views))
+        for _ in range(2):
+            cons, seen, _ = self._combine(alb, wts, gains)
+            lc = cons @ _LUMA
+            for k in range(len(self.views)):
+                shared = (wts[k] > 0) & seen & ((wts > 0).sum(axis=0) >= 2)
+                own = alb[k, shared] @ _LUMA * gains[k]
+                if shared.sum() >= 50:
+                    gains[k] *= float(np.median(lc[shared] / np.maximum(own, 1e-6)))
+            gains /= float(np.exp(np.mean(np.log(gains))))
+        for view, g in zip(self.views, gains, strict=True):
+            view.gain = float(g)
+        self.stats["gains"] = {v.name: round(v.gain, 4) for v in self.views}
+
+    def colour(self, P: np.ndarray, N: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray]:
+        """Linear albedo (n, 3) float32 of points P (n, 3) mm with unit normals N (n, 3), set frame,
+        and (n,) bool where some view saw the point; ``scene`` an Open3D RaycastingScene of the mesh."""
+        alb, wts = self._per_view(np.asarray(P, np.float64), np.asarray(N, np.float64), scene)
+        gains = np.array([v.gain for v in self.views])
+        out, seen, rejected = self._combine(alb, wts, gains)
+        self.stats["highlights_rejected"] = self.stats.get("highlights_rejected", 0) + rejected
+        return out, seen
+
+
+def _bilinear_u8(img: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """(n, 3) uint8 bilinear samples of an (H, W, 3) uint8 image at float pixel centres uv (n, 2)."""
+    H, W = img.shape[:2]
+    x0 = np.clip(np.floor(uv[:, 0]).astype(np.int64), 0, W - 2)
+    y0 = np.clip(np.floor(uv[:, 1]).astype(np.int64), 0, H - 2)
+    fx = (uv[:, 0] - x0)[:, None]
+    fy = (uv[:, 1] - y0)[:, None]
+    f = img.astype(np.float32)
+    v = ((f[y0, x0] * (1 - fx) + f[y0, x0 + 1] * fx) * (1 - fy)
+         + (f[y0 + 1, x0] * (1 - fx) + f[y0 + 1, x0 + 1] * fx) * fy)
+    return np.clip(np.rint(v), 0, 255).astype(np.uint8)
+
+
+def _weighted_median(values: np.ndarray, weights: np.ndarray) -> np.ndarray:
+    """(n,) weighted median over axis 0 of (V, n) values (NaN-free), ignoring zero weights."""
+    order = np.argsort(np.where(weights > 0, values, np.inf), axis=0)
+    v = np.take_along_axis(values, order, 0)
+    w = np.take_along_axis(weights, order, 0)
+    c = np.cumsum(w, axis=0)
+    half = 0.5 * c[-1]
+    pos = np.minimum((c < half[None]).sum(axis=0), len(values) - 1)
+    return np.take_along_axis(v, pos[None], 0)[0]
+
+
+def _pose(entry: dict, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """A registered view's (R (3, 3), T (3,)) from registration.json, checked."""
+    try:
+        R = np.asarray(entry["R"], np.float64)
+        T = np.asarray(entry["T"], np.float64)
+    except (KeyError, TypeError, ValueError):
+        raise InputError(path, f"view {entry.get('name')!r}: R and T must be numbers") from None
+    if R.shape != (3, 3) or T.shape != (3,) or not (np.isfinite(R).all() and np.isfinite(T).all()) \
+            or abs(np.linalg.det(R) - 1.0) > 1e-3:
+        raise InputError(path, f"view {entry.get('name')!r}: R must be a 3x3 rotation and T 3 finite numbers")
+    return R, T
+
+
+def load_photo_source(merge_dir: Path, scanset_dir: Path | None = None,
+                      params: PhotoParams | None = None) -> tuple[PhotoSource | None, str | None]:
+    """The photographed views of a merge: its ``registration.json`` poses and, from the scan set
+    (``scanset_dir`` or the one the merge's ``report.json`` names), each captured view's white and
+    black frames and rig. Returns (source, None), or (None, why) when there is no photograph to
+    bake from (cloud views only, the scan set gone): the caller falls back and says why."""
+    merge_dir = Path(merge_dir)
+    reg_path = merge_dir / "registration.json"
+    if not reg_path.is_file():
+        return None, "no registration.json beside the master"
+    reg = read_json(reg_path, "the merge's registration is missing")
+    if scanset_dir is None:
+        rep = merge_dir / "report.json"
+        named = read_json(rep, "the merge's report is missing").get("scanset") if rep.is_file() else None
+        if not named:
+            return None, "the merge's report names no scan set"
+        scanset_dir = Path(named)
+    try:
+        scanset = load_scanset(Path(scanset_dir))
+    except InputError as exc:
+        return None, f"the scan set cannot be read: {exc.problem}"
+    entries = {e.get("name"): e for e in reg.get("views", []) if isinstance(e, dict)}
+    try:
+        views = _photographed_views(scanset, entries, reg_path)
+    except InputError as exc:
+        return None, f"a view's photographs cannot be read: {exc.problem}"
+    if not views:
+        return None, "no registered captured view has photographs"
+    return PhotoSource(views=views, params=params or PhotoParams()), None
+
+
+def _photographed_views(scanset: ScanSet, entries: dict, reg_path: Path) -> list[_View]:
+    views: list[_View] = []
+    for spec in scanset.views:
+        e = entries.get(spec.name)
+        if spec.kind != "capture" or e is None or not e.get("registered"):
+            continue
+        capture = ingest_stage(spec.path, spec.rig)
+        if capture.rig is None:
+            continue
+        rig = load_rig(capture.rig)
+        R, T = _pose(e, reg_path)
+        size = (rig.camera.width, rig.camera.height)
+        views.append(_View(name=spec.name, rig=rig, white=read_colour(capture.white, size),
+                           black=read_colour(capture.black, size), R=R, T=T, scale_mm=float(spec.scale_mm)))
+    return views
