@@ -615,12 +615,11 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
     """Decode one level of the octree (see :func:`decode_chunk`): the children of the ``ncur``
     nodes ``cur`` (Morton codes; map indices ``curc``) into ``nxt`` (and ``nxtc`` unless the
     level is the ``last``). Returns (children, xa, xb, pos); -1 children for a corrupt stream.
-    Inlined into :func:`_decode_last_level` and :func:`_decode_next_to_last`, each with constant
-    flags: the two levels that take most of the decode get loops of their own, without the other
-    kinds' branches and live values (one loop for every kind spent a fifth of its time on them:
-    0.1 mm bench cloud); the levels above share :func:`_decode_upper_level`, flags at run time.
-    Each copy is a function of its own: five copies inlined into the one decoder took numba's
-    type inference 98 s to compile (129 s in all, against 12 s for a single loop)."""
+    Inlined into :func:`_decode_last_level` with constant flags: the level that takes most of
+    the decode gets a loop of its own, without the other kinds' branches and live values; the
+    levels above share :func:`_decode_upper_level`, flags at run time. Each copy is a function
+    of its own: five copies inlined into the one decoder took numba's type inference 98 s to
+    compile (129 s in all, against 12 s for a single loop)."""
     m = 0
     r0 = 0
     while r0 < ncur:
@@ -757,16 +756,11 @@ def _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, model
 
 
 @njit(cache=True, nogil=True)
-def _decode_next_to_last(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows):
-    """:func:`_decode_level` for the level above the last."""
-    return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
-                         FLAG_MIX_LEVELS >= 1, MIX_LEVELS >= 2, False)  # fmt: skip
-
-
-@njit(cache=True, nogil=True)
 def _decode_upper_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
                         mixed_flag, mixed):  # fmt: skip
-    """:func:`_decode_level` for the levels above those two (few nodes), flags at run time."""
+    """:func:`_decode_level` for the levels above the last, flags at run time (a copy of its own
+    for the level above the last, with constant flags, cost 11 s of compilation for no measured
+    speed: 0.1 mm bench cloud 428-430 ms either way)."""
     return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
                          mixed_flag, mixed, False)  # fmt: skip
 
@@ -796,14 +790,11 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
         models[:] = prior  # a copy, as cheap as the fill of 1/2 it replaces
         for k in range(3):
             sse[k * SSE_N**3 : (k + 1) * SSE_N**3] = SSE_INIT
-        # The last two levels' flags are constants in their functions (the rule below, as the
-        # encoder applies it, at d = depth - 1 and depth - 2); the levels above pass them here.
+        # The last level's flags are constants in its function (the rule below, as the encoder
+        # applies it, at d = depth - 1); the levels above pass them here.
         if d == depth - 1:  # the children are voxels: no map cells needed
             m, xa, xb, pos = _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, models, sse,
                                                 atlas, rows)  # fmt: skip
-        elif d == depth - 2:
-            m, xa, xb, pos = _decode_next_to_last(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models,
-                                                  sse, atlas, rows)  # fmt: skip
         else:
             mixed = d >= depth - MIX_LEVELS
             mixed_flag = depth - 1 - FLAG_MIX_LEVELS <= d < depth - 1
