@@ -199,14 +199,18 @@ def voxel_centres(codes, ox, oy, oz, precision, x, y, z):
         z[i] = (compact21(c >> 2) + oz + 0.5) * precision
 
 
-@njit(cache=True, nogil=True, inline="always")
+# The scalar helpers below (contexts, cells, counter steps) are plain kernels, inlined by LLVM
+# when their callers are optimised; numba's own inlining (inline="always") of them into the
+# encoder and the three level decoders took 30 of the cloud codec's 81 s of compilation, for
+# no speed (A/B in the commit). _bit_context, in the decoder's innermost loop, stays inlined.
+@njit(cache=True, nogil=True)
 def _cell(key):
     """Index of a node in its region's map."""
     c = key & ((1 << REGION_SHIFT) - 1)
     return ORIGIN + (compact21(c >> 2) * PAD + compact21(c >> 1)) * PAD + compact21(c)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _child_cell(ci, b):
     """Map index of child ``b`` of the node at map index ``ci`` (in the child level's region)."""
     r = ci - ORIGIN
@@ -249,7 +253,7 @@ def _bit_context(b, cur, ncur, xm, ym, zm, xp, yp, zp, slabs):
             + future)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _slab_z(sz0, sz2):
     """Whether more than one of the nine nodes of the slab below a node are occupied (bit 0;
     ``sz0`` of :func:`_around`) and of the slab above (bit 1, ``sz2``): the side of the node the
@@ -260,7 +264,7 @@ def _slab_z(sz0, sz2):
     return (1 if sz0 > 1 else 0) | ((1 if sz2 > 1 else 0) << 1)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _lean(sz0, sz2):
     """Which slab holds more of the 26 nodes around a node: 1 the one above (``sz2`` of
     :func:`_around`), 2 the one below (``sz0``), 0 neither; for the single child's z bit
@@ -268,12 +272,12 @@ def _lean(sz0, sz2):
     return (1 if sz2 > sz0 else 0) | ((1 if sz0 > sz2 else 0) << 1)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _any(v, mask):
     return np.int64((v & mask) != 0)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2):
     """Context of "the node has exactly one child": occupied face neighbours (0-6) x the
     children of the past neighbours (0-7+) x whether the nodes two back along x and y are occupied."""
@@ -282,7 +286,7 @@ def _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2):
     return C_SINGLE + ((occ * 8 + kids) * 2 + ((xm2 >> 8) & 1)) * 2 + ((ym2 >> 8) & 1)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _x_context(xm, ym, zm, xp, xm2):
     """Context of a single child's x bit: where the past neighbours' children lie along x."""
     return C_X + (_any(xm, 0xAA) | (_any(xm, 0x55) << 1) | (((xp >> 8) & 1) << 2) | (_any(ym, 0xAA) << 3)
@@ -290,7 +294,7 @@ def _x_context(xm, ym, zm, xp, xm2):
                   | (_any(xm2, 0xAA) << 7) | (_any(xm2, 0x55) << 8))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _y_context(bx, xm, ym, zm, yp, ym2):
     """Context of a single child's y bit (its x bit ``bx`` known)."""
     return C_Y + (_any(ym, 0x44 << bx) | (_any(ym, 0x11 << bx) << 1) | (((yp >> 8) & 1) << 2)
@@ -298,7 +302,7 @@ def _y_context(bx, xm, ym, zm, yp, ym2):
                   | (((zm >> (6 | bx)) & 1) << 6) | (bx << 7) | (_any(ym2, 0xCC) << 8) | (_any(ym2, 0x33) << 9))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, slope, lean):
     """Context of a single child's z bit (its x and y bits known): the past neighbours'
     children, the nodes two back, whether the past x neighbour's neighbours above and below are
@@ -331,7 +335,7 @@ def _emit(tab, val, nb, n, models, ctx, bit, kind):
     return n + 1
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _lat(v):
     """The footprint of a map value's children seen along z: 4 bits, bit ``x + 2 y``."""
     v = np.int64(v)
@@ -377,21 +381,21 @@ def _mark(atlas, rows, ci, on):
         set_at(rows, r, 0)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _mixed_x(xm, ym, zm, xp, xm2, sx0, sx1, sx2, fx1, fx2):
     """The three models (A, B, C) of a single child's x bit."""
     return (_x_context(xm, ym, zm, xp, xm2), B_X + (fx1 | (fx2 << 4) | (((xp >> 8) & 1) << 8)),
             C3_X + (sx0 * 10 + sx2) * 10 + (sx1 >> 1))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _mixed_y(bx, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2):
     """The three models (A, B, C) of a single child's y bit (its x bit ``bx`` known)."""
     return (_y_context(bx, xm, ym, zm, yp, ym2), B_Y + (fy1 | (fy2 << 4) | (((yp >> 8) & 1) << 8) | (bx << 9)),
             C3_Y + ((sy0 * 10 + sy2) * 10 + (sy1 >> 1)) * 2 + bx)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1):
     """The three models (A, B, C) of the single-child flag (``sz*``, ``fx1``, ``fy1``: from :func:`_around`)."""
     occ = ((xm >> 8) & 1) + ((ym >> 8) & 1) + ((zm >> 8) & 1) + ((xp >> 8) & 1) + ((yp >> 8) & 1) + ((zp >> 8) & 1)
@@ -407,14 +411,14 @@ def _sse_cell(models, axis, ca, cb, cc):
              + np.int64(at(SSE_BUCKET, state_p(at(models, cb))))) * SSE_N + np.int64(at(SSE_BUCKET, state_p(at(models, cc)))))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _sse_next(s, bit):
     """A cell's state ``s`` adapted to ``bit``: as :func:`shared.compress._rans.state_next`,
     the rate slowing further, to 1/128 (a cell sees many events)."""
     return adapt_state(s, bit, SSE_LIMIT)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _fixed_next(s, bit):
     """A B or C model's state (a 16-bit probability of a one) adapted to ``bit`` at the fixed
     rate 1/32 (these models only pick a bucket; the count-based rate of :func:`state_next` saves
@@ -611,12 +615,11 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
     """Decode one level of the octree (see :func:`decode_chunk`): the children of the ``ncur``
     nodes ``cur`` (Morton codes; map indices ``curc``) into ``nxt`` (and ``nxtc`` unless the
     level is the ``last``). Returns (children, xa, xb, pos); -1 children for a corrupt stream.
-    Inlined into :func:`_decode_last_level` and :func:`_decode_next_to_last`, each with constant
-    flags: the two levels that take most of the decode get loops of their own, without the other
-    kinds' branches and live values (one loop for every kind spent a fifth of its time on them:
-    0.1 mm bench cloud); the levels above share :func:`_decode_upper_level`, flags at run time.
-    Each copy is a function of its own: five copies inlined into the one decoder took numba's
-    type inference 98 s to compile (129 s in all, against 12 s for a single loop)."""
+    Inlined into :func:`_decode_last_level` with constant flags: the level that takes most of
+    the decode gets a loop of its own, without the other kinds' branches and live values; the
+    levels above share :func:`_decode_upper_level`, flags at run time. Each copy is a function
+    of its own: five copies inlined into the one decoder took numba's type inference 98 s to
+    compile (129 s in all, against 12 s for a single loop)."""
     m = 0
     r0 = 0
     while r0 < ncur:
@@ -753,16 +756,11 @@ def _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, model
 
 
 @njit(cache=True, nogil=True)
-def _decode_next_to_last(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows):
-    """:func:`_decode_level` for the level above the last."""
-    return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
-                         FLAG_MIX_LEVELS >= 1, MIX_LEVELS >= 2, False)  # fmt: skip
-
-
-@njit(cache=True, nogil=True)
 def _decode_upper_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
                         mixed_flag, mixed):  # fmt: skip
-    """:func:`_decode_level` for the levels above those two (few nodes), flags at run time."""
+    """:func:`_decode_level` for the levels above the last, flags at run time (a copy of its own
+    for the level above the last, with constant flags, cost 11 s of compilation for no measured
+    speed: 0.1 mm bench cloud 428-430 ms either way)."""
     return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
                          mixed_flag, mixed, False)  # fmt: skip
 
@@ -792,14 +790,11 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
         models[:] = prior  # a copy, as cheap as the fill of 1/2 it replaces
         for k in range(3):
             sse[k * SSE_N**3 : (k + 1) * SSE_N**3] = SSE_INIT
-        # The last two levels' flags are constants in their functions (the rule below, as the
-        # encoder applies it, at d = depth - 1 and depth - 2); the levels above pass them here.
+        # The last level's flags are constants in its function (the rule below, as the encoder
+        # applies it, at d = depth - 1); the levels above pass them here.
         if d == depth - 1:  # the children are voxels: no map cells needed
             m, xa, xb, pos = _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, models, sse,
                                                 atlas, rows)  # fmt: skip
-        elif d == depth - 2:
-            m, xa, xb, pos = _decode_next_to_last(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models,
-                                                  sse, atlas, rows)  # fmt: skip
         else:
             mixed = d >= depth - MIX_LEVELS
             mixed_flag = depth - 1 - FLAG_MIX_LEVELS <= d < depth - 1

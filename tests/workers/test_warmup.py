@@ -92,3 +92,25 @@ def test_first_use_of_the_stages_compiles_nothing(tmp_path: Path) -> None:
     misses = json.loads(res.stdout.strip().splitlines()[-1])
     compiled = {name: sigs for name, sigs in misses.items() if sigs}
     assert not compiled, f"compiled on first use (missing from the warm-up or the cache): {compiled}"
+
+
+def test_compress_workload_inputs_have_a_scans_types(tmp_path: Path) -> None:
+    """The compress warm-up runs beside the scan on inputs of its own: they must carry the
+    types a scan writes (numba compiles one signature per argument type), field for field."""
+    import numpy as np
+
+    from shared.formats.ply import read_header
+    from shared.scan.pipeline import scan
+    from shared.sim.simulate import simulate_named
+    from workers.warmup import _compress_inputs
+
+    simulate_named("spheres", tmp_path / "cap", size=(64, 48), projector=(64, 48), seed=3)
+    scan(tmp_path / "cap", tmp_path / "scan")
+    (tmp_path / "own").mkdir()
+    folders, cloud = _compress_inputs(tmp_path / "own")
+    assert read_header(cloud).dtype == read_header(tmp_path / "scan" / "cloud.ply").dtype
+    with np.load(tmp_path / "scan" / "range.npz") as real:
+        for folder in folders:
+            with np.load(folder / "range.npz") as own:
+                assert {k: (own[k].dtype, own[k].ndim) for k in own} == {k: (real[k].dtype, real[k].ndim) for k in real}
+                assert np.isnan(own["z"]).any() and np.isfinite(own["z"]).any()
