@@ -67,14 +67,14 @@ demo: setup
 	$(BIN)/graylight derivatives demo/merge --levels thumb,low
 	$(BIN)/graylight publish demo/merge --out demo/published --title "$(DEMO_SCENE) (simulated turntable scan)" --collection "Graylight demo" --identifier demo-0001
 	$(BIN)/graylight tiles demo/merge/merged.ply --out demo/merge/tiles
-	$(BIN)/graylight preview demo/merge/tiles --out demo/preview.mp4 --seconds 4
+	$(BIN)/graylight preview demo/merge/tiles --merge demo/merge --out demo/preview.mp4 --seconds 4
 	@echo
 	@echo "Demo finished ($(DEMO_SCENE) on a turntable, $(DEMO_VIEWS) views, embedded mode, no server):"
 	@echo "  scan set (views, rig, true poses)        demo/set/"
 	@echo "  registered, fused and meshed object      demo/merge/ (merged.ply, mesh.glb, registration.json)"
 	@echo "  textured derivatives (Thumb, Low)        demo/merge/mesh_thumb.glb, mesh_low.glb, derivatives.json"
 	@echo "  Voyager scene, paradata, quality report  demo/published/ (scene.svx.json, paradata.json, qa.html)"
-	@echo "  preview flythrough and poster            demo/preview.mp4, demo/preview.png"
+	@echo "  preview flythrough (textured, axis up)   demo/preview.mp4, demo/preview.png"
 	@echo "  verdict: $$($(BIN)/python -c 'import json; print(json.load(open("demo/published/qa.json"))["verdict"]["line"])')"
 	@echo
 	@echo "Open it in the viewer:  $(BIN)/graylight view demo/merge"

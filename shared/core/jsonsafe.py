@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import json
 import os
-import re
 from pathlib import Path
 from typing import Any
 
@@ -35,22 +34,33 @@ MAX_NUMBER_CHARS = 40
 #: hundreds of views well under 1 MiB).
 MAX_DOCUMENT_BYTES = 1 << 20
 
-# A JSON string literal: quotes with escapes inside. Applied to bytes so that no decode is needed first.
-_STRING = re.compile(rb'"(?:[^"\\]|\\.)*"', re.DOTALL)
+_QUOTE, _BACKSLASH = 34, 92
 _OPEN = np.frombuffer(b"[{", dtype=np.uint8)
 _CLOSE = np.frombuffer(b"]}", dtype=np.uint8)
 
 
 def json_depth(data: bytes) -> int:
-    """The deepest bracket nesting of JSON text ``data`` (strings masked), by a linear scan.
+    """The deepest bracket nesting of JSON text ``data`` (brackets inside strings not counted).
 
-    Unbalanced text returns the depth it reaches; the parser reports the malformation itself.
+    Linear in the size, vectorised, never recursing and never backtracking (a regular expression
+    for string literals backtracks quadratically on a client's ``"\\"\\"...`` and took 18 s on
+    80 kB): a quote opens or closes a string unless an odd run of backslashes precedes it, and a
+    bracket counts when an even number of such quotes precede it. Unbalanced text returns the
+    depth it reaches; the parser reports the malformation itself.
     """
-    masked = _STRING.sub(b'""', data)
-    a = np.frombuffer(masked, dtype=np.uint8)
-    step = np.isin(a, _OPEN).astype(np.int32) - np.isin(a, _CLOSE).astype(np.int32)
-    if step.size == 0:
+    a = np.frombuffer(data, dtype=np.uint8)
+    n = a.size
+    if n == 0:
         return 0
+    idx = np.arange(n, dtype=np.int64)
+    # For each position, the last index at or before it that is not a backslash.
+    last_plain = np.maximum.accumulate(np.where(a != _BACKSLASH, idx, -1))
+    run_before = np.zeros(n, dtype=np.int64)
+    run_before[1:] = idx[:-1] - last_plain[:-1]  # backslashes just before each position
+    quote = (a == _QUOTE) & (run_before % 2 == 0)
+    outside = (np.cumsum(quote) % 2) == 0  # a bracket is never a quote: inclusive count is fine
+    step = np.isin(a, _OPEN).astype(np.int32) - np.isin(a, _CLOSE).astype(np.int32)
+    step[~outside] = 0
     return int(np.cumsum(step).max(initial=0))
 
 

@@ -71,7 +71,7 @@ def parse_levels(spec: str | list | None) -> list[Level]:
     """Levels from a spec: None (the defaults), ``"thumb,low"`` (named levels), or per level
     ``NAME:FACES:PX`` (``"low:100000:2048"``), or a list of such strings or of objects
     ``{"name", "faces", "texture_px", "jpeg_quality"?, "max_bytes"?}`` (job parameters).
-    Raises :class:`InputError` naming the level and field."""
+    A level named again replaces the earlier one. Raises :class:`InputError` naming the level and field."""
     if spec is None:
         return [LEVELS[n] for n in DEFAULT_LEVELS]
     items = [s.strip() for s in spec.split(",") if s.strip()] if isinstance(spec, str) else list(spec)
@@ -109,6 +109,7 @@ def parse_levels(spec: str | list | None) -> list[Level]:
         else:
             raise InputError("levels", f"unknown level {item!r}; known: {', '.join(LEVELS)} or NAME:FACES:PX")
         out.append(check_level(level))
-    if len({lv.name for lv in out}) != len(out):
-        raise InputError("levels", "a level is named twice")
-    return out
+    # A level named again replaces the earlier one, in the earlier one's place: the job service's
+    # document cannot say "names unique" across names and objects, and it accepts what it allows.
+    by_name = {lv.name: lv for lv in out}
+    return [by_name[n] for n in dict.fromkeys(lv.name for lv in out)]

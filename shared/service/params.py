@@ -198,7 +198,9 @@ _DERIVATIVES_SCHEMA: dict[str, Any] = {
     "description": "false leaves out the textured derivatives; an object chooses them",
     "anyOf": [{"type": "boolean"}, {"type": "object", "additionalProperties": False, "properties": {
         "colour": {"enum": ["photo", "albedo", "shaded"]},
-        "levels": {"type": "array", "minItems": 1, "maxItems": 5, "items": {"anyOf": [
+        "levels": {"type": "array", "minItems": 1, "maxItems": 5,
+                   "description": "levels by name or with their budgets; a level named again replaces the earlier",
+                   "items": {"anyOf": [
             {"enum": list(_DERIVATIVE_LEVELS)},
             {"type": "object", "additionalProperties": False, "required": ["name"], "properties": {
                 "name": {"enum": list(_DERIVATIVE_LEVELS)},

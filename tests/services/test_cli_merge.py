@@ -18,14 +18,14 @@ from tests.support.scansets import cached_scanset
 
 @pytest.fixture(scope="module")
 def small_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return cached_scanset(tmp_path_factory.mktemp("cli-merge"), views=4, size=(320, 240), projector=(256, 192))
+    return cached_scanset(tmp_path_factory.mktemp("cli-merge"), views=8, size=(320, 240), projector=(256, 192))
 
 
 def test_merge_writes_every_output(small_set: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     out = tmp_path / "out"
     assert main(["merge", str(small_set), "--out", str(out)]) == 0
     text = capsys.readouterr().out
-    assert "4 of 4 views registered" in text and "loop closure" in text and "rotation axis" in text
+    assert "8 of 8 views registered" in text and "loop closure" in text and "rotation axis" in text
     names = {p.name for p in out.iterdir()}
     assert {"merged.ply", "registration.json", "mesh.ply", "mesh.glb", "mesh_lod1.glb", "mesh_lod2.glb",
             "mesh_lod3.glb", "report.json", "ranges"} <= names

@@ -76,7 +76,7 @@ def finished(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Finished]:
     with jobsvc.service_env(root) as senv, ThreadPoolExecutor(1) as pool:
         # The captures are simulated while the service's processes start.
         simulated = pool.submit(lambda: (jobsvc.simulate_small(root / "vase"),
-                                         cached_scanset(root / "sets", views=4, size=(320, 240), projector=(256, 192))))
+                                         cached_scanset(root / "sets", views=8, size=(320, 240), projector=(256, 192))))
         _proc, url = jobsvc.start_api(senv)
         worker = jobsvc.start_worker(senv, "cpu,render", concurrency=2)
         capture, scanset = simulated.result()
