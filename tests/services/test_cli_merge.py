@@ -48,7 +48,7 @@ def test_merge_writes_every_output(small_set: Path, tmp_path: Path, capsys: pyte
         (lambda d: d.update(views=d["views"][:1]), "views: a scan set needs 2..1000 views"),
         (lambda d: d["views"][1]["pose"].update(R=[[1, 0, 0], [0, 1, 0], [0, 0, -1]]),
          "views[1] (view_01).pose.R: is not a rotation"),
-        (lambda d: d["turntable"].update(angles_deg=[0, 90]), "turntable.angles_deg: must give one angle per view (4)"),
+        (lambda d: d["turntable"].update(angles_deg=[0, 90]), "turntable.angles_deg: must give one angle per view (8)"),
         (lambda d: d["views"][2].update(capture="view_09"), "views[2].capture: 'view_09' not found in the scan set folder"),
     ],
 )

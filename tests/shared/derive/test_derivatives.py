@@ -41,8 +41,11 @@ def test_levels_default_to_voyagers_and_nonsense_budgets_are_refused() -> None:
     assert [LEVELS[n].texture_px for n in ("low", "medium", "high")] == [1024, 2048, 4096]
     assert parse_levels("low:100000:2048")[0].faces == 100_000
     assert parse_levels([{"name": "thumb", "texture_px": 256}])[0].faces == 20_000
+    # A level named again replaces the earlier one in its place (what the job parameters allow).
+    again = parse_levels(["low", "thumb", {"name": "low", "texture_px": 2048}])
+    assert [(lv.name, lv.texture_px) for lv in again] == [("low", 2048), ("thumb", 512)]
     for spec, field in (("low:0:1024", "levels.low.faces"), ("low:150000:100000", "levels.low.texture_px"),
-                        ("low:150000:1000", "levels.low.texture_px"), ("huge", "levels"), ("low,low", "levels"),
+                        ("low:150000:1000", "levels.low.texture_px"), ("huge", "levels"),
                         ([{"name": "x", "faces": "many", "texture_px": 512}], "levels.x")):
         with pytest.raises(InputError, match=field.replace(".", r"\.")):
             parse_levels(spec)
