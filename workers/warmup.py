@@ -461,7 +461,9 @@ COMPRESS_PARTS = ("ranges", "clouds")
 
 
 def _warm_merge(work: Path) -> bool:
-    """A four-view turntable merge of the bunny at 320x240 (registration, fusion, meshing);
+    """An eight-view turntable merge of the bunny at 320x240, as a real turntable sees it (static
+    removal, registration, fusion, meshing; four views 90 degrees apart overlap too little once
+    what does not turn is left out);
     False, with a warning, where the shared meshes are missing or the merge fails (its kernels
     then compile on first use: a warm-up must not stop ``make setup``)."""
     from shared.merge.pipeline import merge_scanset
@@ -473,7 +475,7 @@ def _warm_merge(work: Path) -> bool:
         return False
     try:
         folder = work / "scanset"
-        simulate_scanset("bunny", folder, views=4, size=(320, 240), projector=(256, 192), seed=0)
+        simulate_scanset("bunny", folder, views=8, size=(320, 240), projector=(256, 192), seed=0)
         merge_scanset(folder, work / "merged")
     except Exception as exc:  # noqa: BLE001 - reported, and the setup goes on
         log.warning("warm-up: the merge failed (%s); its kernels compile on first use", exc)
