@@ -224,14 +224,11 @@ class Intake:
         if not clean or any(clean.startswith(p) for p in _PRIVATE_PREFIXES) or clean in ("objects", "uploads"):
             raise InputError("capture_ref", f"{excerpt(repr(ref))} is not a reference to a capture in storage")
         try:
-            path = self.arts.ref_path(clean)
-            key = self.arts.ref_fingerprint(clean)
-            info = self.arts.ref_info(clean)
-            if info.get("type") == "directory":
-                stored.unpacked[key] = sum(int(i.get("size") or 0)
-                                           for i in self.arts.fs.find(path, detail=True).values())  # fmt: skip
+            key, is_folder, size = self.arts.ref_stat(clean)  # one listing of the reference
+            if is_folder:
+                stored.unpacked[key] = size
             elif self.arts.is_local:
-                local = Path(self.arts.fs._strip_protocol(path))
+                local = Path(self.arts.fs._strip_protocol(self.arts.ref_path(clean)))
                 stored.unpacked[key] = inspect_archive(local, self.limits, label=clean, require=root_file(kind)).total_bytes
         except ArtifactError as exc:
             raise InputError("capture_ref", str(exc)) from None

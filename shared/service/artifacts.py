@@ -437,6 +437,11 @@ class ArtifactStore:
     def ref_fingerprint(self, ref: str) -> str:
         """A content fingerprint of a referenced file or folder: SHA-256 over each file's
         name, size and ETag or modification time (cheap: no bytes are read)."""
+        return self.ref_stat(ref)[0]
+
+    def ref_stat(self, ref: str) -> tuple[str, bool, int]:
+        """``(fingerprint, is_folder, bytes)`` of a reference from one listing: the
+        :meth:`ref_fingerprint`, whether it is a folder, and its size (a folder's files summed)."""
         path = self.ref_path(ref)
         info = self.ref_info(ref)
         h = hashlib.sha256(ref.encode())
@@ -451,7 +456,8 @@ class ArtifactStore:
         for p, i in entries:
             tag = i.get("ETag") or i.get("etag") or i.get("mtime") or i.get("LastModified") or ""
             h.update(f"{p}|{i.get('size')}|{tag}".encode())
-        return h.hexdigest()
+        size = sum(int(i.get("size") or 0) for _p, i in entries)
+        return h.hexdigest(), info.get("type") == "directory", size
 
     def ref_read(self, ref: str, dest: Path, max_bytes: int, max_files: int) -> Path:
         """Copy a referenced file (or folder, recursively) to local ``dest`` within limits."""
