@@ -461,6 +461,11 @@ class JobStore:
             rows = s.scalars(select(ApiKeyRow).where(ApiKeyRow.revoked.is_(False)).order_by(ApiKeyRow.id)).all()
             return [ApiKey(r.id, r.name, r.prefix, r.created_at) for r in rows]
 
+    def key_active(self, key_id: int) -> bool:
+        """Whether key ``key_id`` exists and is not revoked (one row, for a request's check)."""
+        with self.session() as s:
+            return s.scalar(select(ApiKeyRow.id).where(ApiKeyRow.id == key_id, ApiKeyRow.revoked.is_(False))) is not None
+
     def revoke_key(self, prefix: str) -> bool:
         with self.session() as s, s.begin():
             res = s.execute(update(ApiKeyRow).where(ApiKeyRow.prefix == prefix).values(revoked=True))

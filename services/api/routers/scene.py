@@ -89,7 +89,7 @@ def _granted(svc: Svc, job_id: str, token: str) -> Job:
         if job is None:
             raise TokenError("scene token is not valid for this job")
         check_scene_token(svc.settings.signing_secret(), token, job.id, job.owner_id, time.time())
-        if not any(k.id == job.owner_id for k in svc.store.list_keys()):
+        if not svc.store.key_active(job.owner_id):
             raise TokenError("scene token's key has been revoked")
     except TokenError as exc:
         raise HTTPException(403, str(exc), headers=CORS_HEADERS) from None
