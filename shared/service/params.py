@@ -40,7 +40,7 @@ from typing import Any
 
 from shared.core.errors import InputError
 from shared.derive.levels import parse_levels
-from shared.publish.labels import MAX_LABEL_CHARS, check_label
+from shared.publish.labels import LABEL_PATTERN, MAX_LABEL_CHARS, check_label
 from shared.render.camera_path import MAX_COORDINATE, MAX_INLINE_KEYFRAMES, NAMED_PATHS
 from shared.render.options import MAX_FPS, MAX_HEIGHT, MAX_SECONDS, MAX_WIDTH, MIN_SIDE, PreviewOptions
 
@@ -245,10 +245,10 @@ def _label(value: Any, field: str) -> str:
 
 def _label_param(description: str) -> Param:
     """The object's title, collection or identifier, shown in its Voyager scene and quality report."""
-    # The pattern states the common case of check_label's refusal (C0/C1 controls); format, surrogate
-    # and private-use characters are refused too, with the same one-line error.
-    return Param(_label, {"type": "string", "maxLength": MAX_LABEL_CHARS, "pattern": "^[^\\u0000-\\u001f\\u007f-\\u009f]*$",
-                          "description": description + "; printable text (control and format characters are refused)"})
+    # The pattern is check_label's own refusal (shared.publish.labels.REFUSED_RANGES), so the
+    # document and the check agree on every character a client can send.
+    return Param(_label, {"type": "string", "maxLength": MAX_LABEL_CHARS, "pattern": LABEL_PATTERN,
+                          "description": description + "; text without control characters or bidirectional overrides"})
 
 
 #: The object as the museum names it (shared.publish.folder.ObjectMeta), for scan and multiview jobs.
