@@ -48,7 +48,7 @@ _CACHED_KERNEL = re.compile(r'^@(?:numba\.)?njit\b(?![^\n]*inline="always")', re
 #: Modules holding numba kernels, by domain.
 KERNEL_MODULES: dict[str, tuple[str, ...]] = {
     "sim": ("shared.sim.raycast",),
-    "scan": ("shared.scan.decode", "shared.scan.triangulate", "shared.formats._png"),  # _png: frame reading
+    "scan": ("shared.scan._decode_kernels", "shared.scan.decode", "shared.scan.triangulate", "shared.formats._png"),  # _png: frame reading
     "render": ("shared.render.octree", "shared.render.raster", "shared.render._shading", "shared.render._neighbours",
                "shared.render._match", "shared.compress.tilenode"),  # tilenode: the tiles' octree-coded nodes
     "compress": ("shared.compress._rans", "shared.compress._quadtree", "shared.compress._octree"),
