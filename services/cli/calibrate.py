@@ -51,6 +51,9 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
     if args.board:
         raise InputError("--board", "only with --camera-only: a session folder carries its own board.json")
     from shared.calib.session import run_session, write_outputs
+    from shared.scan.albedo import parse_response
+
+    response = parse_response(args.camera_response)
 
     with _progress_bar() as bar:
         task = bar.add_task("", total=1.0)
@@ -58,7 +61,7 @@ def _cmd_calibrate(args: argparse.Namespace) -> int:
         def progress(done: int, total: int, message: str) -> None:
             bar.update(task, completed=done / max(total, 1), description=message)
 
-        result = run_session(Path(args.inputs[0]), progress=progress, k3=args.k3)
+        result = run_session(Path(args.inputs[0]), progress=progress, k3=args.k3, camera_response=response)
     report = write_outputs(
         result,
         rig_path=out,
@@ -119,6 +122,10 @@ def register(subparsers: argparse._SubParsersAction) -> None:
     p.add_argument("--k3", action="store_true",
                    help="also estimate the third radial distortion coefficient (wide-angle lenses; needs poses that "
                         "reach the image corners; held at 0 by default)")  # fmt: skip
+    p.add_argument("--camera-response", default="srgb", metavar="srgb|linear|gamma:G|FILE",
+                   help="the camera's response from stored value to light (default srgb, what cameras write to 8-bit "
+                        "files; linear for raw machine-vision output; FILE: {\"response\": [256 numbers]}); patterns "
+                        "without inverses are read against the midpoint of linear light, and the rig records it")
     p.add_argument("--report", help="report JSON (default: <out>-report.json)")
     p.add_argument("--plot", help="residual plot PNG (default: <out>-residuals.png)")
     p.set_defaults(func=_cmd_calibrate)

@@ -22,7 +22,7 @@ import logging
 import os
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -48,7 +48,8 @@ from shared.core.paths import confine
 from shared.formats.capture import CAPTURE_FILE, Capture, load_capture
 from shared.formats.images import read_grey
 from shared.formats.rig import Device, Rig, save_rig
-from shared.scan.decode import decode_capture
+from shared.scan.albedo import CameraResponse
+from shared.scan.decode import DecodeParams, decode_capture
 
 log = logging.getLogger(__name__)
 
@@ -60,10 +61,11 @@ DecodeFn = Callable[[Capture], tuple[np.ndarray, np.ndarray]]
 ProgressFn = Callable[[int, int, str], None]
 
 
-def default_decode(capture: Capture) -> tuple[np.ndarray, np.ndarray]:
-    """Decode with the scanner's own decoder (``shared.scan.decode``), sub-pixel projector coordinates."""
+def default_decode(capture: Capture, response: CameraResponse | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Decode with the scanner's own decoder (``shared.scan.decode``), sub-pixel projector
+    coordinates; ``response`` is the camera's (sRGB by default, see :class:`DecodeParams`)."""
 
-    decoded = decode_capture(capture, subpixel=True)
+    decoded = decode_capture(capture, subpixel=True, params=DecodeParams(response=response or CameraResponse()))
     return np.asarray(decoded.column, np.float32), np.asarray(decoded.row, np.float32)
 
 
@@ -251,9 +253,13 @@ def run_session(
     progress: ProgressFn | None = None,
     window: int | None = None,
     k3: bool = False,
+    camera_response: CameraResponse | None = None,
 ) -> SessionResult:
     """Calibrate a session folder in memory (nothing written). Raises :class:`InputError` on bad input.
 
+    ``camera_response`` is the camera's response (sRGB by default): the default decoder reads
+    patterns without inverses against the midpoint of linear light through it, and the rig
+    records it (``radiometry.camera_response``) for the scans that use the rig.
     ``decode`` maps a pose's capture to its (column, row) maps (default :func:`default_decode`);
     ``progress(done, total, message)`` is called per pose; ``window`` overrides the local
     homography's window (pixels); ``k3`` estimates the third radial distortion coefficient of
@@ -261,12 +267,17 @@ def run_session(
     """
     t0 = time.perf_counter()
     session = load_session(session_dir)
+    response = camera_response or CameraResponse()
+    if decode is None:
+        def decode(capture: Capture) -> tuple[np.ndarray, np.ndarray]:
+            return default_decode(capture, response)
     poses, skipped, detections, camera_size = find_pose_corners(session, decode, progress, window)
     t1 = time.perf_counter()
     projector_size = (session.poses[0][1].projector_width, session.poses[0][1].projector_height)
     calibration = calibrate_rig(
         poses, camera_size, projector_size, units=session.board.units, where=session.root, skipped=skipped, k3=k3
     )
+    calibration = replace(calibration, rig=replace(calibration.rig, radiometry={"camera_response": response.rig_value()}))
     t2 = time.perf_counter()
     log.info(
         "calibrated %s: camera %.3f px, projector %.3f px RMS over %d poses",

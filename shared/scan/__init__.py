@@ -35,6 +35,7 @@ __all__, __getattr__, __dir__ = lazy_exports(
         "estimate_albedo": "albedo",
         "parse_response": "albedo",
         "params_for_rig": "albedo",
+        "response_for_rig": "albedo",
         "projector_geometry": "albedo",
         "smooth_normals": "albedo",
     },

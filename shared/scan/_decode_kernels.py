@@ -497,7 +497,7 @@ _BAND = 16
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")
-def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, ratio, nbits, lowest, max_level,
+def _decode_rows(pats, refs, with_inverse, bits, white, black, mid2, lit_thr, noise, ratio, nbits, lowest, max_level,
                  n_proj, want_q, subpixel, diff, lit, value, level, conf, counts, n_threads):  # pragma: no cover
     """Decode one axis from all of its bit planes in one pass, a band of camera rows at a time.
 
@@ -515,7 +515,9 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
     difference.
 
     pats, refs: tuples of (H, W) pattern and inverse images (``refs`` is ignored without
-    inverses); bits: bit of each plane, most significant first. Outputs (H, W): lit (bool),
+    inverses); bits: bit of each plane, most significant first. mid2: (H, W) int32, twice the
+    stored value of the white/black midpoint in linear light, used without inverses; a (0, 0)
+    array means ``white + black`` (a linear camera). Outputs (H, W): lit (bool),
     value (float32), level (int8), conf (float32, written when ``want_q``); counts (H, 2 +
     levels) int64: lit pixels, interpolated pixels, decoded pixels per level.
     """
@@ -580,6 +582,10 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, lit_thr, noise, r
                         thr = max(noise, ratio * (c * np.float32(0.5)))
                         ithr[x] = min(np.ceil(thr * np.float32(2.0)), half)
                         wb[x] = np.int32(wr[x]) + np.int32(br[x])
+                    if mid2.shape[0] > 0:  # a non-linear camera: the midpoint in linear light
+                        mr = mid2[y]
+                        for x in range(W):
+                            wb[x] = mr[x]
                     if want_q:
                         for x in range(W):
                             sw = (np.float32(wr[x]) - np.float32(br[x])) * np.float32(0.5)

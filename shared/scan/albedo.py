@@ -49,6 +49,7 @@ __all__ = [
     "params_for_rig",
     "parse_response",
     "projector_geometry",
+    "response_for_rig",
     "smooth_normals",
 ]
 
@@ -80,6 +81,12 @@ class CameraResponse:
     kind: str = "srgb"
     gamma: float = 2.2
     table: tuple[float, ...] = ()
+
+    def rig_value(self) -> str | list[float]:
+        """The response as a rig's ``radiometry.camera_response`` states it."""
+        if self.kind == "gamma":
+            return f"gamma:{self.gamma:g}"
+        return list(self.table) if self.kind == "table" else self.kind
 
     def lut(self) -> np.ndarray:
         """(256,) float32: the linear value of every 8-bit code."""
@@ -156,18 +163,22 @@ class AlbedoParams:
     normal_radius: int = 4
 
 
+def response_for_rig(rig: Rig | None) -> CameraResponse:
+    """The camera response a rig's ``radiometry.camera_response`` states (validated by
+    :mod:`shared.formats.rig`); sRGB when the rig states none or there is no rig."""
+    resp = ((rig.radiometry or {}) if rig is not None else {}).get("camera_response", "srgb")
+    if isinstance(resp, str):
+        return CameraResponse("gamma", gamma=float(resp[6:])) if resp.startswith("gamma:") else CameraResponse(resp)
+    curve = np.asarray(resp, np.float64)
+    curve = (curve - curve[0]) / (curve[-1] - curve[0])
+    return CameraResponse("table", table=tuple(float(c) for c in curve))
+
+
 def params_for_rig(rig: Rig, **overrides) -> AlbedoParams:
     """The albedo parameters a rig's ``radiometry`` (:mod:`shared.formats.rig`) implies; without
     it the defaults (an sRGB camera, no falloff). ``overrides`` replace fields."""
     r = rig.radiometry or {}
-    resp = r.get("camera_response", "srgb")
-    if isinstance(resp, str):
-        response = CameraResponse("gamma", gamma=float(resp[6:])) if resp.startswith("gamma:") else CameraResponse(resp)
-    else:
-        curve = np.asarray(resp, np.float64)
-        curve = (curve - curve[0]) / (curve[-1] - curve[0])
-        response = CameraResponse("table", table=tuple(float(c) for c in curve))
-    kw = {"response": response, "vignetting": tuple(r.get("projector_vignetting", ())),
+    kw = {"response": response_for_rig(rig), "vignetting": tuple(r.get("projector_vignetting", ())),
           "projector_cos_power": float(r.get("projector_falloff_cos_power", 0.0)),
           "camera_cos_power": float(r.get("camera_falloff_cos_power", 0.0))}
     kw.update(overrides)

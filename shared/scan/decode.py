@@ -47,7 +47,7 @@ import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from contextlib import contextmanager
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -59,7 +59,9 @@ from shared.core.files import atomic_file
 from shared.core.threads import cpu_budget
 from shared.formats.capture import Capture, CodeImage, code_bits
 from shared.formats.images import prepare_png_reading, probe_image, read_grey, read_grey_and_colour
+from shared.formats.rig import load_rig
 from shared.scan._decode_kernels import _bit_planes, _decode_rows, _finish_rows, _grey_rgb
+from shared.scan.albedo import CameraResponse, response_for_rig
 
 log = logging.getLogger(__name__)
 
@@ -72,12 +74,20 @@ class DecodeParams:
     ``noise``: a bit whose pattern-inverse difference is below this is weak.
     ``weak_ratio``: ... or below this share of the pixel's white-black contrast.
     ``max_drop``: at most this many finest bits are dropped for a coarser code.
+    ``response``: the camera's response (stored value -> linear light). None: the one the
+    capture's rig states (``radiometry.camera_response``), sRGB when it states none or there is
+    no rig, as :mod:`shared.scan.albedo` assumes. Without inverse patterns a bit is read against the white/black midpoint, and the
+    projector's half-way light lies at the midpoint of linear light, not of stored values: under
+    an sRGB camera the stored midpoint moves every stripe edge (median column error 0.19 against
+    0.016 projector pixels on the simulated bunny). With inverses the response does not matter:
+    pattern and inverse cross where their light is equal, whatever the curve.
     """
 
     lit_threshold: float = 2.5
     noise: float = 1.5
     weak_ratio: float = 0.12
     max_drop: int = 3
+    response: CameraResponse | None = None
 
 
 @dataclass
@@ -287,9 +297,13 @@ class _References:
     """Per-pixel references of the streaming path, shared by every batch: midpoint, weak-bit
     thresholds, q scales (the one-pass kernel computes the same values row by row)."""
 
-    def __init__(self, white: np.ndarray, black: np.ndarray, params: DecodeParams, scale: float) -> None:
+    def __init__(self, white: np.ndarray, black: np.ndarray, params: DecodeParams, scale: float,
+                 mid2: np.ndarray) -> None:
         self.contrast = white.astype(np.float32).ravel() - black.astype(np.float32).ravel()
-        self.mid = (white.astype(np.float32).ravel() + black.astype(np.float32).ravel()) * np.float32(0.5)
+        if mid2.size:
+            self.mid = mid2.astype(np.float32).ravel() * np.float32(0.5)
+        else:
+            self.mid = (white.astype(np.float32).ravel() + black.astype(np.float32).ravel()) * np.float32(0.5)
         self.noise = np.float32(params.noise * scale)
         self.ratio = np.float32(params.weak_ratio)
         self._cache: dict[bool, tuple[np.ndarray, np.ndarray]] = {}
@@ -357,6 +371,24 @@ def _reader(entries: Sequence[_Plane], size: tuple[int, int], itemsize: int,
     return _Reader(entries, size, pool, ahead)
 
 
+def _midpoint2(white: np.ndarray, black: np.ndarray, response: CameraResponse) -> np.ndarray:
+    """Twice the stored value of the white/black midpoint in linear light, (H, W) int32, rounded
+    to a half level; a (0, 0) array for a linear camera (the kernels then take ``white + black``,
+    exactly). 8-bit frames go through a 256 x 256 table of every (white, black) pair."""
+    if response.kind == "linear":
+        return np.zeros((0, 0), np.int32)
+    lut8 = response.lut().astype(np.float64)
+    if white.dtype == np.uint8:
+        codes = np.arange(256, dtype=np.float64)
+        mid = np.interp(0.5 * (lut8[:, None] + lut8[None, :]), lut8, codes)
+        table = np.rint(2.0 * mid).astype(np.int32)
+        return table[white, black]
+    # 16-bit: the curve of the 8-bit codes, read between them (a response is stated per 8-bit code).
+    codes = np.arange(256, dtype=np.float64) * 257.0
+    lin = np.interp(white, codes, lut8) + np.interp(black, codes, lut8)
+    return np.rint(2.0 * np.interp(0.5 * lin, lut8, codes)).astype(np.int32)
+
+
 @dataclass
 class _AxisOut:
     """Outputs of one axis, (H, W): value (float32), level (int8), conf (float32 or a (1, W)
@@ -372,6 +404,7 @@ def _decode_axis(
     entries: Sequence[_Plane],
     white: np.ndarray,
     black: np.ndarray,
+    mid2: np.ndarray,
     params: DecodeParams,
     scale: float,
     nbits: int,
@@ -383,7 +416,8 @@ def _decode_axis(
     reader: _Reader,
     tick: Callable[[int], None],
 ) -> np.ndarray:
-    """Decode one axis into ``out``; returns per-row counts (H, 2 + levels) int64: lit pixels
+    """Decode one axis into ``out`` (``mid2``: see :func:`_midpoint2`); returns per-row counts
+    (H, 2 + levels) int64: lit pixels
     (0 when ``lit_known``: ``out.lit`` is then read, not written), interpolated pixels,
     decoded pixels per level."""
     h, w = white.shape
@@ -414,7 +448,7 @@ def _decode_axis(
         bits = np.array([e.bit for e in entries], np.uint16)
         _decode_rows(
             _padded(pats, _MAX_PLANES), _padded(invs if with_inverse else pats, _MAX_PLANES), with_inverse, bits,
-            white, black, np.float32(params.lit_threshold * scale), np.float32(params.noise * scale),
+            white, black, mid2, np.float32(params.lit_threshold * scale), np.float32(params.noise * scale),
             np.float32(params.weak_ratio), int(nbits), int(lowest), int(max_level), int(n_proj), bool(store_q),
             bool(subpixel), np.zeros(0, np.int16 if itemsize == 1 else np.int32),
             out.lit, out.value, out.level, out.conf, counts, numba.get_num_threads(),
@@ -425,7 +459,7 @@ def _decode_axis(
 
     # Streaming: more images than one batch holds; classify batch by batch into whole-frame
     # code planes, then resolve.
-    refs = _References(white, black, params, scale)
+    refs = _References(white, black, params, scale, mid2)
     lit = out.lit.ravel()
     if not lit_known:
         lit[:] = refs.contrast > np.float32(params.lit_threshold * scale)
@@ -504,6 +538,10 @@ def decode_capture(
         return [_Plane(e.bit, e.pattern, e.inverse) for e in entries]
 
     col_planes, row_planes = planes(capture.columns), planes(capture.rows)
+    params = params or DecodeParams()
+    if params.response is None and any(p.inverse is None for p in (*col_planes, *row_planes)):
+        # Only a plane without its inverse is read against the midpoint, which needs the response.
+        params = replace(params, response=response_for_rig(load_rig(capture.rig) if capture.rig is not None else None))
     # The size and depth from the white frame's header, so that every image can be queued for
     # reading at once: the pool reads while this thread makes the fast PNG path ready (numba's
     # first dispatch in a process, up to about a second) and then waits for white and black.
@@ -534,7 +572,7 @@ def decode_capture(
         return _decode(
             white, black, colour, col_planes, row_planes,
             (capture.projector_width, capture.projector_height), str(capture.white), str(capture.black),
-            progress, subpixel, params or DecodeParams(), pool, readers,
+            progress, subpixel, params, pool, readers,
         )
 
 
@@ -627,6 +665,10 @@ def _decode_inner(
         raise InputError(black_name, "black frame has a different bit depth from the white frame")
     tick(2)
     scale = _scale_for(white.dtype)
+    # Only a plane without its inverse is read against the midpoint.
+    against_mid = any(p.inverse is None for p in (*col_planes, *row_planes))
+    response = params.response or CameraResponse()
+    mid2 = _midpoint2(white, black, response) if against_mid else np.zeros((0, 0), np.int32)
     # Every (H, W) output carved from one allocation (the grey colour too, when made here): a
     # block that size gets transparent huge pages (numpy asks for them above 4 MB), so the
     # first writes fault a page per 2 MB, not per 4 KB (3173 faults, a sixth of the bench's
@@ -645,7 +687,7 @@ def _decode_inner(
         row_reader = _reader(row_planes, (w, h), itemsize, pool)
     try:
         cols = _AxisOut(slab.take((h, w), np.float32), slab.take((h, w), np.int8), slab.take((h, w), np.float32), lit)
-        col_counts = _decode_axis(col_planes, white, black, params, scale, col_bits, pw, True, subpixel, False, cols,
+        col_counts = _decode_axis(col_planes, white, black, mid2, params, scale, col_bits, pw, True, subpixel, False, cols,
                                   col_reader, tick)
     except BaseException:
         col_reader.cancel()
@@ -666,7 +708,7 @@ def _decode_inner(
     if row_planes:
         rows = _AxisOut(slab.take((h, w), np.float32), slab.take((h, w), np.int8), np.empty((1, w), np.float32), lit)
         try:
-            row_counts = _decode_axis(row_planes, white, black, params, scale, row_bits, ph, False, False, True, rows,
+            row_counts = _decode_axis(row_planes, white, black, mid2, params, scale, row_bits, ph, False, False, True, rows,
                                       row_reader, tick)
         except BaseException:
             row_reader.cancel()
@@ -686,7 +728,9 @@ def _decode_inner(
         "projector_height": ph,
         "column_bits_captured": len(col_planes),
         "row_bits_captured": len(row_planes),
-        "inverse_patterns": all(p.inverse is not None for p in (*col_planes, *row_planes)),
+        "inverse_patterns": not against_mid,
+        "midpoint": ("linear light, " + response.kind + " response") if mid2.size else (
+            "stored values" if against_mid else "none (inverse patterns)"),
         "lit_pixels": n_lit,
         "column_decoded": n_col,
         "column_decoded_share_of_lit": n_col / n_lit,

@@ -9,7 +9,7 @@ then blurred, scaled by a texture albedo, offset by ambient light and given sens
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -135,7 +135,6 @@ def render_plane_capture(
             on = ((g >> e.bit) & 1).astype(bool)
             cv2.imwrite(str(e.pattern), shoot(on))
             cv2.imwrite(str(e.inverse), shoot(~on))
-    from dataclasses import replace
 
     cols = capture.columns[: len(capture.columns) - drop_bits]
     if not inverse:
@@ -143,7 +142,8 @@ def render_plane_capture(
         capture = replace(capture, rows=tuple(replace(e, inverse=None) for e in capture.rows))
     capture = replace(capture, columns=cols)
     write_capture(capture)
-    save_rig(rig, out / "rig.json")
+    # The images above are linear in the light (a raw sensor): the rig says so.
+    save_rig(replace(rig, radiometry={"camera_response": "linear"}), out / "rig.json")
 
     # Truth at pixel centres.
     cpix = np.stack(np.meshgrid(np.arange(cw, dtype=float), np.arange(ch, dtype=float)), axis=-1).reshape(-1, 1, 2)

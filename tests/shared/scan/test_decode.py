@@ -14,7 +14,7 @@ import pytest
 from shared.core.datapaths import shared_data_dir
 from shared.core.errors import InputError
 from shared.formats.capture import load_capture, numbered_frames, opencv_order_capture
-from shared.scan.decode import Decoded, decode_capture, decode_stack, load_decoded, save_decoded
+from shared.scan.decode import Decoded, DecodeParams, decode_capture, decode_stack, load_decoded, save_decoded
 from shared.scan.graycode import pattern_sequence
 from tests.support.synthetic_plane import PlaneTruth, render_plane_capture
 
@@ -135,8 +135,8 @@ def test_save_and_load_round_trip(tmp_path: Path, plane) -> None:
 
 @pytest.mark.parametrize(
     "kw",
-    [{}, {"inverses": False}, {"bits": 16, "colour": True}],
-    ids=["inverses", "midpoint", "16-bit"],
+    [{}, {"inverses": False}, {"bits": 16, "colour": True}, {"bits": 16, "inverses": False}],
+    ids=["inverses", "midpoint", "16-bit", "16-bit-midpoint"],
 )
 def test_streaming_path_equals_one_pass(sim_capture_factory, monkeypatch, kw) -> None:
     """Axes too large for one pass stream through whole-frame code planes with the int8 ``q``;
@@ -154,6 +154,32 @@ def test_streaming_path_equals_one_pass(sim_capture_factory, monkeypatch, kw) ->
     assert {k: v for k, v in streamed.stats.items() if not k.startswith("seconds")} == {
         k: v for k, v in one.stats.items() if not k.startswith("seconds")
     }
+
+
+@pytest.mark.parametrize("camera", ["srgb", "linear"])
+def test_without_inverses_bits_are_read_at_the_midpoint_of_linear_light(sim_capture_factory, camera: str) -> None:
+    """Without inverses a bit is read against the white/black midpoint: the projector's half-way
+    light is the midpoint of linear light, which a non-linear camera stores off the midpoint of
+    stored values. The capture's rig states the response (the virtual rig writes its own), and
+    reading through another response moves every stripe edge."""
+    from shared.scan.albedo import CameraResponse
+
+    root = sim_capture_factory("corner", size=(400, 300), projector=(256, 192), seed=3, inverses=False,
+                               response=camera)
+    cap = load_capture(root)
+    with np.load(root / "truth.npz") as t:
+        lit, proj_col = t["lit"], t["proj_col"]
+
+    def median_error(dec: Decoded) -> float:
+        ok = np.isfinite(dec.column) & lit & np.isfinite(proj_col)
+        return float(np.median(np.abs(dec.column - proj_col)[ok]))
+
+    own = decode_capture(cap)  # the response the capture's rig states
+    assert np.count_nonzero(np.isfinite(own.column) & lit) > 0.97 * lit.sum()
+    assert own.stats["midpoint"] == ("linear light, srgb response" if camera == "srgb" else "stored values")
+    other = decode_capture(cap, params=DecodeParams(response=CameraResponse("linear" if camera == "srgb" else "srgb")))
+    e_own, e_other = median_error(own), median_error(other)
+    assert e_own < 0.05 and e_other > 3 * e_own, (e_own, e_other)
 
 
 def test_patterns_equal_opencv_generate() -> None:
