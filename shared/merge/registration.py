@@ -49,6 +49,7 @@ from shared.core.errors import InputError
 from shared.core.threads import cpu_budget
 from shared.merge._kernels import point_to_plane_system, track_correspondences, voxel_representatives
 from shared.merge.axis_search import AxisView, poses_about_axis
+from shared.merge.consistency import repaired
 from shared.merge.geometry import (
     TurntableAxis,
     _about_axis,
@@ -721,6 +722,12 @@ def register_views(
     init = np.stack([placed.get(v, np.eye(4)) for v in range(V)])
     active = sorted(placed)
     poses, fits = refine_registration(S, init, voxel, params, active, tree_edges, wide=not tree_edges)
+    if prior is not None and turntable_deg is None and table_axis is not None:
+        # Searched angles of a near-symmetric body can leave two arcs slipped against each other.
+        fixed = repaired(views, poses, table_axis, lambda P: refine_registration(S, P, voxel, params, active, wide=False))
+        if fixed is not None:
+            poses, fits, _ = fixed
+            method += "free-space arc repair + "
     report(0.75)
     fits = {e: f for e, f in fits.items() if f.overlap >= params.min_overlap}
     t_fine = time.perf_counter()

@@ -311,7 +311,8 @@ def _coverage(fused, obj_world: np.ndarray) -> float:
     return float(np.isfinite(d).mean())
 
 
-def bench_turntable_no_roi(size: tuple[int, int] = TURNTABLE_SIZE) -> None:
+def bench_turntable_no_roi(size: tuple[int, int] = TURNTABLE_SIZE, scenes: tuple[str, ...] = TURNTABLE_SCENES,
+                           counts: tuple[int, ...] = (8, 16)) -> None:
     """Issue 22's figures: simulated turntable sets with backdrop, table, base and plate, no roi and
     no hints (targets 0.05 deg / 0.1 mm every view, <= 0.5 % static/support/plate points in the merged
     cloud by the simulator's labels, >= 95 % of the seen object surface covered), the same with the
@@ -321,14 +322,14 @@ def bench_turntable_no_roi(size: tuple[int, int] = TURNTABLE_SIZE) -> None:
     from shared.formats.scanset import ScanSet
 
     print(f"turntable sets without roi (issue 22), {size[0]}x{size[1]}, load average {os.getloadavg()[0]:.1f}:")
-    for scene in TURNTABLE_SCENES:
+    for scene in scenes:
         folder = _turntable_set(scene, size)
         full: ScanSet = load_scanset(folder)
         all_views = load_views(full)
         with np.load(folder / "truth.npz") as z:
             truth = z["poses"]
         truths = [load_truth(spec.path) for spec in full.views]
-        for n in (8, 16):
+        for n in counts:
             pick = list(range(0, 16, 16 // n))
             views = [all_views[i] for i in pick]
             base = dataclasses.replace(full, views=[full.views[i] for i in pick], turntable_deg=full.turntable_deg[pick])
@@ -361,6 +362,9 @@ def bench_turntable_no_roi(size: tuple[int, int] = TURNTABLE_SIZE) -> None:
                       f"{100 * shares['base']:.2f}, backdrop {100 * shares['backdrop']:.2f}; target <= 0.5); "
                       f"coverage {100 * cov:.1f} % (target >= 95); checks {'passed' if checks.doc['passed'] else 'FAILED'}"
                       f"; {'reached' if ok else 'NOT reached'}; {time.perf_counter() - t0:.0f} s")
+                free = checks.doc.get("free_space") or {}
+                print(f"    free space: worst view {100 * free.get('worst_share', float('nan')):.3f} % (bound "
+                      f"{100 * free.get('bound_share', float('nan')):.2f} %); {reg.method}")
                 print("    per view (deg/mm): " + ", ".join(f"{d:.3f}/{m:.3f}" for d, m in err))
 
 
@@ -429,10 +433,17 @@ def main(argv: list[str] | None = None) -> None:
                     "without roi (3 objects, 8 and 16 views); dragon_pairs: the dragon's pairs against Stanford's "
                     "(default: all)")
     ap.add_argument("--size", default="2048x1536", help="image size of the turntable part (default 2048x1536)")
+    ap.add_argument("--scenes", default=",".join(TURNTABLE_SCENES),
+                    help=f"scenes of the turntable part, comma-separated (default {','.join(TURNTABLE_SCENES)})")
+    ap.add_argument("--views", default="8,16", help="view counts of the turntable part: 8, 16 or both (default 8,16)")
     args = ap.parse_args([] if argv is None else argv)
     size = tuple(int(x) for x in args.size.lower().split("x"))
+    scenes = tuple(s for s in args.scenes.split(",") if s)
+    counts = tuple(int(n) for n in args.views.split(",") if n)
+    if [s for s in scenes if s not in TURNTABLE_SCENES] or [n for n in counts if n not in (8, 16)]:
+        ap.error(f"--scenes takes {', '.join(TURNTABLE_SCENES)}; --views takes 8 and 16")
     parts = {"sim": bench_registration_sim, "dragon": bench_registration_dragon, "merge": bench_whole_merge,
-             "turntable": lambda: bench_turntable_no_roi(size), "dragon_pairs": bench_dragon_pairs}  # type: ignore[arg-type]
+             "turntable": lambda: bench_turntable_no_roi(size, scenes, counts), "dragon_pairs": bench_dragon_pairs}  # type: ignore[arg-type]
     chosen = args.parts or list(parts)
     unknown = [p for p in chosen if p not in parts]
     if unknown:
