@@ -10,6 +10,8 @@ Three steps:
    nothing given, global registration (FPFH features + RANSAC on coarsely downsampled clouds,
    Open3D) that grows a tree of views from view 0, trying each view's neighbours in scan order first.
    Every candidate is checked by a fine fit (overlap and residual) before it is accepted.
+   Searched angles of a near-symmetric body can leave two arcs of views slipped about the axis
+   after the global step; the free-space test finds and turns them back (:mod:`shared.merge.consistency`).
 2. **Fine** pairwise: robust point-to-plane ICP (Tukey weights, normals that must agree).
 3. **Global**: one joint point-to-plane refinement of all poses over every overlapping pair (a
    multi-view ICP: each iteration re-finds the correspondences of every edge and solves for all
