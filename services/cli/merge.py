@@ -64,13 +64,19 @@ def _print_quality(q: dict) -> None:
         c = obj["center"]
         how = "given roi" if obj["source"] == "roi" else "found; set \"roi\" in scanset.json to change it"
         print(f"object sphere: center [{c[0]:.1f}, {c[1]:.1f}, {c[2]:.1f}] mm, radius {obj['radius']:.1f} mm ({how})")
-    print(f"{'view':<16} {'RMS mm':>8} {'overlap':>8} {'inliers':>8}  flags")
+    print(f"{'view':<16} {'RMS mm':>8} {'overlap':>8} {'inliers':>8} {'free sp.':>8}  flags")
     for v in q["views"]:
         if not v["registered"]:
-            print(f"{v['name']:<16} {'-':>8} {'-':>8} {'-':>8}  left out {' '.join(v['flags'])}")
+            print(f"{v['name']:<16} {'-':>8} {'-':>8} {'-':>8} {'-':>8}  left out {' '.join(v['flags'])}")
             continue
-        print(f"{v['name']:<16} {v['rms_mm']:8.3f} {100 * v['overlap']:7.1f}% {100 * v['inlier_share']:7.1f}%  "
-              f"{' '.join(v['flags']) or 'ok'}")
+        free = v.get("free_space_share")
+        free_txt = f"{100 * free:7.2f}%" if free is not None else f"{'-':>8}"
+        print(f"{v['name']:<16} {v['rms_mm']:8.3f} {100 * v['overlap']:7.1f}% {100 * v['inlier_share']:7.1f}% "
+              f"{free_txt}  {' '.join(v['flags']) or 'ok'}")
+    free_doc = q.get("free_space")
+    if free_doc:
+        print(f"free space: share of each view's pairs' samples lying where the other view saw through; worst "
+              f"{free_doc['worst_view']} {100 * free_doc['worst_share']:.2f} % (bound {100 * free_doc['bound_share']:.2f} %)")
 
 
 def register(subparsers: argparse._SubParsersAction) -> None:

@@ -10,6 +10,8 @@ Three steps:
    nothing given, global registration (FPFH features + RANSAC on coarsely downsampled clouds,
    Open3D) that grows a tree of views from view 0, trying each view's neighbours in scan order first.
    Every candidate is checked by a fine fit (overlap and residual) before it is accepted.
+   Searched angles of a near-symmetric body can leave two arcs of views slipped about the axis
+   after the global step; the free-space test finds and turns them back (:mod:`shared.merge.consistency`).
 2. **Fine** pairwise: robust point-to-plane ICP (Tukey weights, normals that must agree).
 3. **Global**: one joint point-to-plane refinement of all poses over every overlapping pair (a
    multi-view ICP: each iteration re-finds the correspondences of every edge and solves for all
@@ -49,6 +51,7 @@ from shared.core.errors import InputError
 from shared.core.threads import cpu_budget
 from shared.merge._kernels import point_to_plane_system, track_correspondences, voxel_representatives
 from shared.merge.axis_search import AxisView, poses_about_axis
+from shared.merge.consistency import repaired
 from shared.merge.geometry import (
     TurntableAxis,
     _about_axis,
@@ -721,6 +724,12 @@ def register_views(
     init = np.stack([placed.get(v, np.eye(4)) for v in range(V)])
     active = sorted(placed)
     poses, fits = refine_registration(S, init, voxel, params, active, tree_edges, wide=not tree_edges)
+    if prior is not None and turntable_deg is None and table_axis is not None:
+        # Searched angles of a near-symmetric body can leave two arcs slipped against each other.
+        fixed = repaired(views, poses, table_axis, lambda P: refine_registration(S, P, voxel, params, active, wide=False))
+        if fixed is not None:
+            poses, fits, _ = fixed
+            method += "free-space arc repair + "
     report(0.75)
     fits = {e: f for e, f in fits.items() if f.overlap >= params.min_overlap}
     t_fine = time.perf_counter()
