@@ -17,6 +17,9 @@
    10 s occlusion; seam solve 2-3 s a level (99 k unknowns, 91 CG iterations; the views'
    disagreement in log colour 0.047 -> 0.017 rms); 99.96 % of texels seen by a view. The last
    figure before (cloud colour, lighter load): set 235 s / 2.58 GB against the merge's 486 s / 5.63 GB.
+   After the photograph bake's CPU was cut (numpy projection, byte gathers, one BLAS thread), the
+   set alone on the same merge (load 5-9, other work of this session running beside it): wall
+   605 s, CPU 202 s (the merge's CPU above: 202 s), peak 2.83 GB; High 419 s wall, its texels 382 s.
 3. ``master``: the master mesh against the truth. From that merge's fused cloud, the master as the
    merge makes it (Poisson depth from the point spacing) beside the fixed-depth mesh (depth 8):
    the two-sided Hausdorff distance's 95th percentile to the object's true surface (mesh vertices
