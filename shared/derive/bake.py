@@ -87,7 +87,9 @@ class BakeParams:
 class Maps:
     """The baked maps of one level, each (S, S, 3) uint8 except ``bridged`` (S, S) uint8 (255:
     the surface there was bridged without data); ``covered`` (S, S) bool texels inside a chart;
-    ``stats`` JSON-ready figures."""
+    ``stats`` JSON-ready figures; ``view`` (S, S) int8, with the photographs, the view that weighs
+    most in each texel's colour (-1: none, or outside the charts), ``view_set`` (S, S) uint32 the
+    views blended there (bit k: view k)."""
 
     base_colour: np.ndarray
     normal: np.ndarray
@@ -95,6 +97,8 @@ class Maps:
     bridged: np.ndarray
     covered: np.ndarray
     stats: dict
+    view: np.ndarray | None = None
+    view_set: np.ndarray | None = None
 
 
 def vertex_normals(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
@@ -210,6 +214,37 @@ def _occlusion(m: UVMesh, rays: int, reach: float) -> np.ndarray:
     return (escaped / rays).astype(np.float32)
 
 
+def _sheet_normal(hi: np.ndarray, N: np.ndarray) -> np.ndarray:
+    """The master's normal hi (n, 3), or the level's N where they are more than ~80 degrees apart
+    (the master's comes from another sheet of the surface there)."""
+    return np.where((np.einsum("ij,ij->i", hi, N) < 0.17)[:, None], N, hi)
+
+
+def _colour_normals(P: np.ndarray, N: np.ndarray, mtree: cKDTree, master_normals: np.ndarray,
+                    workers: int) -> np.ndarray:
+    """(n, 3) the normals the photographs are read with at level points P (n, 3) with level
+    normals N: the master's (its four nearest vertices, inverse-distance weighted), see _sheet_normal."""
+    d, nb = mtree.query(P, k=4, workers=workers)
+    w = 1.0 / np.maximum(d, 1e-9)
+    hi = np.einsum("nk,nkj->nj", w, master_normals[nb].astype(np.float64))
+    hi /= np.maximum(np.linalg.norm(hi, axis=1, keepdims=True), 1e-30)
+    return _sheet_normal(hi, N)
+
+
+def _surface_samples(m: UVMesh, n: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """n points (n, 3) mm uniformly over the level's area and their interpolated unit normals (n, 3)."""
+    rng = np.random.default_rng(seed)
+    v = m.vertices[m.faces]
+    area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+    fid = rng.choice(len(m.faces), size=n, p=area / area.sum())
+    r1, r2 = np.sqrt(rng.random(n)), rng.random(n)
+    b = np.stack([1 - r1, r1 * (1 - r2), r1 * r2], axis=1)
+    P = np.einsum("nk,nkj->nj", b, v[fid])
+    N = np.einsum("nk,nkj->nj", b, m.normals[m.faces[fid]].astype(np.float64))
+    N /= np.maximum(np.linalg.norm(N, axis=1, keepdims=True), 1e-30)
+    return P, N
+
+
 def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices: np.ndarray,
               master_normals: np.ndarray, params: BakeParams | None = None, chunk: int = 1 << 20,
               photo: PhotoSource | None = None, master_bridged: np.ndarray | None = None) -> Maps:
@@ -246,13 +281,17 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
 
         scene = o3d.t.geometry.RaycastingScene()
         scene.add_triangles(np.ascontiguousarray(m.vertices, np.float32), np.ascontiguousarray(m.faces, np.uint32))
-        photo.solve_gains(m.vertices, m.normals.astype(np.float64), scene)
+        P, N = _surface_samples(m, photo.params.gain_samples)
+        photo.solve_gains(P, _colour_normals(P, N, mtree, master_normals, workers), scene,
+                          surface=(m.vertices, m.faces))
     t2 = time.perf_counter()
     lut = linear_from_srgb(np.arange(256, dtype=np.float32) / 255.0)
     colour = np.empty((len(idx), 3), np.uint8)
     nmap = np.empty((len(idx), 3), np.uint8)
     ao8 = np.empty(len(idx), np.uint8)
     bridged = np.zeros(len(idx), bool)
+    view = np.full(len(idx) if photo is not None else 0, -1, np.int8)
+    view_set = np.zeros(len(idx) if photo is not None else 0, np.uint32)
     occlusion_sum = 0.0
     k = max(1, params.neighbours)
     for s in range(0, len(idx), chunk):
@@ -282,7 +321,9 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
         hi /= np.maximum(np.linalg.norm(hi, axis=1, keepdims=True), 1e-30)
         # Photographs: the master's normal divides the projector's cosine (the level's is too coarse).
         if photo is not None:
-            lin_p, seen = photo.colour(P, np.where((np.einsum("ij,ij->i", hi, N) < 0.17)[:, None], N, hi), scene)
+            lin_p, seen, top, used = photo.colour(P, _sheet_normal(hi, N), scene, return_view=True)
+            view[sl] = top
+            view_set[sl] = used
             if seen.any() and (~seen).any():
                 # Texels no view sees keep the cloud's colour, brought to the photographs' scale.
                 lc, lp = lin[seen] @ _LUMA, lin_p[seen] @ _LUMA
@@ -327,4 +368,13 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
     }
     if photo is not None:
         stats["photo"] = {"texels_seen_share": round(photo_seen / len(idx), 4), **photo.stats}
-    return Maps(base_colour=base, normal=normal, occlusion=occl, bridged=bmask, covered=covered, stats=stats)
+    view_map = view_sets = None
+    if photo is not None:
+        view_map = np.full(S * S, -1, np.int8)
+        view_map[idx] = view
+        view_map = view_map.reshape(S, S)
+        view_sets = np.zeros(S * S, np.uint32)
+        view_sets[idx] = view_set
+        view_sets = view_sets.reshape(S, S)
+    return Maps(base_colour=base, normal=normal, occlusion=occl, bridged=bmask, covered=covered, stats=stats,
+                view=view_map, view_set=view_sets)

@@ -62,3 +62,56 @@ def texel_truth(m, S: int, scene: str = "bunny", views: int = 8) -> tuple[np.nda
     obj = turntable_scenes(scene, views)[0][0].surfaces[0]  # view 0's frame is the set's
     on = cKDTree(obj.placed.vertices).query(P)[0] < 3.0
     return cov, P, on, obj.albedo_at(P).astype(np.float64)[on]
+
+
+def seam_figures(m, S: int, maps_list: list, scene: str = "bunny", views: int = 8) -> list[dict]:
+    """Seams of photograph bakes of one level against the simulated scene's truth.
+
+    ``maps_list``: :class:`shared.derive.bake.Maps` of the same level ``m`` at ``S`` px (the first
+    one's ``view`` map names each texel's main view, and with it the borders every bake is measured
+    on). Per bake: ``mae`` the mean absolute error of linear albedo per texel on the object (up to
+    the one scale no scan knows); over pairs of neighbouring texels of one chart on the object whose
+    main views differ (a border between patches of different views), ``jump`` the mean absolute
+    colour difference across it (linear, per channel), ``jump_truth`` the truth's own, and
+    ``jump_error`` the mean absolute difference of the two texels' errors (the step a seam adds);
+    ``jump_error_inside`` the same over neighbouring pairs with one main view,
+    ``jump_error_view_set`` over pairs where a view enters or leaves the blend; the pair counts."""
+    from shared.scan.albedo import linear_from_srgb
+
+    cov, P, on, truth = texel_truth(m, S, scene, views)
+    luma = np.array([0.2126, 0.7152, 0.0722])
+    where = np.full((S, S), -1, np.int64)
+    obj = np.zeros((S, S), bool)
+    ys, xs = np.nonzero(cov)
+    obj[ys[on], xs[on]] = True
+    where[ys[on], xs[on]] = np.arange(int(on.sum()))
+    pts = P[on]
+    view, used = maps_list[0].view, maps_list[0].view_set
+    pairs = []
+    for dy, dx in ((0, 1), (1, 0)):
+        a = obj[: S - dy, : S - dx] & obj[dy:, dx:]
+        ia, ib = where[: S - dy, : S - dx][a], where[dy:, dx:][a]
+        pairs.append((ia, ib, view[: S - dy, : S - dx][a], view[dy:, dx:][a], used[: S - dy, : S - dx][a],
+                      used[dy:, dx:][a]))
+    ia, ib, va, vb, ua, ub = (np.concatenate(c) for c in zip(*pairs, strict=True))
+    step = np.linalg.norm(pts[ia] - pts[ib], axis=1)
+    same_chart = step < 3.0 * np.median(step)  # neighbours in the atlas and on the surface
+    border = same_chart & (va >= 0) & (vb >= 0) & (va != vb)
+    inside = same_chart & (va >= 0) & (va == vb)
+    enter = same_chart & (va >= 0) & (vb >= 0) & (ua != ub)
+    out = []
+    for maps in maps_list:
+        est = linear_from_srgb(maps.base_colour[cov] / 255.0).astype(np.float64)[on]
+        est *= np.median(truth @ luma) / np.median(est @ luma)
+        err = est - truth
+        out.append({
+            "mae": float(np.abs(err).mean()),
+            "jump": float(np.abs(est[ia[border]] - est[ib[border]]).mean()),
+            "jump_truth": float(np.abs(truth[ia[border]] - truth[ib[border]]).mean()),
+            "jump_error": float(np.abs(err[ia[border]] - err[ib[border]]).mean()),
+            "jump_error_inside": float(np.abs(err[ia[inside]] - err[ib[inside]]).mean()),
+            "jump_error_view_set": float(np.abs(err[ia[enter]] - err[ib[enter]]).mean()),
+            "border_pairs": int(border.sum()),
+            "view_set_pairs": int(enter.sum()),
+        })
+    return out

@@ -25,6 +25,18 @@ def test_a_highlight_seen_by_one_view_is_left_out_and_unseen_points_say_so() -> 
     assert np.allclose(out[1:3], 0.4, atol=1e-6) and rejected == 1
 
 
+def test_a_highlight_in_the_heaviest_view_is_left_out_with_one_vote_a_view() -> None:
+    from shared.derive.photo import PhotoParams
+
+    alb = np.full((3, 2, 3), 0.4, np.float32)
+    alb[0, 0] = 0.9  # the glint is in view 0, which faces point 0 and outweighs the others
+    wts = np.array([[3.0, 1.0], [1.0, 1.0], [0.8, 1.0]], np.float32)
+    _, _, rejected = PhotoSource(views=[])._combine(alb, wts, np.ones(3))
+    assert rejected == 0  # weighted, the glint is its own reference
+    out, _, rejected = PhotoSource(views=[], params=PhotoParams(highlight_vote_share=0.2))._combine(alb, wts, np.ones(3))
+    assert rejected == 1 and np.allclose(out, 0.4, atol=1e-6)
+
+
 @pytest.mark.slow
 def test_photograph_bake_beats_the_cloud_and_the_per_vertex_colour(tmp_path_factory: pytest.TempPathFactory) -> None:
     from shared.derive.bake import bake_maps, unwrap, vertex_normals
