@@ -367,7 +367,9 @@ def bake_maps(m: UVMesh, texture_px: int, colours: ColourSource, master_vertices
                     "fill": round(time.perf_counter() - t3, 3)},
     }
     if photo is not None:
-        stats["photo"] = {"texels_seen_share": round(photo_seen / len(idx), 4), **photo.stats}
+        risk = photo.stats.get("highlight_risk_points", 0) / max(photo.stats.get("points_coloured", 0), 1)
+        stats["photo"] = {"texels_seen_share": round(photo_seen / len(idx), 4),
+                          "highlight_risk_share": round(risk, 5), **photo.stats}
     view_map = view_sets = None
     if photo is not None:
         view_map = np.full(S * S, -1, np.int8)

@@ -68,9 +68,16 @@ class PhotoParams:
     seam_proxy_faces : faces of the coarse surface they are solved on (their resolution).
     seam_smoothness : weight of their smoothness against the views' agreement. seam_max_factor :
     largest correction either way (a factor on the view's albedo). seam_anchor : how firmly a view
-    keeps its colour where it weighs much (:mod:`shared.derive._seams`)."""
+    keeps its colour where it weighs much (:mod:`shared.derive._seams`). specular_lobe_deg : a
+    view sees a point in its mirror configuration when the surface normal lies within this angle
+    of the half-vector between the directions to the view's camera and to its projector: the one
+    place a glossy surface throws the projector's light into the camera. Such views are left out
+    of the reference a highlight is judged against wherever another view sees the point (the
+    reference is then never the highlight itself), and points only such views see are counted
+    (``highlight_risk_share``): their colour may be a highlight. 0: no mirror test."""
 
     specular_ratio: float = 1.35
+    specular_lobe_deg: float = 20.0
     min_cos_camera: float = 0.2
     visibility_tol_mm: float = 1.0
     gain_samples: int = 60_000
@@ -106,13 +113,16 @@ class PhotoSource:
     # The seam corrections (a KD-tree of the proxy's vertices, (V, P, 3) factors), once solved.
     _corrections: tuple | None = field(default=None, init=False, repr=False)
 
-    def _per_view(self, P: np.ndarray, N: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray]:
-        """(V, n, 3) linear albedo before gains and (V, n) weights (0: not seen) of points P, N (set frame, mm)."""
+    def _per_view(self, P: np.ndarray, N: np.ndarray, scene) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(V, n, 3) linear albedo before gains, (V, n) weights (0: not seen) and (V, n) bool the
+        views' mirror configurations (see ``specular_lobe_deg``) of points P, N (set frame, mm)."""
         import open3d as o3d
 
         V, n = len(self.views), len(P)
         alb = np.zeros((V, n, 3), np.float32)
         wts = np.zeros((V, n), np.float32)
+        lobe = np.zeros((V, n), np.bool_)
+        cos_lobe = np.cos(np.radians(self.params.specular_lobe_deg))
         for k, view in enumerate(self.views):
             s = view.scale_mm
             # The view's camera frame, mm (einsum: no BLAS threads for a 3x3 product).
@@ -157,15 +167,28 @@ class PhotoSource:
                 w *= np.clip((est.weight[good] - prm.min_cos) / f, 0.0, 1.0)
             alb[k, idx] = a
             wts[k, idx] = np.maximum(w, 0.0)
-        return alb, wts
+            if self.params.specular_lobe_deg > 0:
+                # The projector's centre in this camera's frame (mm): X_p = R X_c + T.
+                pc = -np.asarray(view.rig.R, np.float64).T @ np.asarray(view.rig.T, np.float64).ravel() * s
+                Xi = X[idx]
+                to_proj = pc - Xi
+                half = to_cam[idx] + to_proj / np.maximum(np.linalg.norm(to_proj, axis=1, keepdims=True), 1e-12)
+                cos_h = np.einsum("ij,ij->i", Nv[idx], half) / np.maximum(np.linalg.norm(half, axis=1), 1e-12)
+                lobe[k, idx] = cos_h > cos_lobe
+        return alb, wts, lobe
 
-    def _reject(self, a: np.ndarray, wts: np.ndarray) -> tuple[np.ndarray, int]:
-        """(V, n) weights with highlights left out (zero), and how many were, of albedo a (V, n, 3)."""
+    def _reject(self, a: np.ndarray, wts: np.ndarray, lobe: np.ndarray) -> tuple[np.ndarray, int]:
+        """(V, n) weights with highlights left out (zero), and how many were, of albedo a (V, n, 3),
+        weights ``wts`` and mirror configurations ``lobe`` (V, n)."""
         lum = a @ _LUMA  # (V, n)
         w = wts.copy()
         share = self.params.highlight_vote_share
         if share is None:
-            med = _weighted_median(lum, w)
+            # The reference leaves out the views in their mirror configuration where another view
+            # sees the point: weighted, the view facing a glossy point (the heaviest) would be its
+            # own highlight's reference and never be left out.
+            off = np.where(lobe, 0.0, w)
+            med = _weighted_median(lum, np.where((off > 0).any(axis=0)[None], off, w))
         else:
             # One vote for each view weighing at least ``share`` of the heaviest at the point:
             # weighted, the view a highlight is in (often the one facing the point, so the
@@ -176,14 +199,15 @@ class PhotoSource:
         w[glint] = 0.0
         return w, int(glint.sum())
 
-    def _combine(self, alb: np.ndarray, wts: np.ndarray, gains: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    def _combine(self, alb: np.ndarray, wts: np.ndarray, lobe: np.ndarray,
+                 gains: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
         """Weighted mean over views after gains and highlight rejection: (n, 3), seen (n,), rejected count."""
-        out, seen, rejected, _ = self._blend(alb * gains[:, None, None], wts)
+        out, seen, rejected, _ = self._blend(alb * gains[:, None, None], wts, lobe)
         return out, seen, rejected
 
-    def _blend(self, a: np.ndarray, wts: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
+    def _blend(self, a: np.ndarray, wts: np.ndarray, lobe: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, np.ndarray]:
         """_combine of albedo a (V, n, 3) with its gains applied; also the weights (V, n) used."""
-        w, rejected = self._reject(a, wts)
+        w, rejected = self._reject(a, wts, lobe)
         total = w.sum(axis=0)
         seen = total > 0
         out = np.einsum("vn,vnc->nc", w, a) / np.maximum(total, 1e-30)[:, None]
@@ -203,10 +227,10 @@ class PhotoSource:
         v0 = self.views[0]
         proj = -np.asarray(v0.rig.R, np.float64).T @ np.asarray(v0.rig.T, np.float64).ravel() * v0.scale_mm
         self.reference_distance_mm = float(np.median(np.linalg.norm(P - (v0.R @ proj + v0.T), axis=1)))
-        alb, wts = self._per_view(P, N, scene)
+        alb, wts, lobe = self._per_view(P, N, scene)
         gains = np.ones(len(self.views))
         for _ in range(2):
-            cons, seen, _ = self._combine(alb, wts, gains)
+            cons, seen, _ = self._combine(alb, wts, lobe, gains)
             lc = cons @ _LUMA
             for k in range(len(self.views)):
                 shared = (wts[k] > 0) & seen & ((wts > 0).sum(axis=0) >= 2)
@@ -228,7 +252,7 @@ class PhotoSource:
         pv, edges = proxy_surface(surface[0], surface[1], self.params.seam_proxy_faces)
         tree = cKDTree(pv)
         a = alb * gains[:, None, None].astype(np.float32)
-        w, _ = self._reject(a, wts)
+        w, _ = self._reject(a, wts, lobe)
         g, st = solve_corrections(a, w, tree.query(P)[1], edges, len(pv), self.params.seam_smoothness,
                                   self.params.seam_max_factor, self.params.seam_anchor)
         self._corrections = (tree, np.exp(g))
@@ -255,11 +279,16 @@ class PhotoSource:
         With ``return_view`` also (n,) int the view that weighs most at each point (-1: none) and
         (n,) uint32 the set of views blended there (bit k: view k; views beyond 32 are not marked)."""
         P = np.asarray(P, np.float64)
-        alb, wts = self._per_view(P, np.asarray(N, np.float64), scene)
+        alb, wts, lobe = self._per_view(P, np.asarray(N, np.float64), scene)
         gains = np.array([v.gain for v in self.views], np.float32)
         alb = self._corrected(alb * gains[:, None, None], P)
-        out, seen, rejected, w = self._blend(alb, wts)
+        out, seen, rejected, w = self._blend(alb, wts, lobe)
         self.stats["highlights_rejected"] = self.stats.get("highlights_rejected", 0) + rejected
+        # Points whose colour comes only from views in their mirror configuration: it may be a
+        # highlight (no other view to judge it against).
+        risky = seen & ~((w > 0) & ~lobe).any(axis=0)
+        self.stats["points_coloured"] = self.stats.get("points_coloured", 0) + int(seen.sum())
+        self.stats["highlight_risk_points"] = self.stats.get("highlight_risk_points", 0) + int(risky.sum())
         if not return_view:
             return out, seen
         used = ((w > 0) << np.arange(len(w), dtype=np.uint32)[:, None]).sum(axis=0, dtype=np.uint32)

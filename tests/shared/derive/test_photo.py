@@ -17,11 +17,12 @@ def test_a_highlight_seen_by_one_view_is_left_out_and_unseen_points_say_so() -> 
     alb[1, 0] = 0.9  # a glint in view 1 at point 0
     wts = np.ones((3, 4), np.float32)
     wts[:, 3] = 0.0  # point 3: no view sees it
-    out, seen, rejected = src._combine(alb, wts, np.ones(3))
+    out, seen, rejected = src._combine(alb, wts, np.zeros((3, 4), bool), np.ones(3))
     assert np.allclose(out[:3], 0.4, atol=1e-6) and rejected == 1
     assert seen.tolist() == [True, True, True, False]
     # A view darker overall (its gain) is levelled, not left out.
-    out, _, rejected = src._combine(alb * np.array([1.0, 1.0, 0.5])[:, None, None], wts, np.array([1.0, 1.0, 2.0]))
+    out, _, rejected = src._combine(alb * np.array([1.0, 1.0, 0.5])[:, None, None], wts, np.zeros((3, 4), bool),
+                                    np.array([1.0, 1.0, 2.0]))
     assert np.allclose(out[1:3], 0.4, atol=1e-6) and rejected == 1
 
 
@@ -31,10 +32,21 @@ def test_a_highlight_in_the_heaviest_view_is_left_out_with_one_vote_a_view() -> 
     alb = np.full((3, 2, 3), 0.4, np.float32)
     alb[0, 0] = 0.9  # the glint is in view 0, which faces point 0 and outweighs the others
     wts = np.array([[3.0, 1.0], [1.0, 1.0], [0.8, 1.0]], np.float32)
-    _, _, rejected = PhotoSource(views=[])._combine(alb, wts, np.ones(3))
+    no_lobe = np.zeros((3, 2), bool)
+    _, _, rejected = PhotoSource(views=[])._combine(alb, wts, no_lobe, np.ones(3))
     assert rejected == 0  # weighted, the glint is its own reference
-    out, _, rejected = PhotoSource(views=[], params=PhotoParams(highlight_vote_share=0.2))._combine(alb, wts, np.ones(3))
+    out, _, rejected = PhotoSource(views=[], params=PhotoParams(highlight_vote_share=0.2))._combine(
+        alb, wts, no_lobe, np.ones(3))
     assert rejected == 1 and np.allclose(out, 0.4, atol=1e-6)
+    # The default: view 0 sees point 0 in its mirror configuration (the normal on the half-vector
+    # between its camera and its projector), so the other views are the reference.
+    lobe = no_lobe.copy()
+    lobe[0, 0] = True
+    out, _, rejected = PhotoSource(views=[])._combine(alb, wts, lobe, np.ones(3))
+    assert rejected == 1 and np.allclose(out, 0.4, atol=1e-6)
+    # A matte point in the mirror configuration agrees with the others and is kept.
+    out, _, rejected = PhotoSource(views=[])._combine(np.full((3, 2, 3), 0.4, np.float32), wts, lobe, np.ones(3))
+    assert rejected == 0
 
 
 @pytest.mark.slow
