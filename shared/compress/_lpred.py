@@ -1,22 +1,26 @@
 """Local prediction of a range band's residuals (private kernels of :mod:`shared.compress._quadtree`).
 
-Every valid sample is predicted as its quadtree leaf's surface model plus a *local* prediction
-of the model's residual ``e`` from the already decoded neighbours W, N, NW, NE (their own
-reconstructed residuals; 0 beyond the band or at a hole), as the lossless image codecs do
-(LOCO-I's median edge detector and its relatives):
+Every valid sample is predicted either by its quadtree leaf's surface model or, as the lossless
+image codecs do, from its already decoded neighbours W, N, NW, NE (reconstructed values in fine
+units; a hole takes the value before it in its row, a band's first row sees its own model
+predictions above it):
 
-- each leaf picks one of :data:`NK` residual predictors (none, MED, averages, plane, single
-  neighbours), chosen by the encoder per leaf by the summed absolute error and coded as a
-  symbol after the tree: smooth, correlated residuals (an oversampling camera's sub-pixel
-  depth) get a neighbour predictor, white noise keeps the model alone;
-- the coding context (one of :data:`NCTX` rANS tables) is the local activity: the residual
-  field's gradients around the sample plus the sizes of the W and N prediction errors, in
-  half-octave steps;
-- bias cancellation (LOCO-I/CALIC): per context of gradient signs and activity, the running
-  mean of the prediction's error is added to the prediction.
+- each leaf picks one of :data:`NK` predictors (:func:`local_pred`: the model, LOCO-I's median
+  edge detector, the plane through W, N, NW, means, blends of the model with the median or
+  the plane), chosen by the encoder per leaf by the summed absolute error and coded as a
+  symbol after the tree: smooth, detailed depth (an oversampling camera's sub-pixel depth)
+  takes a neighbour predictor, white noise keeps the model;
+- error feedback (lossless mode): the W and N neighbours' prediction errors, weighted by the
+  band's least-squares weights (:func:`feedback_weights`, coded in sixteenths), are added to
+  the prediction -- the sub-pixel decoder's errors are correlated along the stripes;
+- the coding context (one of :data:`NCTX` rANS tables) is the local activity: the sizes of
+  the W, N, NW, NE prediction errors and the curvature of the row above, in half-octave steps;
+- bias cancellation (LOCO-I/CALIC), per band where it pays (bounded mode): per context of
+  gradient signs and activity, the running mean of the prediction's error is added.
 
 In the error-bounded mode every prediction is made from *reconstructed* values, so the
-encoder and the decoder run the same integers and errors do not drift.
+encoder and the decoder run the same integers and errors do not drift. What each piece buys
+is measured by the encoder's options (:data:`OPT_ALL`; the bench's ablation).
 """
 
 from __future__ import annotations
@@ -50,7 +54,8 @@ OPT_PRED = 1  # local residual predictors (else every leaf keeps its model alone
 OPT_GRAD = 2  # gradients of the residual field in the context
 OPT_ERR = 4  # previous prediction errors in the context
 OPT_BIAS = 8  # bias cancellation (bounded mode: per band, where it pays)
-OPT_ALL = 15
+OPT_FEEDBACK = 16  # the W and N neighbours' prediction errors fed back into the prediction
+OPT_ALL = 31
 
 #: Context of an activity a (fine units): min(NCTX - 1, floor(2 log2(a / 4 + 1))).
 CTX_LUT = np.array([min(NCTX - 1, int(2 * math.log2(v + 1))) for v in range(1 << 10)], np.int64)
@@ -252,6 +257,59 @@ def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts):
         leaves[i, 4] = best
 
 
+#: Error feedback: the W and N neighbours' prediction errors weigh in sixteenths, |weight| <= 16.
+FB_SHIFT = 4
+FB_MAX = 16
+
+
+@njit(cache=True, nogil=True)
+def feedback_weights(t, valid, cells, leaves, lcoef):
+    """The band's error-feedback weights (aw, an), in sixteenths: the least-squares fit of each
+    sample's prediction error (its leaf's predictor over the targets) to its W and N
+    neighbours' errors. The errors of an oversampling camera's sub-pixel depth are correlated
+    along the stripes; white noise gives weights near 0."""
+    H, W = t.shape
+    pf = np.zeros(W, np.int64)
+    kr = np.zeros(W, np.int64)
+    ra = np.zeros(W + 3, np.int64)
+    rb = np.zeros(W + 3, np.int64)
+    ea = np.zeros(W + 3, np.float64)
+    eb = np.zeros(W + 3, np.float64)
+    sww = swn = snn = swe = sne = 0.0
+    lim = float(64 * FINE)
+    for y in range(H):
+        row_prediction(y, W, cells, leaves, lcoef, pf, kr)
+        if y == 0:
+            _first_row(ra, pf, valid, W)
+        for x in range(W):
+            rb[x + 1] = t[y, x]
+        _fill_row(ra, rb, valid, y, W)
+        for x in range(W):
+            if not valid[y, x]:
+                eb[x + 1] = 0.0
+                continue
+            e = float(t[y, x] - local_pred(kr[x], rb[x], ra[x + 1], ra[x], ra[x + 2], pf[x]))
+            e = min(max(e, -lim), lim)
+            eb[x + 1] = e
+            w = eb[x]
+            n = ea[x + 1]
+            sww += w * w
+            swn += w * n
+            snn += n * n
+            swe += w * e
+            sne += n * e
+        ra, rb = rb, ra
+        ea, eb = eb, ea
+    det = sww * snn - swn * swn
+    if det <= 1e-9 * (sww * snn + 1e-300):
+        return 0, 0
+    aw = (swe * snn - sne * swn) / det
+    an = (sne * sww - swe * swn) / det
+    qw = min(max(int(round(aw * (1 << FB_SHIFT))), -FB_MAX), FB_MAX)
+    qn = min(max(int(round(an * (1 << FB_SHIFT))), -FB_MAX), FB_MAX)
+    return qw, qn
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _context(a, b, c, d, ew, en, enw, ene, grad, errs):
     act = 0
@@ -263,9 +321,10 @@ def _context(a, b, c, d, ew, en, enw, ene, grad, errs):
 
 
 @njit(cache=True, nogil=True)
-def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, t_res, tab, val, nb, n):
+def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, an, t_res, tab, val, nb, n):
     """Append the residual events of a band (raster order) after event ``n``, with bias
-    cancellation when ``bias``; returns the count (or -1 when the buffers are full)."""
+    cancellation when ``bias`` and error feedback ``aw``, ``an`` (:func:`feedback_weights`);
+    returns the count (or -1 when the buffers are full)."""
     H, W = t.shape
     pf = np.zeros(W, np.int64)
     kr = np.zeros(W, np.int64)
@@ -273,6 +332,8 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, t_res
     rb = np.zeros(W + 3, np.int64)
     ea = np.zeros(W + 3, np.int64)  # |prediction error| (fine units) of the row above
     eb = np.zeros(W + 3, np.int64)
+    sa = np.zeros(W + 3, np.int64)  # signed errors of the local predictors (feedback), row above
+    sb = np.zeros(W + 3, np.int64)
     bsum = np.zeros(NBIAS, np.int64)
     bcnt = np.zeros(NBIAS, np.int64)
     bcor = np.zeros(NBIAS, np.int64)
@@ -290,6 +351,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, t_res
                 if x > 0:
                     rb[x + 1] = rb[x]
                 eb[x + 1] = 0
+                sb[x + 1] = 0
                 continue
             a = rb[x] if x > 0 else ra[1]
             b = ra[x + 1]
@@ -297,7 +359,8 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, t_res
             d = ra[x + 2]
             ctx = _context(a, b, c, d, eb[x], ea[x + 1], ea[x], ea[x + 2], grad, errs)
             k = kr[x]
-            p0 = local_pred(k, a, b, c, d, pf[x])
+            pl = local_pred(k, a, b, c, d, pf[x])
+            p0 = pl + ((aw * sb[x] + an * sa[x + 1]) >> FB_SHIFT)
             q = 0
             p = p0
             if bias:
@@ -312,6 +375,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, t_res
             n = put_value(tab, val, nb, n, t_res + ctx, zigzag(r), L_RES)
             rb[x + 1] = rec
             eb[x + 1] = min(abs(rec - p), E_LIM)
+            sb[x + 1] = min(max(rec - pl, -E_LIM), E_LIM)
             if bias:
                 _bias_update(bsum, bcnt, bcor, q, rec - p0)
         rb[0] = rb[1]
@@ -319,6 +383,8 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, t_res
         rb[W + 2] = rb[W]
         ra, rb = rb, ra
         ea, eb = eb, ea
+        sa, sb = sb, sa
+        sb[0] = 0
     return n
 
 
@@ -335,7 +401,8 @@ def _bias_update(bsum, bcnt, bcor, q, err):
 
 
 @njit(cache=True, nogil=True)
-def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, scale, t_res, out):
+def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, scale, t_res,
+                     out):
     """Inverse of :func:`encode_residuals` (with every option on) into ``out`` (H, W) float32,
     NaN where invalid; returns (xa, xb, pos)."""
     H, W = valid.shape
@@ -345,6 +412,8 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
     rb = np.zeros(W + 3, np.int64)
     ea = np.zeros(W + 3, np.int64)
     eb = np.zeros(W + 3, np.int64)
+    sa = np.zeros(W + 3, np.int64)
+    sb = np.zeros(W + 3, np.int64)
     bsum = np.zeros(NBIAS, np.int64)
     bcnt = np.zeros(NBIAS, np.int64)
     bcor = np.zeros(NBIAS, np.int64)
@@ -364,6 +433,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
                 if x > 0:
                     set_at(rb, x + 1, at(rb, x))
                 set_at(eb, x + 1, 0)
+                set_at(sb, x + 1, 0)
                 set_at(orow, x, nan)
                 continue
             a = at(rb, x) if x > 0 else at(ra, 1)
@@ -372,7 +442,8 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
             d = at(ra, x + 2)
             act = min(abs(d - 2 * b + c), E_LIM) + 2 * at(eb, x) + at(ea, x + 1) + ((at(ea, x) + at(ea, x + 2)) >> 1)
             ctx = _ctx_of(act)
-            p0 = local_pred(at(kr, x), a, b, c, d, at(pf, x))
+            pl = local_pred(at(kr, x), a, b, c, d, at(pf, x))
+            p0 = pl + ((aw * at(sb, x) + an * at(sa, x + 1)) >> FB_SHIFT)
             q = 0
             p = p0
             if bias:
@@ -387,6 +458,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
             set_at(orow, x, np.float32((rec >> sh) * scale))
             set_at(rb, x + 1, rec)
             set_at(eb, x + 1, min(abs(rec - p), E_LIM))
+            set_at(sb, x + 1, min(max(rec - pl, -E_LIM), E_LIM))
             if bias:
                 _bias_update(bsum, bcnt, bcor, q, rec - p0)
         rb[0] = rb[1]
@@ -394,6 +466,8 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
         rb[W + 2] = rb[W]
         ra, rb = rb, ra
         ea, eb = eb, ea
+        sa, sb = sb, sa
+        sb[0] = 0
     return xa, xb, pos
 
 

@@ -76,7 +76,7 @@ WS_SIZE = 96
 MODEL_BITS = np.array([8.0, 24.0, 32.0, 48.0])
 TWO_PI_E = 2.0 * math.pi * math.e
 
-assert NSYM >= (1 << L_RES) + 64 and NTABLES <= 32 and lp.NK <= NSYM
+assert NSYM >= (1 << L_RES) + 64 and NTABLES <= 32 and lp.NK <= NSYM and 2 * lp.FB_MAX < NSYM
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -424,22 +424,35 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
     # 3. each leaf's residual predictor, then the residuals in raster order
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
     lp.choose_predictors(t, valid, cells, leaves, lcoef, np.int64(nleaf), lossless, opts)
+    # error feedback (lossless mode: in bounded mode the reconstruction's rounding noise in the
+    # neighbours' errors made it cost more than it saved): the band's least-squares weights of
+    # the W and N neighbours' errors
+    aw, an = 0, 0
+    if lossless and (opts & lp.OPT_FEEDBACK):
+        aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef)
+    aw = np.int64(aw)
+    an = np.int64(an)
     # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on noise:
     # tried both ways there, the smaller kept (its flag leads the predictors)
     bias = 0
     if not lossless and (opts & lp.OPT_BIAS):
-        n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(1), np.int64(T_RES), tab, val, nb, n + 1)
+        n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(1), aw, an, np.int64(T_RES),
+                                 tab, val, nb, n + 3)
         if n1 < 0:
             return -1
-        with_bias = lp.event_bits(tab, val, n + 1, n1, T_RES, NCTX)
-        n0 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), np.int64(T_RES), tab, val, nb, n + 1)
+        with_bias = lp.event_bits(tab, val, n + 3, n1, T_RES, NCTX)
+        n0 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an, np.int64(T_RES),
+                                 tab, val, nb, n + 3)
         if n0 < 0:
             return -1
-        bias = 1 if with_bias < lp.event_bits(tab, val, n + 1, n0, T_RES, NCTX) else 0
+        bias = 1 if with_bias < lp.event_bits(tab, val, n + 3, n0, T_RES, NCTX) else 0
     n = put(tab, val, nb, n, T_PRED, bias, 0)
+    n = put(tab, val, nb, n, T_PRED, aw + lp.FB_MAX, 0)
+    n = put(tab, val, nb, n, T_PRED, an + lp.FB_MAX, 0)
     for i in range(nleaf):
         n = put(tab, val, nb, n, T_PRED, leaves[i, 4], 0)
-    return lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), np.int64(T_RES), tab, val, nb, n)
+    return lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, np.int64(T_RES),
+                               tab, val, nb, n)
 
 
 @njit(cache=True, nogil=True)
@@ -558,7 +571,9 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     if nleaf < 0 or pos > nw:
         return -1
     bias, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    if bias > 1:
+    aw, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    an, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    if bias > 1 or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
         return -1
     for i in range(nleaf):
         k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
@@ -568,7 +583,8 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     if pos > nw:
         return -1
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
-    xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, np.int64(bias), scale,
+    xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, np.int64(bias),
+                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), scale,
                                       np.int64(T_RES), out)
     # A sound stream ends exactly at its last word, both states back where the encoder began.
     if pos != nw or xa != RANS_L or xb != RANS_L:
