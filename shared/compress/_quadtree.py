@@ -432,27 +432,41 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
         aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef)
     aw = np.int64(aw)
     an = np.int64(an)
-    # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on noise:
-    # tried both ways there, the smaller kept (its flag leads the predictors)
+    # the flag of bias cancellation, the weights and each leaf's predictor, then the residuals
+    n_res = n + 3 + nleaf
+    if n < 0 or n_res + 1 > tab.shape[0]:
+        return -1
     bias = 0
     if not lossless and (opts & lp.OPT_BIAS):
+        # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on
+        # noise: both ways, the smaller kept
         n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(1), aw, an, np.int64(T_RES),
-                                 tab, val, nb, n + 3)
+                                 tab, val, nb, n_res)
         if n1 < 0:
             return -1
-        with_bias = lp.event_bits(tab, val, n + 3, n1, T_RES, NCTX)
-        n0 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an, np.int64(T_RES),
-                                 tab, val, nb, n + 3)
-        if n0 < 0:
+        with_bias = lp.event_bits(tab, val, n_res, n1, T_RES, NCTX)
+        keep_tab = tab[n_res:n1].copy()
+        keep_val = val[n_res:n1].copy()
+        keep_nb = nb[n_res:n1].copy()
+        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
+                                    np.int64(T_RES), tab, val, nb, n_res)
+        if n_end < 0 or with_bias < lp.event_bits(tab, val, n_res, n_end, T_RES, NCTX):
+            bias = 1
+            tab[n_res:n1] = keep_tab
+            val[n_res:n1] = keep_val
+            nb[n_res:n1] = keep_nb
+            n_end = n1
+    else:
+        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
+                                    np.int64(T_RES), tab, val, nb, n_res)
+        if n_end < 0:
             return -1
-        bias = 1 if with_bias < lp.event_bits(tab, val, n + 3, n0, T_RES, NCTX) else 0
     n = put(tab, val, nb, n, T_PRED, bias, 0)
     n = put(tab, val, nb, n, T_PRED, aw + lp.FB_MAX, 0)
     n = put(tab, val, nb, n, T_PRED, an + lp.FB_MAX, 0)
     for i in range(nleaf):
         n = put(tab, val, nb, n, T_PRED, leaves[i, 4], 0)
-    return lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, np.int64(T_RES),
-                               tab, val, nb, n)
+    return n_end
 
 
 @njit(cache=True, nogil=True)
