@@ -15,6 +15,8 @@ predictions above it):
   the prediction -- the sub-pixel decoder's errors are correlated along the stripes;
 - the coding context (one of :data:`NCTX` rANS tables) is the local activity: the sizes of
   the W, N, NW, NE prediction errors and the curvature of the row above, in half-octave steps;
+  a small band merges neighbouring contexts (2 or 4 to a table) where its stored tables would
+  cost more than the contexts save (:func:`merged_cost`);
 - bias cancellation (LOCO-I/CALIC), per band where it pays (bounded mode): per context of
   gradient signs and activity, the running mean of the prediction's error is added.
 
@@ -401,8 +403,8 @@ def _bias_update(bsum, bcnt, bcor, q, err):
 
 
 @njit(cache=True, nogil=True)
-def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, scale, t_res,
-                     out):
+def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, cshift, scale,
+                     t_res, out):
     """Inverse of :func:`encode_residuals` (with every option on) into ``out`` (H, W) float32,
     NaN where invalid; returns (xa, xb, pos)."""
     H, W = valid.shape
@@ -449,7 +451,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
             if bias:
                 q = (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (ctx >> 2)
                 p += at(bcor, q)
-            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + ctx, L_RES)
+            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + (ctx >> cshift), L_RES)
             r = unzigzag(u)
             if lossless:
                 rec = (((p + half) >> F_SHIFT) + r) << F_SHIFT
@@ -489,3 +491,39 @@ def event_bits(tab, val, n0, n1, t0, nt):
             if c > 0:
                 bits += c * math.log2(tot / c)
     return bits
+
+
+@njit(cache=True, nogil=True)
+def merged_cost(tab, val, n0, n1, t0, nt, shift):
+    """Estimated bits of the residual events n0..n1-1 (tables t0..t0+nt-1) with their contexts
+    merged ``shift`` times (table ``t0 + (ctx >> shift)``): the static-table code length plus the
+    stored tables (a varint per frequency up to the last symbol used)."""
+    counts = np.zeros((nt, 512), np.int64)
+    for i in range(n0, n1):
+        t = tab[i] - t0
+        if 0 <= t < nt:
+            counts[t >> shift, val[i]] += 1
+    bits = 0.0
+    for t in range(nt):
+        tot = 0
+        last = -1
+        for s in range(512):
+            tot += counts[t, s]
+            if counts[t, s] > 0:
+                last = s
+        for s in range(last + 1):
+            c = counts[t, s]
+            if c > 0:
+                bits += c * math.log2(tot / c)
+                bits += 16.0 if c * 4096.0 >= 128.0 * tot else 8.0
+            else:
+                bits += 8.0
+    return bits
+
+
+@njit(cache=True, nogil=True)
+def merge_contexts(tab, n0, n1, t0, shift):
+    """Events n0..n1-1 of tables t0.. moved to table ``t0 + ((t - t0) >> shift)``."""
+    for i in range(n0, n1):
+        if tab[i] >= t0:
+            tab[i] = t0 + ((tab[i] - t0) >> shift)

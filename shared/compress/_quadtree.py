@@ -433,7 +433,7 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
     aw = np.int64(aw)
     an = np.int64(an)
     # the flag of bias cancellation, the weights and each leaf's predictor, then the residuals
-    n_res = n + 3 + nleaf
+    n_res = n + 4 + nleaf
     if n < 0 or n_res + 1 > tab.shape[0]:
         return -1
     bias = 0
@@ -461,7 +461,18 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
                                     np.int64(T_RES), tab, val, nb, n_res)
         if n_end < 0:
             return -1
+    # small bands: fewer residual tables where the tables cost more than the contexts save
+    cshift = 0
+    best = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0)
+    for shift in range(1, 3):
+        cost_m = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, shift)
+        if cost_m < best:
+            best = cost_m
+            cshift = shift
+    if cshift:
+        lp.merge_contexts(tab, n_res, n_end, T_RES, cshift)
     n = put(tab, val, nb, n, T_PRED, bias, 0)
+    n = put(tab, val, nb, n, T_PRED, cshift, 0)
     n = put(tab, val, nb, n, T_PRED, aw + lp.FB_MAX, 0)
     n = put(tab, val, nb, n, T_PRED, an + lp.FB_MAX, 0)
     for i in range(nleaf):
@@ -585,9 +596,10 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     if nleaf < 0 or pos > nw:
         return -1
     bias, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    cshift, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     aw, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     an, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    if bias > 1 or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
+    if bias > 1 or cshift > 2 or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
         return -1
     for i in range(nleaf):
         k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
@@ -598,7 +610,7 @@ def decode_band(tables, words, H, W, lossless, scale, out):
         return -1
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
     xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, np.int64(bias),
-                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), scale,
+                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), np.int64(cshift), scale,
                                       np.int64(T_RES), out)
     # A sound stream ends exactly at its last word, both states back where the encoder began.
     if pos != nw or xa != RANS_L or xb != RANS_L:
