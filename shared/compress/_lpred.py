@@ -474,26 +474,6 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
 
 
 @njit(cache=True, nogil=True)
-def event_bits(tab, val, n0, n1, t0, nt):
-    """Static-table code length (bits) of the events n0..n1-1 of tables t0..t0+nt-1."""
-    counts = np.zeros((nt, 512), np.int64)
-    for i in range(n0, n1):
-        t = tab[i] - t0
-        if 0 <= t < nt:
-            counts[t, val[i]] += 1
-    bits = 0.0
-    for t in range(nt):
-        tot = 0
-        for s in range(512):
-            tot += counts[t, s]
-        for s in range(512):
-            c = counts[t, s]
-            if c > 0:
-                bits += c * math.log2(tot / c)
-    return bits
-
-
-@njit(cache=True, nogil=True)
 def merged_cost(tab, val, n0, n1, t0, nt, shift):
     """Estimated bits of the residual events n0..n1-1 (tables t0..t0+nt-1) with their contexts
     merged ``shift`` times (table ``t0 + (ctx >> shift)``): the static-table code length plus the
@@ -519,11 +499,3 @@ def merged_cost(tab, val, n0, n1, t0, nt, shift):
             else:
                 bits += 8.0
     return bits
-
-
-@njit(cache=True, nogil=True)
-def merge_contexts(tab, n0, n1, t0, shift):
-    """Events n0..n1-1 of tables t0.. moved to table ``t0 + ((t - t0) >> shift)``."""
-    for i in range(n0, n1):
-        if tab[i] >= t0:
-            tab[i] = t0 + ((tab[i] - t0) >> shift)

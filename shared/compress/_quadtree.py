@@ -444,13 +444,13 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
                                  tab, val, nb, n_res)
         if n1 < 0:
             return -1
-        with_bias = lp.event_bits(tab, val, n_res, n1, T_RES, NCTX)
+        with_bias = lp.merged_cost(tab, val, n_res, n1, T_RES, NCTX, 0)
         keep_tab = tab[n_res:n1].copy()
         keep_val = val[n_res:n1].copy()
         keep_nb = nb[n_res:n1].copy()
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
                                     np.int64(T_RES), tab, val, nb, n_res)
-        if n_end < 0 or with_bias < lp.event_bits(tab, val, n_res, n_end, T_RES, NCTX):
+        if n_end < 0 or with_bias < lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0):
             bias = 1
             tab[n_res:n1] = keep_tab
             val[n_res:n1] = keep_val
@@ -470,7 +470,9 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
             best = cost_m
             cshift = shift
     if cshift:
-        lp.merge_contexts(tab, n_res, n_end, T_RES, cshift)
+        for i in range(n_res, n_end):
+            if tab[i] >= T_RES:
+                tab[i] = T_RES + ((tab[i] - T_RES) >> cshift)
     n = put(tab, val, nb, n, T_PRED, bias, 0)
     n = put(tab, val, nb, n, T_PRED, cshift, 0)
     n = put(tab, val, nb, n, T_PRED, aw + lp.FB_MAX, 0)
