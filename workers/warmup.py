@@ -51,7 +51,7 @@ KERNEL_MODULES: dict[str, tuple[str, ...]] = {
     "scan": ("shared.scan._decode_kernels", "shared.scan.decode", "shared.scan.triangulate", "shared.formats._png"),  # _png: frame reading
     "render": ("shared.render.octree", "shared.render.raster", "shared.render._shading", "shared.render._neighbours",
                "shared.render._match", "shared.compress.tilenode"),  # tilenode: the tiles' octree-coded nodes
-    "compress": ("shared.compress._rans", "shared.compress._quadtree", "shared.compress._octree"),
+    "compress": ("shared.compress._rans", "shared.compress._lpred", "shared.compress._quadtree", "shared.compress._octree"),
     "merge": ("shared.merge._kernels", "shared.merge._fusion_kernels"),
     "derive": ("shared.derive._raster",),  # the texture baker's UV rasteriser
 }

@@ -1,19 +1,22 @@
 """Quadtree range-image band codec kernels (private; the public API is :mod:`shared.compress.range`).
 
-A band of rows is coded as one rANS stream of three parts:
+A band of rows is coded as one rANS stream (codec ``quadtree-lp-2``) of three parts:
 
 1. the validity mask, exactly: per row the lengths of alternating invalid/valid runs (the
    last run of a row is implied);
 2. the quadtree: every 64x64 block holding a valid sample either splits into four (down
    to 4x4) or is a leaf with a surface model -- constant, plane, bilinear or quadratic in
-   depth, chosen per block by the estimated code length (Gaussian residual entropy plus the
-   model's bits), so a block straddling a depth discontinuity splits because its residuals
-   cost more than its children's. Model coefficients are integers (fixed point, so encoder
-   and decoder evaluate bit-identical predictions), coded as differences from the previous
-   leaf's model extrapolated to the new block;
-3. the residuals in raster order, each in one of :data:`NCTX` tables chosen by the size of
-   the residuals of its three upper neighbours (the context; the row above only, so the
-   decoder's table choice never waits for the symbol just decoded).
+   depth -- or with local prediction, whichever the estimated code length favours (Gaussian
+   residual entropy plus the model's bits; local prediction by LOCO-I's median predictor's
+   absolute errors as a Laplacian, :func:`_node`), so a block straddling a depth
+   discontinuity splits because its residuals cost more than its children's, and smooth
+   detailed surfaces stay in large blocks. Model coefficients are integers (fixed point, so
+   encoder and decoder evaluate bit-identical predictions), coded as differences from the
+   previous leaf's model extrapolated to the new block;
+3. each leaf's predictor (its model, or one of the local predictors over the reconstructed
+   neighbours, :mod:`shared.compress._lpred`), a per-band bias-cancellation flag, then the
+   residuals in raster order, each in one of :data:`NCTX` tables chosen by the local
+   activity (the neighbours' prediction errors and the curvature of the row above).
 
 All values are integers in *fine units*: ``FINE = 2**F_SHIFT`` fine units per quantum, so
 that predictions carry sub-quantum precision. Lossless mode codes ``Q = round(z / q)``
@@ -28,6 +31,8 @@ import math
 import numpy as np
 from numba import njit
 
+from shared.compress import _lpred as lp
+from shared.compress._lpred import A_SHIFT, F_SHIFT, FINE, MINB, Q_SHIFT
 from shared.compress._rans import (
     NSYM,
     RANS_L,
@@ -47,12 +52,7 @@ from shared.compress._rans import (
 )
 
 TOP = 64  # top block size (a band's height is a multiple of it)
-MINB = 4
-F_SHIFT = 5
-FINE = 1 << F_SHIFT
-A_SHIFT = 3  # slope coefficients in 2**-A_SHIFT fine units per half pixel
-Q_SHIFT = 9  # curvature coefficients in 2**-Q_SHIFT fine units per half pixel squared
-NCTX = 10
+NCTX = lp.NCTX
 
 T_SPLIT = 0  # 4 tables, one per splittable level (64, 32, 16, 8)
 T_MODEL = 4
@@ -60,14 +60,15 @@ T_C0 = 5
 T_C12 = 6
 T_C345 = 7
 T_RUN = 8  # 2 tables: invalid runs, valid runs
-T_RES = 10
+T_PRED = 10  # the leaves' residual predictors
+T_RES = 11
 NTABLES = T_RES + NCTX
 
 L_SPLIT = 1
 L_MODEL = 2
 L_COEF = 4
 L_RUN = 4
-L_RES = 8
+L_RES = lp.L_RES
 
 #: Parameters of the models 0..3 (constant, plane, bilinear, quadratic) and their estimated bits.
 K_OF = np.array([1, 3, 4, 6], np.int64)
@@ -75,15 +76,7 @@ WS_SIZE = 96
 MODEL_BITS = np.array([8.0, 24.0, 32.0, 48.0])
 TWO_PI_E = 2.0 * math.pi * math.e
 
-assert NSYM >= (1 << L_RES) + 64
-
-#: Context of a residual from the sum of its upper neighbours' zigzag values: min(bit length, NCTX - 1).
-CTX_LUT = np.array([min(int(a).bit_length(), NCTX - 1) for a in range(1 << (NCTX - 1))], np.int64)
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _ctx(a):
-    return CTX_LUT[a] if a < np.uint64(1 << (NCTX - 1)) else NCTX - 1
+assert NSYM >= (1 << L_RES) + 64 and NTABLES <= 32 and lp.NK <= NSYM and 2 * lp.FB_MAX < NSYM
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -277,6 +270,23 @@ def fit_block(t, valid, y0, x0, B, coef, ws):
     return best_m, best_cost, n
 
 
+#: Estimated bits of a leaf coded by local prediction (its constant and predictor).
+LOCAL_BITS = 16.0
+
+
+@njit(cache=True, nogil=True)
+def _node(t, valid, S, y0, x0, B, coef, ws, local):
+    """:func:`fit_block`, then local prediction's estimated bits (:func:`lp.local_bits`) when
+    ``local``: where they are fewer, the block becomes a constant (its model's value at the
+    centre) for a local predictor. Returns (model, estimated bits, valid count)."""
+    m, cost, cnt = fit_block(t, valid, y0, x0, B, coef, ws)
+    if local and cnt > 0:
+        lb = lp.local_bits(S, y0, x0, B, cnt) + MODEL_BITS[m]
+        if lb < cost:
+            return m, lb, cnt
+    return m, cost, cnt
+
+
 @njit(cache=True, nogil=True, inline="always")
 def _predict_coefs(pm, pc, px, py, pB, x0, y0, B, out):
     """The previous leaf's model carried to the centre of block (x0, y0, B)."""
@@ -298,7 +308,7 @@ def _predict_coefs(pm, pc, px, py, pB, x0, y0, B, out):
 
 
 @njit(cache=True, nogil=True)
-def _encode_events(t, valid, lossless, tab, val, nb):
+def _encode_events(t, valid, lossless, opts, tab, val, nb):
     """Every event of one band; returns the count, or -1 when the event buffers are too small."""
     H, W = t.shape
     n = 0
@@ -315,7 +325,9 @@ def _encode_events(t, valid, lossless, tab, val, nb):
             state = not state
     # 2. the quadtree with its leaves' models
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
-    leaves = np.empty((nleaf_max, 4), np.int64)  # x0, y0, B, model
+    local = (opts & lp.OPT_PRED) != 0
+    S = lp.local_cost_integral(t, valid, lossless) if local else np.zeros((1, 1), np.int64)
+    leaves = np.zeros((nleaf_max, 5), np.int64)  # x0, y0, B, model, residual predictor
     lcoef = np.empty((nleaf_max, 6), np.int64)
     nleaf = 0
     st_xyb = np.empty((64, 4), np.int64)  # x0, y0, B, level
@@ -335,7 +347,7 @@ def _encode_events(t, valid, lossless, tab, val, nb):
     ws = np.empty(WS_SIZE)
     for ty in range(0, H, TOP):
         for tx in range(0, W, TOP):
-            m, cost, cnt = fit_block(t, valid, ty, tx, TOP, coef, ws)
+            m, cost, cnt = _node(t, valid, S, np.int64(ty), np.int64(tx), np.int64(TOP), coef, ws, local)
             if cnt == 0:
                 continue
             sp = 0
@@ -363,7 +375,7 @@ def _encode_events(t, valid, lossless, tab, val, nb):
                     for k in range(4):
                         kx = x0 + (k & 1) * h
                         ky = y0 + (k >> 1) * h
-                        kid_m[k], kid_cost[k], kc = fit_block(t, valid, ky, kx, h, kids[k], ws)
+                        kid_m[k], kid_cost[k], kc = _node(t, valid, S, np.int64(ky), np.int64(kx), np.int64(h), kids[k], ws, local)
                         if kc > 0:
                             split_cost += kid_cost[k]
                     split = split_cost < cost
@@ -409,29 +421,65 @@ def _encode_events(t, valid, lossless, tab, val, nb):
                 pB = B
     if n < 0:
         return -1
-    # 3. residuals in raster order, context from the three upper neighbours; the predictions
-    # one row at a time, exactly as the decoder makes them (no band-sized array)
-    cells = _leaf_cells(H, W, leaves, nleaf)
-    pf = np.zeros(W, np.int64)
-    up = np.zeros(W + 2, np.uint64)  # zigzag residuals of the row above, one pad either side
-    cur = np.zeros(W + 2, np.uint64)
-    for y in range(H):
-        _row_prediction(y, W, cells, leaves, lcoef, pf)
-        for x in range(W):
-            if not valid[y, x]:
-                cur[x + 1] = up[x + 1]
-                continue
-            p = pf[x]
-            if lossless:
-                r = (t[y, x] >> F_SHIFT) - ((p + (FINE >> 1)) >> F_SHIFT)
-            else:
-                r = (t[y, x] - p + (FINE >> 1)) >> F_SHIFT
-            u = zigzag(r)
-            ctx = _ctx(up[x] + up[x + 1] + up[x + 2])
-            n = put_value(tab, val, nb, n, T_RES + ctx, u, L_RES)
-            cur[x + 1] = u
-        up, cur = cur, up
-    return n
+    # 3. each leaf's residual predictor, then the residuals in raster order
+    cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
+    lp.choose_predictors(t, valid, cells, leaves, lcoef, np.int64(nleaf), lossless, opts)
+    # error feedback (lossless mode: in bounded mode the reconstruction's rounding noise in the
+    # neighbours' errors made it cost more than it saved): the band's least-squares weights of
+    # the W and N neighbours' errors
+    aw, an = 0, 0
+    if lossless and (opts & lp.OPT_FEEDBACK):
+        aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef)
+    aw = np.int64(aw)
+    an = np.int64(an)
+    # the flag of bias cancellation, the weights and each leaf's predictor, then the residuals
+    n_res = n + 4 + nleaf
+    if n < 0 or n_res + 1 > tab.shape[0]:
+        return -1
+    bias = 0
+    if not lossless and (opts & lp.OPT_BIAS):
+        # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on
+        # noise: both ways, the smaller kept
+        n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(1), aw, an, np.int64(T_RES),
+                                 tab, val, nb, n_res)
+        if n1 < 0:
+            return -1
+        with_bias = lp.merged_cost(tab, val, n_res, n1, T_RES, NCTX, 0)
+        keep_tab = tab[n_res:n1].copy()
+        keep_val = val[n_res:n1].copy()
+        keep_nb = nb[n_res:n1].copy()
+        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
+                                    np.int64(T_RES), tab, val, nb, n_res)
+        if n_end < 0 or with_bias < lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0):
+            bias = 1
+            tab[n_res:n1] = keep_tab
+            val[n_res:n1] = keep_val
+            nb[n_res:n1] = keep_nb
+            n_end = n1
+    else:
+        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
+                                    np.int64(T_RES), tab, val, nb, n_res)
+        if n_end < 0:
+            return -1
+    # small bands: fewer residual tables where the tables cost more than the contexts save
+    cshift = 0
+    best = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0)
+    for shift in range(1, 3):
+        cost_m = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, shift)
+        if cost_m < best:
+            best = cost_m
+            cshift = shift
+    if cshift:
+        for i in range(n_res, n_end):
+            if tab[i] >= T_RES:
+                tab[i] = T_RES + ((tab[i] - T_RES) >> cshift)
+    n = put(tab, val, nb, n, T_PRED, bias, 0)
+    n = put(tab, val, nb, n, T_PRED, cshift, 0)
+    n = put(tab, val, nb, n, T_PRED, aw + lp.FB_MAX, 0)
+    n = put(tab, val, nb, n, T_PRED, an + lp.FB_MAX, 0)
+    for i in range(nleaf):
+        n = put(tab, val, nb, n, T_PRED, leaves[i, 4], 0)
+    return n_end
 
 
 @njit(cache=True, nogil=True)
@@ -471,9 +519,10 @@ def quantise(z, scale, lossless):
 
 
 @njit(cache=True, nogil=True)
-def encode_band(t, valid, lossless):
-    """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool.
-    Returns (packed tables uint8, rANS words uint16)."""
+def encode_band(t, valid, lossless, opts):
+    """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool; ``opts`` the
+    encoder's options (:data:`shared.compress._lpred.OPT_ALL` for a decodable stream; fewer for
+    ablation). Returns (packed tables uint8, rANS words uint16)."""
     H, W = t.shape
     # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
     cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
@@ -481,7 +530,7 @@ def encode_band(t, valid, lossless):
         tab = np.empty(cap, np.int8)
         val = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
         nb = np.empty(cap, np.int8)
-        n = _encode_events(t, valid, lossless, tab, val, nb)
+        n = _encode_events(t, valid, lossless, opts, tab, val, nb)
         if n >= 0:
             break
         cap *= 4
@@ -543,13 +592,28 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     if not ok:
         return -1
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
-    leaves = np.empty((nleaf_max, 4), np.int64)
+    leaves = np.zeros((nleaf_max, 5), np.int64)
     lcoef = np.zeros((nleaf_max, 6), np.int64)
     nleaf, xa, xb, pos = _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef)
     if nleaf < 0 or pos > nw:
         return -1
-    cells = _leaf_cells(H, W, leaves, nleaf)
-    xa, xb, pos = _decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, scale, out)
+    bias, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    cshift, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    aw, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    an, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    if bias > 1 or cshift > 2 or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
+        return -1
+    for i in range(nleaf):
+        k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+        if k >= lp.NK:
+            return -1
+        leaves[i, 4] = k
+    if pos > nw:
+        return -1
+    cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
+    xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, np.int64(bias),
+                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), np.int64(cshift), scale,
+                                      np.int64(T_RES), out)
     # A sound stream ends exactly at its last word, both states back where the encoder began.
     if pos != nw or xa != RANS_L or xb != RANS_L:
         return -1
@@ -592,7 +656,7 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef):
     pred = np.zeros(6, np.int64)
     for ty in range(0, H, TOP):
         for tx in range(0, W, TOP):
-            if _count(ii, ty, tx, TOP, H, W) == 0:
+            if _count(ii, ty, tx, np.int64(TOP), H, W) == 0:
                 continue
             stack[0, 0] = tx
             stack[0, 1] = ty
@@ -669,73 +733,6 @@ def _leaf_cells(H, W, leaves, nleaf):
         n = leaves[i, 2] // MINB
         cells[cy0 : min(cy0 + n, ch), cx0 : min(cx0 + n, cw)] = i
     return cells
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _row_prediction(y, W, cells, leaves, lcoef, row):
-    """Every leaf's prediction (fine units) along row y into ``row`` (W,) int64: the integers of
-    :func:`model_eval`, with the linear and quadratic sums stepped along the row (adds only).
-    Encoder and decoder both predict through it, one row at a time (the row stays in cache)."""
-    cy = y // MINB
-    x = 0
-    while x < W:
-        i = cells[cy, x // MINB]
-        if i < 0:
-            x = (x // MINB + 1) * MINB
-            continue
-        x0 = leaves[i, 0]
-        y0 = leaves[i, 1]
-        B = leaves[i, 2]
-        m = leaves[i, 3]
-        c0, c1, c2, c3, c4, c5 = lcoef[i, 0], lcoef[i, 1], lcoef[i, 2], lcoef[i, 3], lcoef[i, 4], lcoef[i, 5]
-        if m < 2:
-            c3 = 0
-        if m < 3:
-            c4 = 0
-            c5 = 0
-        if m < 1:
-            c1 = 0
-            c2 = 0
-        X = 2 * (x - x0) - (B - 1)
-        Y = 2 * (y - y0) - (B - 1)
-        lin = c1 * X + c2 * Y
-        quad = c3 * X * Y + c4 * X * X + c5 * Y * Y
-        dq = c3 * 2 * Y + c4 * (4 * X + 4)
-        end = min(x0 + B, W)
-        for k in range(x, end):
-            row[k] = c0 + (lin >> A_SHIFT) + (quad >> Q_SHIFT)
-            lin += 2 * c1
-            quad += dq
-            dq += 8 * c4
-        x = end
-
-
-@njit(cache=True, nogil=True)
-def _decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, scale, out):
-    H, W = valid.shape
-    up = np.zeros(W + 2, np.uint64)  # zigzag residuals of the row above, one pad either side
-    cur = np.zeros(W + 2, np.uint64)
-    pf = np.zeros(W, np.int64)
-    half = FINE >> 1
-    nan = np.float32(np.nan)
-    for y in range(H):
-        _row_prediction(y, W, cells, leaves, lcoef, pf)
-        for x in range(W):
-            if not valid[y, x]:
-                cur[x + 1] = up[x + 1]
-                out[y, x] = nan
-                continue
-            ctx = _ctx(up[x] + up[x + 1] + up[x + 2])
-            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_RES + ctx, L_RES)
-            r = unzigzag(u)
-            p = pf[x]
-            if lossless:
-                out[y, x] = np.float32((((p + half) >> F_SHIFT) + r) * scale)
-            else:
-                out[y, x] = np.float32((p + (r << F_SHIFT)) * scale)
-            cur[x + 1] = u
-        up, cur = cur, up
-    return xa, xb, pos
 
 
 @njit(cache=True, nogil=True, inline="always")

@@ -84,7 +84,8 @@ def put_value(tab, val, nb, n, t, u, log2d):
     u = np.uint64(u)
     if u < d:
         return put(tab, val, nb, n, t, np.int64(u), 0)
-    return _put_escape(tab, val, nb, n, t, u, log2d, d)
+    # int64 arguments: constants would each type (and compile) a signature of their own
+    return _put_escape(tab, val, nb, np.int64(n), np.int64(t), u, np.int64(log2d), d)
 
 
 @njit(cache=True, nogil=True)
@@ -375,7 +376,7 @@ def get_value(xa, xb, pos, words, nw, sym, fb, t, log2d):
     d = np.int64(1) << log2d
     if s < d:
         return np.uint64(s), xa, xb, pos
-    return _get_escape(xa, xb, pos, words, nw, s, d, log2d)
+    return _get_escape(xa, xb, np.int64(pos), words, np.int64(nw), s, np.int64(d), np.int64(log2d))
 
 
 @njit(cache=True, nogil=True)

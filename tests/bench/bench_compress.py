@@ -1,9 +1,16 @@
 """Bench of range compression: our quadtree range codec and octree cloud codec against the
 codecs people would otherwise use, side by side in one run on the same data.
 
-Range images: a synthetic 2048x1536 scan with 0.2 mm depth noise (:func:`tests.support.range_images.synthetic_range`),
-the five real captures' range images (calibrated and scanned in-process) and a synthetic 15 MP
-image. Per codec: bits per valid sample, the largest error over every valid sample, encode
+First one table (:func:`section_table`, issue 26): every codec and peer on every range image --
+the virtual rig's detailed scenes (a carved relief, bunny, fandisk, spot) scanned by a 2048x1536
+camera over projectors of 1:1, 2:1 and 4:1 sampling (:mod:`tests.support.range_scenes`, rendered
+and scanned once, then cached in a temp folder), the five real captures, two real Cyberware
+scans of the Stanford dragon, and the synthetic image -- with our rank per image and the
+targets (lossless <= 0.95x the better of JPEG-XL e7 and JPEG-LS; within 0.1 mm <= 0.9x the
+better of JPEG-LS NEAR and SZ3); the ones not reached are listed with their figures.
+
+Range images in detail: a synthetic 2048x1536 scan with 0.2 mm depth noise (:func:`tests.support.range_images.synthetic_range`)
+and a synthetic 15 MP image. Per codec: bits per valid sample, the largest error over every valid sample, encode
 and decode megapixels per second (of the whole image), and the distance from the noise floor
 log2(sigma / step) + 2.05, with sigma from plane-fit residuals. Peers (imagecodecs): JPEG-XL
 lossless at efforts 1/3/7, JPEG-LS lossless and NEAR, PNG-16, LERC, zstd of the quantised
@@ -34,6 +41,7 @@ from shared.compress.range import RangeImage, encode_range, expected_lossless, l
 from shared.formats.ply import iter_ply_records
 from tests.support import real_ranges
 from tests.support.range_images import synthetic_range
+from tests.support.range_scenes import BENCH_IMAGES, bench_range, dragon_range
 
 Q = 0.02
 BOUNDS = (0.1, 0.5, 1.0)
@@ -270,18 +278,108 @@ def section_synthetic() -> None:
                 higher_is_better=True)
 
 
-def section_real() -> None:
-    if not real_ranges.available():
-        print(f"real captures not found at {real_ranges.REAL}: skipping")
-        return
+def _real_capture_ranges() -> dict[str, Path]:
     cache = Path(tempfile.gettempdir()) / "graylight-bench-real-ranges"
     files = {n: cache / n / "range.npz" for n in real_ranges.CAPTURES}
     if not all(p.is_file() for p in files.values()):
         print("calibrating the real session and scanning its five captures (kept for later runs) ...", flush=True)
         files = real_ranges.scan_real_ranges(cache)
-    for name, path in files.items():
-        z = load_range_npz(path).z
-        print_rows(f"real {name}", z, range_rows(z, quick=True), noise_sigma(z))
+    return files
+
+
+def table_images() -> list[tuple[str, np.ndarray]]:
+    """Every range image of the table: the virtual rig's detailed scenes at 1:1, 2:1 and 4:1
+    sampling (cached in a temp folder), the real captures, real Cyberware scans, the synthetic image."""
+    out: list[tuple[str, np.ndarray]] = []
+    for name, scene, ratio in BENCH_IMAGES:
+        out.append((f"sim {name} (2048x1536)", load_range_npz(bench_range(scene, ratio)).z))
+    if real_ranges.available():
+        for name, path in _real_capture_ranges().items():
+            out.append((f"real {name} (kamino410)", load_range_npz(path).z))
+    for k in (0, 5):
+        out.append(dragon_range(k))
+    out.append(("synthetic 0.2 mm noise", synthetic_range(1536, 2048, 0.2, seed=0)))
+    return out
+
+
+#: The table's codecs: (group, name). Group "L": lossless at Q (or within Q / 2); "B": within 0.1 mm.
+TABLE_CODECS = [("L", "ours"), ("L", "JPEG-XL e7"), ("L", "JPEG-LS"), ("L", "PNG-16"), ("L", f"LERC {Q / 2:g}"),
+                ("L", f"SZ3 {Q / 2:g}"), ("B", "ours"), ("B", "JPEG-LS NEAR"), ("B", "SZ3"), ("B", "LERC"),
+                ("B", "JPEG-XL e3 q0.2")]
+
+
+def table_row(z: np.ndarray) -> tuple[dict[tuple[str, str], float | None], dict[str, float]]:
+    """Bits per valid sample of every codec of :data:`TABLE_CODECS` on ``z`` (None: n/a), and our
+    encode/decode MP per CPU second."""
+    import imagecodecs
+
+    m = ~np.isnan(z)
+    nv = int(m.sum())
+    bits: dict[tuple[str, str], float | None] = {}
+
+    def put(key: tuple[str, str], r: tuple | None) -> None:
+        bits[key] = None if r is None else r[0] * 8 / nv
+
+    mp = z.size / 1e6
+    lo = ours_lossless(z, Q, 1)
+    hi = ours_bounded(z, 0.1, 1)
+    assert np.abs(hi[1] - z[m]).max() <= 0.1
+    put(("L", "ours"), lo)
+    put(("B", "ours"), hi)
+    speed = {"enc L": mp / lo[2].cpu, "dec L": mp / lo[3].cpu, "enc B": mp / hi[2].cpu, "dec B": mp / hi[3].cpu}
+    jd = imagecodecs.jpegxl_decode
+    put(("L", "JPEG-XL e7"), peer16(lambda a: imagecodecs.jpegxl_encode(a, lossless=True, effort=7), jd, z, Q, 0))
+    put(("L", "JPEG-LS"), peer16(lambda a: imagecodecs.jpegls_encode(a, level=0), imagecodecs.jpegls_decode, z, Q, 0))
+    put(("L", "PNG-16"), peer16(lambda a: imagecodecs.png_encode(a, level=9), imagecodecs.png_decode, z, Q, 0))
+    put(("L", f"LERC {Q / 2:g}"), peer_lerc(z, Q / 2, 0))
+    put(("L", f"SZ3 {Q / 2:g}"), peer_sz3(z, Q / 2, 0))
+    put(("B", "JPEG-LS NEAR"), peer16(lambda a: imagecodecs.jpegls_encode(a, level=2), imagecodecs.jpegls_decode, z,
+                                      0.1 / 2.5, 0, near=2))
+    put(("B", "SZ3"), peer_sz3(z, 0.1, 0))
+    put(("B", "LERC"), peer_lerc(z, 0.1, 0))
+    put(("B", "JPEG-XL e3 q0.2"), peer16(lambda a: imagecodecs.jpegxl_encode(a, lossless=True, effort=3), jd, z, 0.2, 0))
+    return bits, speed
+
+
+def _ratio(ours: float | None, *peers: float | None) -> float | None:
+    known = [p for p in peers if p is not None]
+    return None if ours is None or not known else ours / min(known)
+
+
+def section_table() -> None:
+    """Every codec on every range image in one table (bits per valid sample), our rank per image
+    in each group, and the issue-26 targets: lossless at q 0.02 at most 0.95x the smaller of
+    JPEG-XL e7 and JPEG-LS, within 0.1 mm at most 0.9x the smaller of JPEG-LS NEAR and SZ3."""
+    print(f"\nrange images, bits per valid sample. L: lossless at q={Q} (LERC, SZ3 within {Q / 2:g});"
+          " B: within 0.1 mm (JPEG-LS NEAR=2 on depth at 0.04, JPEG-XL e3 on depth at 0.2)."
+          " Peers code the depth as uint16 (n/a beyond 65535 quanta) or float with a zstd mask.")
+    print("building the images (rendered and scanned once, then cached) ...", flush=True)
+    images = table_images()
+    heads = [f"{g}:{n}" for g, n in TABLE_CODECS]
+    print(f"  {'image':40s} {'valid':>6s} " + " ".join(f"{h[:13]:>13s}" for h in heads)
+          + f" {'rank L':>6s} {'rank B':>6s} {'L/target':>9s} {'B/target':>9s} {'enc/dec MP/cpu-s L':>19s} {'B':>11s}")
+    misses = []
+    for name, z in images:
+        bits, speed = table_row(z)
+        ranks = {}
+        for g in "LB":
+            vals = sorted(v for (gg, _), v in bits.items() if gg == g and v is not None)
+            ranks[g] = 1 + vals.index(bits[(g, "ours")])  # type: ignore[arg-type]
+        rl = _ratio(bits[("L", "ours")], bits[("L", "JPEG-XL e7")], bits[("L", "JPEG-LS")])
+        rb = _ratio(bits[("B", "ours")], bits[("B", "JPEG-LS NEAR")], bits[("B", "SZ3")])
+        cells = " ".join(f"{'n/a':>13s}" if bits[k] is None else f"{bits[k]:13.3f}" for k in TABLE_CODECS)
+        fl = "n/a" if rl is None else f"{rl / 0.95:.3f}"
+        fb = "n/a" if rb is None else f"{rb / 0.9:.3f}"
+        print(f"  {name[:40]:40s} {100 * np.mean(~np.isnan(z)):5.1f}% {cells} {ranks['L']:6d} {ranks['B']:6d} {fl:>9s} {fb:>9s}"
+              f" {speed['enc L']:9.0f}/{speed['dec L']:<9.0f} {speed['enc B']:5.0f}/{speed['dec B']:<5.0f}", flush=True)
+        if rl is not None and rl > 0.95:
+            misses.append(f"{name}: lossless {rl:.3f} x the better of JPEG-XL e7 / JPEG-LS (target 0.95)")
+        if rb is not None and rb > 0.9:
+            misses.append(f"{name}: 0.1 mm {rb:.3f} x the better of JPEG-LS NEAR / SZ3 (target 0.9)")
+    print("  (L/target, B/target: our size over the target size; <= 1 reaches it)")
+    print("  targets NOT reached:" if misses else "  every target reached")
+    for line in misses:
+        print(f"    {line}")
 
 
 def section_15mp() -> None:
@@ -441,10 +539,10 @@ def section_views_vs_merged() -> None:
 
 
 def main() -> None:
+    section_table()
     section_synthetic()
     section_15mp()
     section_clouds()
-    section_real()
     section_models()
     section_views_vs_merged()
 

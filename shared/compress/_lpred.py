@@ -1,0 +1,501 @@
+"""Local prediction of a range band's residuals (private kernels of :mod:`shared.compress._quadtree`).
+
+Every valid sample is predicted either by its quadtree leaf's surface model or, as the lossless
+image codecs do, from its already decoded neighbours W, N, NW, NE (reconstructed values in fine
+units; a hole takes the value before it in its row, a band's first row sees its own model
+predictions above it):
+
+- each leaf picks one of :data:`NK` predictors (:func:`local_pred`: the model, LOCO-I's median
+  edge detector, the plane through W, N, NW, means, blends of the model with the median or
+  the plane), chosen by the encoder per leaf by the summed absolute error and coded as a
+  symbol after the tree: smooth, detailed depth (an oversampling camera's sub-pixel depth)
+  takes a neighbour predictor, white noise keeps the model;
+- error feedback (lossless mode): the W and N neighbours' prediction errors, weighted by the
+  band's least-squares weights (:func:`feedback_weights`, coded in sixteenths), are added to
+  the prediction -- the sub-pixel decoder's errors are correlated along the stripes;
+- the coding context (one of :data:`NCTX` rANS tables) is the local activity: the sizes of
+  the W, N, NW, NE prediction errors and the curvature of the row above, in half-octave steps;
+  a small band merges neighbouring contexts (2 or 4 to a table) where its stored tables would
+  cost more than the contexts save (:func:`merged_cost`);
+- bias cancellation (LOCO-I/CALIC), per band where it pays (bounded mode): per context of
+  gradient signs and activity, the running mean of the prediction's error is added.
+
+In the error-bounded mode every prediction is made from *reconstructed* values, so the
+encoder and the decoder run the same integers and errors do not drift. What each piece buys
+is measured by the encoder's options (:data:`OPT_ALL`; the bench's ablation).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from shared.compress._rans import at, get_value, put_value, set_at, unzigzag, zigzag
+
+MINB = 4
+F_SHIFT = 5
+FINE = 1 << F_SHIFT
+A_SHIFT = 3  # slope coefficients in 2**-A_SHIFT fine units per half pixel
+Q_SHIFT = 9  # curvature coefficients in 2**-Q_SHIFT fine units per half pixel squared
+
+#: Residual predictors a leaf may choose (see :func:`local_pred`).
+NK = 8
+#: Coding contexts of the residuals (activity levels).
+NCTX = 16
+L_RES = 8
+#: Bias contexts: 27 patterns of gradient signs x 4 activity groups.
+NBIAS = 27 * 4
+BIAS_RESET = 64
+#: Reconstructed residuals, errors and their sizes are clamped to this many fine units in the
+#: predictors and contexts (hostile inputs: sums of them stay inside int64).
+E_LIM = 1 << 40
+#: Options of the encoder (ablation; the decoder always runs with :data:`OPT_ALL`).
+OPT_PRED = 1  # local residual predictors (else every leaf keeps its model alone)
+OPT_GRAD = 2  # gradients of the residual field in the context
+OPT_ERR = 4  # previous prediction errors in the context
+OPT_BIAS = 8  # bias cancellation (bounded mode: per band, where it pays)
+OPT_FEEDBACK = 16  # the W and N neighbours' prediction errors fed back into the prediction
+OPT_ALL = 31
+
+#: Context of an activity a (fine units): min(NCTX - 1, floor(2 log2(a / 4 + 1))).
+CTX_LUT = np.array([min(NCTX - 1, int(2 * math.log2(v + 1))) for v in range(1 << 10)], np.int64)
+#: 2**16 / n for the bias means (n < BIAS_RESET + 1).
+RECIP = np.array([0] + [(1 << 16) // n for n in range(1, BIAS_RESET + 1)], np.int64)
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _ctx_of(act):
+    v = act >> 2
+    return at(CTX_LUT, v) if v < 1024 else NCTX - 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def local_pred(k, a, b, c, d, m):
+    """Predictor ``k`` of a sample from its reconstructed neighbours W ``a``, N ``b``, NW ``c``, NE
+    ``d`` and its leaf's model ``m`` (fine units): 0 the model, 1 LOCO-I's median edge detector,
+    2 the mean of W and N, 3 the plane through W, N, NW, 4 the mean with the NE slope, 5 and 6
+    the model averaged with the median and with the plane (noisy or coarsely quantised
+    neighbours), 7 between the mean and the plane."""
+    if k == 0:
+        return m
+    if k == 2:
+        return (a + b) >> 1
+    if k == 3:
+        return a + b - c
+    if k == 4:
+        return ((a + b) * 2 + d - c) >> 2
+    if k == 6:
+        return (m + a + b - c) >> 1
+    if k == 7:
+        return (3 * (a + b) - 2 * c) >> 2
+    # the median of W, N and the plane (LOCO-I's edge detector), branch-free
+    med = max(min(a, b), min(max(a, b), a + b - c))
+    return med if k == 1 else (m + med) >> 1
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _sign3(g):
+    return 0 if g < -(FINE >> 2) else (2 if g > (FINE >> 2) else 1)
+
+
+@njit(cache=True, nogil=True)
+def row_prediction(y, W, cells, leaves, lcoef, row, krow):
+    """Every leaf's model prediction (fine units) along row y into ``row`` (W,) int64 and its
+    residual predictor into ``krow`` (W,) int64: the integers of the model's polynomial, with the
+    linear and quadratic sums stepped along the row (adds only). ``leaves`` (n, 5): x0, y0, B,
+    model, predictor; ``lcoef`` (n, 6)."""
+    cy = y // MINB
+    x = 0
+    while x < W:
+        i = cells[cy, x // MINB]
+        if i < 0:
+            x = (x // MINB + 1) * MINB
+            continue
+        x0 = leaves[i, 0]
+        y0 = leaves[i, 1]
+        B = leaves[i, 2]
+        m = leaves[i, 3]
+        k = leaves[i, 4]
+        c0, c1, c2, c3, c4, c5 = lcoef[i, 0], lcoef[i, 1], lcoef[i, 2], lcoef[i, 3], lcoef[i, 4], lcoef[i, 5]
+        if m < 2:
+            c3 = 0
+        if m < 3:
+            c4 = 0
+            c5 = 0
+        if m < 1:
+            c1 = 0
+            c2 = 0
+        X = 2 * (x - x0) - (B - 1)
+        Y = 2 * (y - y0) - (B - 1)
+        lin = c1 * X + c2 * Y
+        quad = c3 * X * Y + c4 * X * X + c5 * Y * Y
+        dq = c3 * 2 * Y + c4 * (4 * X + 4)
+        end = min(x0 + B, W)
+        for j in range(x, end):
+            row[j] = c0 + (lin >> A_SHIFT) + (quad >> Q_SHIFT)
+            krow[j] = k
+            lin += 2 * c1
+            quad += dq
+            dq += 8 * c4
+        x = end
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _fill_row(ra, rb, valid, y, W):
+    """Holes of the reconstructed row ``rb`` (padded, pixel x at x + 1) take the value before
+    them in the row (at the row's start, the one above in ``ra``); the pads repeat the ends."""
+    if not valid[y, 0]:
+        rb[1] = ra[1]
+    for x in range(1, W):
+        if not valid[y, x]:
+            rb[x + 1] = rb[x]
+    rb[0] = rb[1]
+    rb[W + 1] = rb[W]
+    rb[W + 2] = rb[W]
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _first_row(ra, pf, valid, W):
+    """The virtual row above a band's first row: its own model predictions, holes filled."""
+    for x in range(W):
+        ra[x + 1] = pf[x]
+    ra[1] = pf[0]
+    for x in range(1, W):
+        if not valid[0, x]:
+            ra[x + 1] = ra[x]
+    ra[0] = ra[1]
+    ra[W + 1] = ra[W]
+    ra[W + 2] = ra[W]
+
+
+@njit(cache=True, nogil=True)
+def local_cost_integral(t, valid, lossless):
+    """Integral image (H + 1, W + 1) int64 of every valid sample's absolute error (fine units,
+    clamped) under LOCO-I's median predictor over the targets ``t``: the quadtree's estimate of
+    what local prediction would cost in a block (:func:`local_bits`)."""
+    H, W = t.shape
+    S = np.zeros((H + 1, W + 1), np.int64)
+    ra = np.zeros(W + 3, np.int64)
+    rb = np.zeros(W + 3, np.int64)
+    sh = 0  # open loop: the targets themselves (measured better than rounding them in bounded mode)
+    half = 0
+    for x in range(W):
+        ra[x + 1] = ((t[0, x] + half) >> sh) << sh
+    for x in range(1, W):
+        if not valid[0, x]:
+            ra[x + 1] = ra[x]
+    ra[0] = ra[1]
+    ra[W + 1] = ra[W]
+    ra[W + 2] = ra[W]
+    for y in range(H):
+        acc = 0
+        for x in range(W):
+            rb[x + 1] = ((t[y, x] + half) >> sh) << sh
+        _fill_row(ra, rb, valid, y, W)
+        for x in range(W):
+            if valid[y, x]:
+                acc += min(abs(t[y, x] - local_pred(1, rb[x], ra[x + 1], ra[x], ra[x + 2], 0)), E_LIM)
+            S[y + 1, x + 1] = S[y, x + 1] + acc
+        ra, rb = rb, ra
+    return S
+
+
+@njit(cache=True, nogil=True)
+def local_bits(S, y0, x0, B, n):
+    """Estimated bits of the n valid samples of block (y0, x0, B) under local prediction: a
+    Laplacian's n log2(1 + 2e m) for their mean absolute error m (quanta) from ``S``."""
+    H = S.shape[0] - 1
+    W = S.shape[1] - 1
+    y1 = min(y0 + B, H)
+    x1 = min(x0 + B, W)
+    s = S[y1, x1] - S[y0, x1] - S[y1, x0] + S[y0, x0]
+    m = s / max(n, 1) / FINE
+    return n * math.log2(1.0 + 2.0 * math.e * m)
+
+
+@njit(cache=True, nogil=True)
+def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts):
+    """Each leaf's predictor (``leaves[:, 4]``: 0 its model, else :func:`local_pred`'s): the one
+    of least summed absolute error over the leaf, predicted from the targets ``t`` (exact in
+    lossless mode, within half a quantum of the reconstruction in bounded mode)."""
+    H, W = t.shape
+    leaves[:nleaf, 4] = 0
+    if not (opts & OPT_PRED):
+        return
+    cost = np.zeros((nleaf, NK), np.int64)
+    pf = np.zeros(W, np.int64)
+    kr = np.zeros(W, np.int64)
+    ra = np.zeros(W + 3, np.int64)
+    rb = np.zeros(W + 3, np.int64)
+    sh = 0  # open loop: the targets themselves (measured better than rounding them in bounded mode)
+    half = 0
+    for y in range(H):
+        row_prediction(y, W, cells, leaves, lcoef, pf, kr)
+        if y == 0:
+            _first_row(ra, pf, valid, W)
+        for x in range(W):
+            rb[x + 1] = ((t[y, x] + half) >> sh) << sh
+        _fill_row(ra, rb, valid, y, W)
+        cy = y // MINB
+        for x in range(W):
+            if not valid[y, x]:
+                continue
+            v = t[y, x]
+            a = rb[x]
+            b = ra[x + 1]
+            c = ra[x]
+            d = ra[x + 2]
+            i = cells[cy, x // MINB]
+            for k in range(NK):
+                cost[i, k] += min(abs(v - local_pred(k, a, b, c, d, pf[x])), E_LIM)
+        ra, rb = rb, ra
+    for i in range(nleaf):
+        best = 0
+        for k in range(1, NK):
+            if cost[i, k] < cost[i, best]:
+                best = k
+        leaves[i, 4] = best
+
+
+#: Error feedback: the W and N neighbours' prediction errors weigh in sixteenths, |weight| <= 16.
+FB_SHIFT = 4
+FB_MAX = 16
+
+
+@njit(cache=True, nogil=True)
+def feedback_weights(t, valid, cells, leaves, lcoef):
+    """The band's error-feedback weights (aw, an), in sixteenths: the least-squares fit of each
+    sample's prediction error (its leaf's predictor over the targets) to its W and N
+    neighbours' errors. The errors of an oversampling camera's sub-pixel depth are correlated
+    along the stripes; white noise gives weights near 0."""
+    H, W = t.shape
+    pf = np.zeros(W, np.int64)
+    kr = np.zeros(W, np.int64)
+    ra = np.zeros(W + 3, np.int64)
+    rb = np.zeros(W + 3, np.int64)
+    ea = np.zeros(W + 3, np.float64)
+    eb = np.zeros(W + 3, np.float64)
+    sww = swn = snn = swe = sne = 0.0
+    lim = float(64 * FINE)
+    for y in range(H):
+        row_prediction(y, W, cells, leaves, lcoef, pf, kr)
+        if y == 0:
+            _first_row(ra, pf, valid, W)
+        for x in range(W):
+            rb[x + 1] = t[y, x]
+        _fill_row(ra, rb, valid, y, W)
+        for x in range(W):
+            if not valid[y, x]:
+                eb[x + 1] = 0.0
+                continue
+            e = float(t[y, x] - local_pred(kr[x], rb[x], ra[x + 1], ra[x], ra[x + 2], pf[x]))
+            e = min(max(e, -lim), lim)
+            eb[x + 1] = e
+            w = eb[x]
+            n = ea[x + 1]
+            sww += w * w
+            swn += w * n
+            snn += n * n
+            swe += w * e
+            sne += n * e
+        ra, rb = rb, ra
+        ea, eb = eb, ea
+    det = sww * snn - swn * swn
+    if det <= 1e-9 * (sww * snn + 1e-300):
+        return 0, 0
+    aw = (swe * snn - sne * swn) / det
+    an = (sne * sww - swe * swn) / det
+    qw = min(max(int(round(aw * (1 << FB_SHIFT))), -FB_MAX), FB_MAX)
+    qn = min(max(int(round(an * (1 << FB_SHIFT))), -FB_MAX), FB_MAX)
+    return qw, qn
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _context(a, b, c, d, ew, en, enw, ene, grad, errs):
+    act = 0
+    if grad:
+        act += min(abs(d - 2 * b + c), E_LIM)
+    if errs:
+        act += 2 * ew + en + ((enw + ene) >> 1)
+    return _ctx_of(act)
+
+
+@njit(cache=True, nogil=True)
+def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, an, t_res, tab, val, nb, n):
+    """Append the residual events of a band (raster order) after event ``n``, with bias
+    cancellation when ``bias`` and error feedback ``aw``, ``an`` (:func:`feedback_weights`);
+    returns the count (or -1 when the buffers are full)."""
+    H, W = t.shape
+    pf = np.zeros(W, np.int64)
+    kr = np.zeros(W, np.int64)
+    ra = np.zeros(W + 3, np.int64)  # reconstructed samples (fine units) of the row above, padded
+    rb = np.zeros(W + 3, np.int64)
+    ea = np.zeros(W + 3, np.int64)  # |prediction error| (fine units) of the row above
+    eb = np.zeros(W + 3, np.int64)
+    sa = np.zeros(W + 3, np.int64)  # signed errors of the local predictors (feedback), row above
+    sb = np.zeros(W + 3, np.int64)
+    bsum = np.zeros(NBIAS, np.int64)
+    bcnt = np.zeros(NBIAS, np.int64)
+    bcor = np.zeros(NBIAS, np.int64)
+    grad = (opts & OPT_GRAD) != 0
+    errs = (opts & OPT_ERR) != 0
+    half = FINE >> 1
+    for y in range(H):
+        row_prediction(y, W, cells, leaves, lcoef, pf, kr)
+        if y == 0:
+            _first_row(ra, pf, valid, W)
+        if not valid[y, 0]:
+            rb[1] = ra[1]
+        for x in range(W):
+            if not valid[y, x]:
+                if x > 0:
+                    rb[x + 1] = rb[x]
+                eb[x + 1] = 0
+                sb[x + 1] = 0
+                continue
+            a = rb[x] if x > 0 else ra[1]
+            b = ra[x + 1]
+            c = ra[x]
+            d = ra[x + 2]
+            ctx = _context(a, b, c, d, eb[x], ea[x + 1], ea[x], ea[x + 2], grad, errs)
+            k = kr[x]
+            pl = local_pred(k, a, b, c, d, pf[x])
+            p0 = pl + ((aw * sb[x] + an * sa[x + 1]) >> FB_SHIFT)
+            q = 0
+            p = p0
+            if bias:
+                q = (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (ctx >> 2)
+                p += bcor[q]
+            if lossless:
+                r = (t[y, x] >> F_SHIFT) - ((p + half) >> F_SHIFT)
+                rec = t[y, x]
+            else:
+                r = (t[y, x] - p + half) >> F_SHIFT
+                rec = p + (r << F_SHIFT)
+            n = put_value(tab, val, nb, n, t_res + ctx, zigzag(r), L_RES)
+            rb[x + 1] = rec
+            eb[x + 1] = min(abs(rec - p), E_LIM)
+            sb[x + 1] = min(max(rec - pl, -E_LIM), E_LIM)
+            if bias:
+                _bias_update(bsum, bcnt, bcor, q, rec - p0)
+        rb[0] = rb[1]
+        rb[W + 1] = rb[W]
+        rb[W + 2] = rb[W]
+        ra, rb = rb, ra
+        ea, eb = eb, ea
+        sa, sb = sb, sa
+        sb[0] = 0
+    return n
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _bias_update(bsum, bcnt, bcor, q, err):
+    s = at(bsum, q) + min(max(err, -E_LIM), E_LIM)
+    m = at(bcnt, q) + 1
+    if m >= BIAS_RESET:
+        s >>= 1
+        m >>= 1
+    set_at(bsum, q, s)
+    set_at(bcnt, q, m)
+    set_at(bcor, q, (s * at(RECIP, m)) >> 16)
+
+
+@njit(cache=True, nogil=True)
+def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, cshift, scale,
+                     t_res, out):
+    """Inverse of :func:`encode_residuals` (with every option on) into ``out`` (H, W) float32,
+    NaN where invalid; returns (xa, xb, pos)."""
+    H, W = valid.shape
+    pf = np.zeros(W, np.int64)
+    kr = np.zeros(W, np.int64)
+    ra = np.zeros(W + 3, np.int64)
+    rb = np.zeros(W + 3, np.int64)
+    ea = np.zeros(W + 3, np.int64)
+    eb = np.zeros(W + 3, np.int64)
+    sa = np.zeros(W + 3, np.int64)
+    sb = np.zeros(W + 3, np.int64)
+    bsum = np.zeros(NBIAS, np.int64)
+    bcnt = np.zeros(NBIAS, np.int64)
+    bcor = np.zeros(NBIAS, np.int64)
+    half = FINE >> 1
+    nan = np.float32(np.nan)
+    sh = F_SHIFT if lossless else 0
+    for y in range(H):
+        row_prediction(y, W, cells, leaves, lcoef, pf, kr)
+        if y == 0:
+            _first_row(ra, pf, valid, W)
+        vrow = valid[y]
+        orow = out[y]
+        if not vrow[0]:
+            rb[1] = ra[1]
+        for x in range(W):
+            if not at(vrow, x):
+                if x > 0:
+                    set_at(rb, x + 1, at(rb, x))
+                set_at(eb, x + 1, 0)
+                set_at(sb, x + 1, 0)
+                set_at(orow, x, nan)
+                continue
+            a = at(rb, x) if x > 0 else at(ra, 1)
+            b = at(ra, x + 1)
+            c = at(ra, x)
+            d = at(ra, x + 2)
+            act = min(abs(d - 2 * b + c), E_LIM) + 2 * at(eb, x) + at(ea, x + 1) + ((at(ea, x) + at(ea, x + 2)) >> 1)
+            ctx = _ctx_of(act)
+            pl = local_pred(at(kr, x), a, b, c, d, at(pf, x))
+            p0 = pl + ((aw * at(sb, x) + an * at(sa, x + 1)) >> FB_SHIFT)
+            q = 0
+            p = p0
+            if bias:
+                q = (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (ctx >> 2)
+                p += at(bcor, q)
+            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + (ctx >> cshift), L_RES)
+            r = unzigzag(u)
+            if lossless:
+                rec = (((p + half) >> F_SHIFT) + r) << F_SHIFT
+            else:
+                rec = p + (r << F_SHIFT)
+            set_at(orow, x, np.float32((rec >> sh) * scale))
+            set_at(rb, x + 1, rec)
+            set_at(eb, x + 1, min(abs(rec - p), E_LIM))
+            set_at(sb, x + 1, min(max(rec - pl, -E_LIM), E_LIM))
+            if bias:
+                _bias_update(bsum, bcnt, bcor, q, rec - p0)
+        rb[0] = rb[1]
+        rb[W + 1] = rb[W]
+        rb[W + 2] = rb[W]
+        ra, rb = rb, ra
+        ea, eb = eb, ea
+        sa, sb = sb, sa
+        sb[0] = 0
+    return xa, xb, pos
+
+
+@njit(cache=True, nogil=True)
+def merged_cost(tab, val, n0, n1, t0, nt, shift):
+    """Estimated bits of the residual events n0..n1-1 (tables t0..t0+nt-1) with their contexts
+    merged ``shift`` times (table ``t0 + (ctx >> shift)``): the static-table code length plus the
+    stored tables (a varint per frequency up to the last symbol used)."""
+    counts = np.zeros((nt, 512), np.int64)
+    for i in range(n0, n1):
+        t = tab[i] - t0
+        if 0 <= t < nt:
+            counts[t >> shift, val[i]] += 1
+    bits = 0.0
+    for t in range(nt):
+        tot = 0
+        last = -1
+        for s in range(512):
+            tot += counts[t, s]
+            if counts[t, s] > 0:
+                last = s
+        for s in range(last + 1):
+            c = counts[t, s]
+            if c > 0:
+                bits += c * math.log2(tot / c)
+                bits += 16.0 if c * 4096.0 >= 128.0 * tot else 8.0
+            else:
+                bits += 8.0
+    return bits
