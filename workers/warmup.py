@@ -49,7 +49,7 @@ _CACHED_KERNEL = re.compile(r'^@(?:numba\.)?njit\b(?![^\n]*inline="always")', re
 KERNEL_MODULES: dict[str, tuple[str, ...]] = {
     "sim": ("shared.sim.raycast",),
     "scan": ("shared.scan._decode_kernels", "shared.scan.decode", "shared.scan.triangulate", "shared.formats._png"),  # _png: frame reading
-    "render": ("shared.render.octree", "shared.render.raster", "shared.render._shading", "shared.render._neighbours",
+    "render": ("shared.render._octree_kernels", "shared.render.octree", "shared.render.raster", "shared.render._shading", "shared.render._neighbours",
                "shared.render._match", "shared.compress.tilenode"),  # tilenode: the tiles' octree-coded nodes
     "compress": ("shared.compress._rans", "shared.compress._lpred", "shared.compress._quadtree", "shared.compress._octree"),
     "merge": ("shared.merge._kernels", "shared.merge._fusion_kernels"),
