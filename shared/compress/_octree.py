@@ -135,6 +135,8 @@ C3_Y = C3_X + 1000
 #: model (B) the footprints at x - 1 and y - 1 and the occupied face neighbours, its third (C)
 #: the occupied nodes of the 26 around counted per slab along z.
 FLAG_MIX_LEVELS = 3
+#: Whether the last level's x and y bits are mixed (a literal of the last level's decoder).
+_LAST_MIXED = MIX_LEVELS >= 1
 B_SINGLE = C3_Y + 2000
 C3_SINGLE = B_SINGLE + 256 * 7
 N_MODELS = C3_SINGLE + 900
@@ -199,10 +201,13 @@ def voxel_centres(codes, ox, oy, oz, precision, x, y, z):
         z[i] = (compact21(c >> 2) + oz + 0.5) * precision
 
 
-# The scalar helpers below (contexts, cells, counter steps) are plain kernels, inlined by LLVM
-# when their callers are optimised; numba's own inlining (inline="always") of them into the
-# encoder and the three level decoders took 30 of the cloud codec's 81 s of compilation, for
-# no speed (A/B in the commit). _bit_context, in the decoder's innermost loop, stays inlined.
+# The scalar helpers below (contexts, cells, counter steps, the SSE cell, the map's marks, and
+# the rANS coder's at/set_at/get_bit/state_* they call) are plain kernels, inlined by LLVM when
+# their callers are optimised; numba's own inlining (inline="always") re-reads the callee's
+# bytecode and deep-copies its IR at every call site (hundreds of copies of ``at`` alone):
+# dropping it took the cloud codec's compilation from 81 s to 28 s, for no speed (A/B in the
+# commits). Inlined by numba still: _bit_context (the decoder's innermost loop), and _around,
+# _learn, _emit, _emit_mixed, which LLVM leaves as calls in the encoder or the decoder.
 @njit(cache=True, nogil=True)
 def _cell(key):
     """Index of a node in its region's map."""
@@ -224,7 +229,7 @@ def _child_cell(ci, b):
     return ORIGIN + (z * PAD + y) * PAD + x
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _neighbours(atlas, ci):
     """The region map's values of the node's face neighbours (0 outside the region) -x, -y,
     -z, +x, +y, +z, of the nodes two back along x and y, and the occupancy of the past x and y
@@ -369,7 +374,7 @@ def _around(atlas, rows, ci):
             popcount(w & 0o777), popcount(w & 0o777000) - 1, popcount(w >> 18), fx1, fy1, fx2, fy2)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _mark(atlas, rows, ci, on):
     """Mark the node at map index ``ci`` occupied (``on``) or empty, in the map and its bit rows."""
     r = ci // PAD
@@ -403,7 +408,7 @@ def _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1):
             C3_SINGLE + (sz0 * 9 + sz1) * 10 + sz2)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _sse_cell(models, axis, ca, cb, cc):
     """The secondary-estimation cell (axis 0: x, 1: y, 2: the single-child flag) of an event
     whose models are ``ca``, ``cb``, ``cc``."""
@@ -447,7 +452,7 @@ def _emit_mixed(tab, val, nb, n, models, sse, axis, ca, cb, cc, bit, kind):
     :func:`_emit`)."""
     if n < 0 or n >= tab.shape[0]:
         return -1
-    cell = _sse_cell(models, axis, ca, cb, cc)
+    cell = _sse_cell(models, np.int64(axis), ca, cb, cc)
     tab[n] = BIN
     val[n] = (state_p(at(sse, cell)) << 1) | bit
     nb[n] = kind
@@ -610,16 +615,18 @@ def encode_chunk(vox, counts, depth, chan, log2d):
     return pack_tables(freq), encode_events(tab, val, nb, n, freq)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows, mixed_flag, mixed, last):
     """Decode one level of the octree (see :func:`decode_chunk`): the children of the ``ncur``
     nodes ``cur`` (Morton codes; map indices ``curc``) into ``nxt`` (and ``nxtc`` unless the
     level is the ``last``). Returns (children, xa, xb, pos); -1 children for a corrupt stream.
-    Inlined into :func:`_decode_last_level` with constant flags: the level that takes most of
-    the decode gets a loop of its own, without the other kinds' branches and live values; the
-    levels above share :func:`_decode_upper_level`, flags at run time. Each copy is a function
-    of its own: five copies inlined into the one decoder took numba's type inference 98 s to
-    compile (129 s in all, against 12 s for a single loop)."""
+    :func:`decode_chunk` calls it with literal flags for the last level (``False``,
+    :data:`_LAST_MIXED`, ``True``): numba compiles a copy of its own for those literal values
+    (the flags' branches pruned; the level that takes most of the decode gets a loop without the
+    other kinds' branches and live values), and one with the flags at run time (``last`` the
+    literal ``False``) for the levels above. Two compiled copies, not numba IR inlines
+    (``inline="always"``) into two wrappers: numba deep-copies an inlined function's IR block
+    by block, each time with its whole variable scope (quadratic in the size of this loop)."""
     m = 0
     r0 = 0
     while r0 < ncur:
@@ -639,7 +646,7 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
             lean = _lean(sz0, sz2)
             if mixed_flag:
                 cs, cbs, ccs = _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1)
-                cfs = _sse_cell(models, 2, cs, cbs, ccs)
+                cfs = _sse_cell(models, np.int64(2), cs, cbs, ccs)
                 ss = at(sse, cfs)
             else:
                 cs = _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2)
@@ -651,9 +658,9 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
                 cax, cbx, ccx = _mixed_x(xm, ym, zm, xp, xm2, sx0, sx1, sx2, fx1, fx2)
                 cay0, cby0, ccy0 = _mixed_y(0, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
                 cay1, cby1, ccy1 = _mixed_y(1, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
-                cx = _sse_cell(models, 0, cax, cbx, ccx)
-                cy0 = _sse_cell(models, 1, cay0, cby0, ccy0)
-                cy1 = _sse_cell(models, 1, cay1, cby1, ccy1)
+                cx = _sse_cell(models, np.int64(0), cax, cbx, ccx)
+                cy0 = _sse_cell(models, np.int64(1), cay0, cby0, ccy0)
+                cy1 = _sse_cell(models, np.int64(1), cay1, cby1, ccy1)
                 sx = at(sse, cx)
                 sy0 = at(sse, cy0)
                 sy1 = at(sse, cy1)
@@ -748,24 +755,6 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
 
 
 @njit(cache=True, nogil=True)
-def _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, models, sse, atlas, rows):
-    """:func:`_decode_level` for the last level (its children are voxels: no map cells; the
-    single child's x and y bits mixed when ``MIX_LEVELS >= 1``, the flag never)."""
-    return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxt, nvox, models, sse, atlas, rows,
-                         False, MIX_LEVELS >= 1, True)  # fmt: skip
-
-
-@njit(cache=True, nogil=True)
-def _decode_upper_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
-                        mixed_flag, mixed):  # fmt: skip
-    """:func:`_decode_level` for the levels above the last, flags at run time (a copy of its own
-    for the level above the last, with constant flags, cost 11 s of compilation for no measured
-    speed: 0.1 mm bench cloud 428-430 ms either way)."""
-    return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
-                         mixed_flag, mixed, False)  # fmt: skip
-
-
-@njit(cache=True, nogil=True)
 def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
     """Decode one chunk: the Morton codes of its ``npts`` points (sorted, repeated per
     duplicate) into ``codes_out`` and the attribute differences into ``chan_out`` (N, C).
@@ -784,22 +773,22 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
     sse = np.empty(N_SSE, np.uint32)
     atlas = np.zeros(PAD * PAD * PAD, np.int16)
     rows = np.zeros(MAP_ROWS, np.uint64)
-    ncur = np.int64(1)  # not the literal 1: the level functions are compiled for int64 alone
+    ncur = np.int64(1)  # not the literal 1: the level function is compiled for int64 alone
     prior = _prior_states()
     for d in range(depth):
         models[:] = prior  # a copy, as cheap as the fill of 1/2 it replaces
         for k in range(3):
             sse[k * SSE_N**3 : (k + 1) * SSE_N**3] = SSE_INIT
-        # The last level's flags are constants in its function (the rule below, as the encoder
-        # applies it, at d = depth - 1); the levels above pass them here.
+        # The last level's flags are literals (a copy of the level loop of their own); the
+        # rule below, as the encoder applies it, gives them at d = depth - 1.
         if d == depth - 1:  # the children are voxels: no map cells needed
-            m, xa, xb, pos = _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, models, sse,
-                                                atlas, rows)  # fmt: skip
+            m, xa, xb, pos = _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxt, nvox, models, sse,
+                                           atlas, rows, False, _LAST_MIXED, True)  # fmt: skip
         else:
             mixed = d >= depth - MIX_LEVELS
             mixed_flag = depth - 1 - FLAG_MIX_LEVELS <= d < depth - 1
-            m, xa, xb, pos = _decode_upper_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models,
-                                                 sse, atlas, rows, mixed_flag, mixed)  # fmt: skip
+            m, xa, xb, pos = _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse,
+                                           atlas, rows, mixed_flag, mixed, False)  # fmt: skip
         if m < 0:
             return -1
         cur, nxt = nxt, cur
