@@ -596,18 +596,22 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
     return n
 
 
-@njit(cache=True, nogil=True)
-def encode_chunk(vox, counts, depth, chan, log2d):
-    """Code one chunk: ``vox`` sorted distinct Morton codes, ``counts`` points per voxel,
-    ``chan`` (N, C) int64 attribute differences in point order. Returns (tables, words)."""
-    levels, starts = _levels(vox, depth)
+def encode_chunk(vox: np.ndarray, counts: np.ndarray, depth: int, chan: np.ndarray,
+                 log2d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Code one chunk: ``vox`` (V,) int64 sorted distinct Morton codes, ``counts`` (V,) int64
+    points per voxel, ``chan`` (N, C) int64 attribute differences in point order, ``log2d``
+    (C,) int64 their tables' direct sizes. Returns (tables uint8, words uint16).
+
+    Plain Python over the kernels (each releases the GIL): as a kernel of its own it cost numba
+    2 s to compile (its module links and optimises every kernel it calls again), for six calls a chunk."""
+    levels, starts = _levels(vox, np.int64(depth))
     npts = chan.shape[0]
-    cap = 8 * starts[depth] + 2 * vox.shape[0] + 2 * npts * chan.shape[1] + 4096
+    cap = int(8 * starts[depth] + 2 * vox.shape[0] + 2 * npts * chan.shape[1] + 4096)
     while True:
         tab = np.empty(cap, np.int8)
         val = np.empty(cap, np.int16)
         nb = np.empty(cap, np.int8)
-        n = _events(levels, starts, counts, depth, chan, log2d, tab, val, nb)
+        n = _events(levels, starts, counts, np.int64(depth), chan, log2d, tab, val, nb)
         if n >= 0:
             break
         cap *= 4

@@ -85,7 +85,8 @@ def put_value(tab, val, nb, n, t, u, log2d):
     u = np.uint64(u)
     if u < d:
         return put(tab, val, nb, n, t, np.int64(u), 0)
-    return _put_escape(tab, val, nb, n, t, u, log2d, d)
+    # int64 table and size, not the callers' literals: one signature per buffer types
+    return _put_escape(tab, val, nb, n, np.int64(t), u, np.int64(log2d), d)
 
 
 @njit(cache=True, nogil=True)
@@ -376,7 +377,7 @@ def get_value(xa, xb, pos, words, nw, sym, fb, t, log2d):
     d = np.int64(1) << log2d
     if s < d:
         return np.uint64(s), xa, xb, pos
-    return _get_escape(xa, xb, pos, words, nw, s, d, log2d)
+    return _get_escape(xa, xb, pos, words, nw, s, d, np.int64(log2d))
 
 
 @njit(cache=True, nogil=True)
