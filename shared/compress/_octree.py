@@ -326,7 +326,7 @@ def _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, slope, lean):
                   | ((slope & 3) << 13) | (lean << 15))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _emit(tab, val, nb, n, models, ctx, bit, kind):
     """Append a binary event of context ``ctx``'s model and adapt it; -1 when the buffers are full.
     ``kind`` (kept in ``nb``, which binary events do not use) tells the bench's cost breakdown
@@ -543,22 +543,22 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
                 lean = _lean(sz0, sz2)
                 if mixed_flag:
                     ca, cb, cc = _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1)
-                    n = _emit_mixed(tab, val, nb, n, models, sse, 2, ca, cb, cc, 1 if single else 0, 0)
+                    n = _emit_mixed(tab, val, nb, n, models, sse, np.int64(2), ca, cb, cc, 1 if single else 0, np.int64(0))
                 else:
-                    n = _emit(tab, val, nb, n, models, _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2), 1 if single else 0, 0)
+                    n = _emit(tab, val, nb, n, models, _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2), 1 if single else 0, np.int64(0))
                 if single:
                     bx = 1 if byte & 0xAA else 0
                     by = 1 if byte & 0xCC else 0
                     bz = 1 if byte & 0xF0 else 0
                     if mixed:
                         ca, cb, cc = _mixed_x(xm, ym, zm, xp, xm2, sx0, sx1, sx2, fx1, fx2)
-                        n = _emit_mixed(tab, val, nb, n, models, sse, 0, ca, cb, cc, bx, 1)
+                        n = _emit_mixed(tab, val, nb, n, models, sse, np.int64(0), ca, cb, cc, bx, np.int64(1))
                         ca, cb, cc = _mixed_y(bx, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
-                        n = _emit_mixed(tab, val, nb, n, models, sse, 1, ca, cb, cc, by, 2)
+                        n = _emit_mixed(tab, val, nb, n, models, sse, np.int64(1), ca, cb, cc, by, np.int64(2))
                     else:
-                        n = _emit(tab, val, nb, n, models, _x_context(xm, ym, zm, xp, xm2), bx, 1)
-                        n = _emit(tab, val, nb, n, models, _y_context(bx, xm, ym, zm, yp, ym2), by, 2)
-                    n = _emit(tab, val, nb, n, models, _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean), bz, 3)
+                        n = _emit(tab, val, nb, n, models, _x_context(xm, ym, zm, xp, xm2), bx, np.int64(1))
+                        n = _emit(tab, val, nb, n, models, _y_context(bx, xm, ym, zm, yp, ym2), by, np.int64(2))
+                    n = _emit(tab, val, nb, n, models, _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean), bz, np.int64(3))
                 else:
                     cur = 0
                     ncur = 0
@@ -567,12 +567,12 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
                             break  # implied: bits 6 and 7 (two children at least)
                         ctx = _bit_context(b, cur, ncur, xm, ym, zm, xp, yp, zp, slabs)
                         bit = (byte >> b) & 1
-                        n = _emit(tab, val, nb, n, models, ctx, bit, 4)
+                        n = _emit(tab, val, nb, n, models, ctx, bit, np.int64(4))
                         cur |= bit << b
                         ncur += bit
                     if ncur >= 2:  # else implied: bits 6 and 7, or bit 7 (two children at least)
                         ctx = _bit_context(7, cur, ncur, xm, ym, zm, xp, yp, zp, slabs)
-                        n = _emit(tab, val, nb, n, models, ctx, (byte >> 7) & 1, 4)
+                        n = _emit(tab, val, nb, n, models, ctx, (byte >> 7) & 1, np.int64(4))
                 set_at(atlas, ci, _OCCUPIED | _CODED | byte)
             for i in range(r0, r1):
                 _mark(atlas, rows, cells[i - a0], False)
