@@ -174,6 +174,8 @@ SSE_LIMIT = 128
 _OCCUPIED = 256
 _CODED = 512
 
+#: 0 and 1 as int64 values a kernel loads (not literals: see :func:`_decode_level`).
+_ZERO_ONE = np.array((0, 1), np.int64)
 #: LOWEST[byte]: the index of the lowest set bit (byte > 0).
 LOWEST = np.array([(i & -i).bit_length() - 1 for i in range(256)], np.int64)
 
@@ -631,6 +633,10 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
     literal ``False``) for the levels above. Two compiled copies, not numba IR inlines
     (``inline="always"``) into two wrappers: numba deep-copies an inlined function's IR block
     by block, each time with its whole variable scope (quadratic in the size of this loop)."""
+    # int64 values, not literals: the context helpers are compiled once, not once a literal
+    # value (LLVM folds the constant loads after inlining them)
+    zero = _ZERO_ONE[0]
+    one = _ZERO_ONE[1]
     m = 0
     r0 = 0
     while r0 < ncur:
@@ -660,8 +666,8 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
                 # x and y: three models each and their cell (x and y have a table each: the x
                 # event changes no y cell)
                 cax, cbx, ccx = _mixed_x(xm, ym, zm, xp, xm2, sx0, sx1, sx2, fx1, fx2)
-                cay0, cby0, ccy0 = _mixed_y(0, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
-                cay1, cby1, ccy1 = _mixed_y(1, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
+                cay0, cby0, ccy0 = _mixed_y(zero, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
+                cay1, cby1, ccy1 = _mixed_y(one, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
                 cx = _sse_cell(models, np.int64(0), cax, cbx, ccx)
                 cy0 = _sse_cell(models, np.int64(1), cay0, cby0, ccy0)
                 cy1 = _sse_cell(models, np.int64(1), cay1, cby1, ccy1)
@@ -671,8 +677,8 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
             else:
                 cax = cbx = ccx = cay0 = cby0 = ccy0 = cay1 = cby1 = ccy1 = 0
                 cx = _x_context(xm, ym, zm, xp, xm2)
-                cy0 = _y_context(0, xm, ym, zm, yp, ym2)
-                cy1 = _y_context(1, xm, ym, zm, yp, ym2)
+                cy0 = _y_context(zero, xm, ym, zm, yp, ym2)
+                cy1 = _y_context(one, xm, ym, zm, yp, ym2)
                 sx = at(models, cx)
                 sy0 = at(models, cy0)
                 sy1 = at(models, cy1)
@@ -683,10 +689,10 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
             else:
                 set_at(models, cs, state_next(ss, single))
             if single:
-                czs = (_z_context(0, 0, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
-                       _z_context(1, 0, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
-                       _z_context(0, 1, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
-                       _z_context(1, 1, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean))
+                czs = (_z_context(zero, zero, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
+                       _z_context(one, zero, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
+                       _z_context(zero, one, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
+                       _z_context(one, one, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean))
                 sz = (at(models, czs[0]), at(models, czs[1]), at(models, czs[2]), at(models, czs[3]))
                 bx, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(sx))
                 by, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(sy1 if bx else sy0))
