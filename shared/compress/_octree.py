@@ -135,6 +135,8 @@ C3_Y = C3_X + 1000
 #: model (B) the footprints at x - 1 and y - 1 and the occupied face neighbours, its third (C)
 #: the occupied nodes of the 26 around counted per slab along z.
 FLAG_MIX_LEVELS = 3
+#: Whether the last level's x and y bits are mixed (a literal of the last level's decoder).
+_LAST_MIXED = MIX_LEVELS >= 1
 B_SINGLE = C3_Y + 2000
 C3_SINGLE = B_SINGLE + 256 * 7
 N_MODELS = C3_SINGLE + 900
@@ -172,6 +174,8 @@ SSE_LIMIT = 128
 _OCCUPIED = 256
 _CODED = 512
 
+#: 0 and 1 as int64 values a kernel loads (not literals: see :func:`_decode_level`).
+_ZERO_ONE = np.array((0, 1), np.int64)
 #: LOWEST[byte]: the index of the lowest set bit (byte > 0).
 LOWEST = np.array([(i & -i).bit_length() - 1 for i in range(256)], np.int64)
 
@@ -199,10 +203,13 @@ def voxel_centres(codes, ox, oy, oz, precision, x, y, z):
         z[i] = (compact21(c >> 2) + oz + 0.5) * precision
 
 
-# The scalar helpers below (contexts, cells, counter steps) are plain kernels, inlined by LLVM
-# when their callers are optimised; numba's own inlining (inline="always") of them into the
-# encoder and the three level decoders took 30 of the cloud codec's 81 s of compilation, for
-# no speed (A/B in the commit). _bit_context, in the decoder's innermost loop, stays inlined.
+# The scalar helpers below (contexts, cells, counter steps, the SSE cell, the map's marks, and
+# the rANS coder's at/set_at/get_bit/state_* they call) are plain kernels, inlined by LLVM when
+# their callers are optimised; numba's own inlining (inline="always") re-reads the callee's
+# bytecode and deep-copies its IR at every call site (hundreds of copies of ``at`` alone):
+# dropping it took the cloud codec's compilation from 81 s to 28 s, for no speed (A/B in the
+# commits). Inlined by numba still: _bit_context (the decoder's innermost loop), and _around,
+# _learn, _emit, _emit_mixed, which LLVM leaves as calls in the encoder or the decoder.
 @njit(cache=True, nogil=True)
 def _cell(key):
     """Index of a node in its region's map."""
@@ -224,7 +231,7 @@ def _child_cell(ci, b):
     return ORIGIN + (z * PAD + y) * PAD + x
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _neighbours(atlas, ci):
     """The region map's values of the node's face neighbours (0 outside the region) -x, -y,
     -z, +x, +y, +z, of the nodes two back along x and y, and the occupancy of the past x and y
@@ -321,7 +328,7 @@ def _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, slope, lean):
                   | ((slope & 3) << 13) | (lean << 15))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _emit(tab, val, nb, n, models, ctx, bit, kind):
     """Append a binary event of context ``ctx``'s model and adapt it; -1 when the buffers are full.
     ``kind`` (kept in ``nb``, which binary events do not use) tells the bench's cost breakdown
@@ -369,7 +376,7 @@ def _around(atlas, rows, ci):
             popcount(w & 0o777), popcount(w & 0o777000) - 1, popcount(w >> 18), fx1, fy1, fx2, fy2)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _mark(atlas, rows, ci, on):
     """Mark the node at map index ``ci`` occupied (``on``) or empty, in the map and its bit rows."""
     r = ci // PAD
@@ -403,7 +410,7 @@ def _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1):
             C3_SINGLE + (sz0 * 9 + sz1) * 10 + sz2)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _sse_cell(models, axis, ca, cb, cc):
     """The secondary-estimation cell (axis 0: x, 1: y, 2: the single-child flag) of an event
     whose models are ``ca``, ``cb``, ``cc``."""
@@ -447,7 +454,7 @@ def _emit_mixed(tab, val, nb, n, models, sse, axis, ca, cb, cc, bit, kind):
     :func:`_emit`)."""
     if n < 0 or n >= tab.shape[0]:
         return -1
-    cell = _sse_cell(models, axis, ca, cb, cc)
+    cell = _sse_cell(models, np.int64(axis), ca, cb, cc)
     tab[n] = BIN
     val[n] = (state_p(at(sse, cell)) << 1) | bit
     nb[n] = kind
@@ -538,22 +545,22 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
                 lean = _lean(sz0, sz2)
                 if mixed_flag:
                     ca, cb, cc = _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1)
-                    n = _emit_mixed(tab, val, nb, n, models, sse, 2, ca, cb, cc, 1 if single else 0, 0)
+                    n = _emit_mixed(tab, val, nb, n, models, sse, np.int64(2), ca, cb, cc, 1 if single else 0, np.int64(0))
                 else:
-                    n = _emit(tab, val, nb, n, models, _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2), 1 if single else 0, 0)
+                    n = _emit(tab, val, nb, n, models, _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2), 1 if single else 0, np.int64(0))
                 if single:
                     bx = 1 if byte & 0xAA else 0
                     by = 1 if byte & 0xCC else 0
                     bz = 1 if byte & 0xF0 else 0
                     if mixed:
                         ca, cb, cc = _mixed_x(xm, ym, zm, xp, xm2, sx0, sx1, sx2, fx1, fx2)
-                        n = _emit_mixed(tab, val, nb, n, models, sse, 0, ca, cb, cc, bx, 1)
+                        n = _emit_mixed(tab, val, nb, n, models, sse, np.int64(0), ca, cb, cc, bx, np.int64(1))
                         ca, cb, cc = _mixed_y(bx, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
-                        n = _emit_mixed(tab, val, nb, n, models, sse, 1, ca, cb, cc, by, 2)
+                        n = _emit_mixed(tab, val, nb, n, models, sse, np.int64(1), ca, cb, cc, by, np.int64(2))
                     else:
-                        n = _emit(tab, val, nb, n, models, _x_context(xm, ym, zm, xp, xm2), bx, 1)
-                        n = _emit(tab, val, nb, n, models, _y_context(bx, xm, ym, zm, yp, ym2), by, 2)
-                    n = _emit(tab, val, nb, n, models, _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean), bz, 3)
+                        n = _emit(tab, val, nb, n, models, _x_context(xm, ym, zm, xp, xm2), bx, np.int64(1))
+                        n = _emit(tab, val, nb, n, models, _y_context(bx, xm, ym, zm, yp, ym2), by, np.int64(2))
+                    n = _emit(tab, val, nb, n, models, _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean), bz, np.int64(3))
                 else:
                     cur = 0
                     ncur = 0
@@ -562,12 +569,12 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
                             break  # implied: bits 6 and 7 (two children at least)
                         ctx = _bit_context(b, cur, ncur, xm, ym, zm, xp, yp, zp, slabs)
                         bit = (byte >> b) & 1
-                        n = _emit(tab, val, nb, n, models, ctx, bit, 4)
+                        n = _emit(tab, val, nb, n, models, ctx, bit, np.int64(4))
                         cur |= bit << b
                         ncur += bit
                     if ncur >= 2:  # else implied: bits 6 and 7, or bit 7 (two children at least)
                         ctx = _bit_context(7, cur, ncur, xm, ym, zm, xp, yp, zp, slabs)
-                        n = _emit(tab, val, nb, n, models, ctx, (byte >> 7) & 1, 4)
+                        n = _emit(tab, val, nb, n, models, ctx, (byte >> 7) & 1, np.int64(4))
                 set_at(atlas, ci, _OCCUPIED | _CODED | byte)
             for i in range(r0, r1):
                 _mark(atlas, rows, cells[i - a0], False)
@@ -591,18 +598,22 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
     return n
 
 
-@njit(cache=True, nogil=True)
-def encode_chunk(vox, counts, depth, chan, log2d):
-    """Code one chunk: ``vox`` sorted distinct Morton codes, ``counts`` points per voxel,
-    ``chan`` (N, C) int64 attribute differences in point order. Returns (tables, words)."""
-    levels, starts = _levels(vox, depth)
+def encode_chunk(vox: np.ndarray, counts: np.ndarray, depth: int, chan: np.ndarray,
+                 log2d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Code one chunk: ``vox`` (V,) int64 sorted distinct Morton codes, ``counts`` (V,) int64
+    points per voxel, ``chan`` (N, C) int64 attribute differences in point order, ``log2d``
+    (C,) int64 their tables' direct sizes. Returns (tables uint8, words uint16).
+
+    Plain Python over the kernels (each releases the GIL): as a kernel of its own it cost numba
+    2 s to compile (its module links and optimises every kernel it calls again), for six calls a chunk."""
+    levels, starts = _levels(vox, np.int64(depth))
     npts = chan.shape[0]
-    cap = 8 * starts[depth] + 2 * vox.shape[0] + 2 * npts * chan.shape[1] + 4096
+    cap = int(8 * starts[depth] + 2 * vox.shape[0] + 2 * npts * chan.shape[1] + 4096)
     while True:
         tab = np.empty(cap, np.int8)
         val = np.empty(cap, np.int16)
         nb = np.empty(cap, np.int8)
-        n = _events(levels, starts, counts, depth, chan, log2d, tab, val, nb)
+        n = _events(levels, starts, counts, np.int64(depth), chan, log2d, tab, val, nb)
         if n >= 0:
             break
         cap *= 4
@@ -610,16 +621,22 @@ def encode_chunk(vox, counts, depth, chan, log2d):
     return pack_tables(freq), encode_events(tab, val, nb, n, freq)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows, mixed_flag, mixed, last):
     """Decode one level of the octree (see :func:`decode_chunk`): the children of the ``ncur``
     nodes ``cur`` (Morton codes; map indices ``curc``) into ``nxt`` (and ``nxtc`` unless the
     level is the ``last``). Returns (children, xa, xb, pos); -1 children for a corrupt stream.
-    Inlined into :func:`_decode_last_level` with constant flags: the level that takes most of
-    the decode gets a loop of its own, without the other kinds' branches and live values; the
-    levels above share :func:`_decode_upper_level`, flags at run time. Each copy is a function
-    of its own: five copies inlined into the one decoder took numba's type inference 98 s to
-    compile (129 s in all, against 12 s for a single loop)."""
+    :func:`decode_chunk` calls it with literal flags for the last level (``False``,
+    :data:`_LAST_MIXED`, ``True``): numba compiles a copy of its own for those literal values
+    (the flags' branches pruned; the level that takes most of the decode gets a loop without the
+    other kinds' branches and live values), and one with the flags at run time (``last`` the
+    literal ``False``) for the levels above. Two compiled copies, not numba IR inlines
+    (``inline="always"``) into two wrappers: numba deep-copies an inlined function's IR block
+    by block, each time with its whole variable scope (quadratic in the size of this loop)."""
+    # int64 values, not literals: the context helpers are compiled once, not once a literal
+    # value (LLVM folds the constant loads after inlining them)
+    zero = _ZERO_ONE[0]
+    one = _ZERO_ONE[1]
     m = 0
     r0 = 0
     while r0 < ncur:
@@ -639,7 +656,7 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
             lean = _lean(sz0, sz2)
             if mixed_flag:
                 cs, cbs, ccs = _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1)
-                cfs = _sse_cell(models, 2, cs, cbs, ccs)
+                cfs = _sse_cell(models, np.int64(2), cs, cbs, ccs)
                 ss = at(sse, cfs)
             else:
                 cs = _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2)
@@ -649,19 +666,19 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
                 # x and y: three models each and their cell (x and y have a table each: the x
                 # event changes no y cell)
                 cax, cbx, ccx = _mixed_x(xm, ym, zm, xp, xm2, sx0, sx1, sx2, fx1, fx2)
-                cay0, cby0, ccy0 = _mixed_y(0, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
-                cay1, cby1, ccy1 = _mixed_y(1, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
-                cx = _sse_cell(models, 0, cax, cbx, ccx)
-                cy0 = _sse_cell(models, 1, cay0, cby0, ccy0)
-                cy1 = _sse_cell(models, 1, cay1, cby1, ccy1)
+                cay0, cby0, ccy0 = _mixed_y(zero, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
+                cay1, cby1, ccy1 = _mixed_y(one, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2)
+                cx = _sse_cell(models, np.int64(0), cax, cbx, ccx)
+                cy0 = _sse_cell(models, np.int64(1), cay0, cby0, ccy0)
+                cy1 = _sse_cell(models, np.int64(1), cay1, cby1, ccy1)
                 sx = at(sse, cx)
                 sy0 = at(sse, cy0)
                 sy1 = at(sse, cy1)
             else:
                 cax = cbx = ccx = cay0 = cby0 = ccy0 = cay1 = cby1 = ccy1 = 0
                 cx = _x_context(xm, ym, zm, xp, xm2)
-                cy0 = _y_context(0, xm, ym, zm, yp, ym2)
-                cy1 = _y_context(1, xm, ym, zm, yp, ym2)
+                cy0 = _y_context(zero, xm, ym, zm, yp, ym2)
+                cy1 = _y_context(one, xm, ym, zm, yp, ym2)
                 sx = at(models, cx)
                 sy0 = at(models, cy0)
                 sy1 = at(models, cy1)
@@ -672,10 +689,10 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
             else:
                 set_at(models, cs, state_next(ss, single))
             if single:
-                czs = (_z_context(0, 0, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
-                       _z_context(1, 0, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
-                       _z_context(0, 1, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
-                       _z_context(1, 1, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean))
+                czs = (_z_context(zero, zero, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
+                       _z_context(one, zero, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
+                       _z_context(zero, one, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean),
+                       _z_context(one, one, xm, ym, zm, zp, xm2, ym2, np.int64(slope), lean))
                 sz = (at(models, czs[0]), at(models, czs[1]), at(models, czs[2]), at(models, czs[3]))
                 bx, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(sx))
                 by, xa, xb, pos = get_bit(xa, xb, pos, words, nw, state_p(sy1 if bx else sy0))
@@ -748,24 +765,6 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
 
 
 @njit(cache=True, nogil=True)
-def _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, models, sse, atlas, rows):
-    """:func:`_decode_level` for the last level (its children are voxels: no map cells; the
-    single child's x and y bits mixed when ``MIX_LEVELS >= 1``, the flag never)."""
-    return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxt, nvox, models, sse, atlas, rows,
-                         False, MIX_LEVELS >= 1, True)  # fmt: skip
-
-
-@njit(cache=True, nogil=True)
-def _decode_upper_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
-                        mixed_flag, mixed):  # fmt: skip
-    """:func:`_decode_level` for the levels above the last, flags at run time (a copy of its own
-    for the level above the last, with constant flags, cost 11 s of compilation for no measured
-    speed: 0.1 mm bench cloud 428-430 ms either way)."""
-    return _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows,
-                         mixed_flag, mixed, False)  # fmt: skip
-
-
-@njit(cache=True, nogil=True)
 def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
     """Decode one chunk: the Morton codes of its ``npts`` points (sorted, repeated per
     duplicate) into ``codes_out`` and the attribute differences into ``chan_out`` (N, C).
@@ -784,22 +783,22 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
     sse = np.empty(N_SSE, np.uint32)
     atlas = np.zeros(PAD * PAD * PAD, np.int16)
     rows = np.zeros(MAP_ROWS, np.uint64)
-    ncur = np.int64(1)  # not the literal 1: the level functions are compiled for int64 alone
+    ncur = np.int64(1)  # not the literal 1: the level function is compiled for int64 alone
     prior = _prior_states()
     for d in range(depth):
         models[:] = prior  # a copy, as cheap as the fill of 1/2 it replaces
         for k in range(3):
             sse[k * SSE_N**3 : (k + 1) * SSE_N**3] = SSE_INIT
-        # The last level's flags are constants in its function (the rule below, as the encoder
-        # applies it, at d = depth - 1); the levels above pass them here.
+        # The last level's flags are literals (a copy of the level loop of their own); the
+        # rule below, as the encoder applies it, gives them at d = depth - 1.
         if d == depth - 1:  # the children are voxels: no map cells needed
-            m, xa, xb, pos = _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, models, sse,
-                                                atlas, rows)  # fmt: skip
+            m, xa, xb, pos = _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxt, nvox, models, sse,
+                                           atlas, rows, False, _LAST_MIXED, True)  # fmt: skip
         else:
             mixed = d >= depth - MIX_LEVELS
             mixed_flag = depth - 1 - FLAG_MIX_LEVELS <= d < depth - 1
-            m, xa, xb, pos = _decode_upper_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models,
-                                                 sse, atlas, rows, mixed_flag, mixed)  # fmt: skip
+            m, xa, xb, pos = _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse,
+                                           atlas, rows, mixed_flag, mixed, False)  # fmt: skip
         if m < 0:
             return -1
         cur, nxt = nxt, cur

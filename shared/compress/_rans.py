@@ -42,15 +42,16 @@ RAW = -1
 BIN = -2
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def at(a, i):
     """``a[i]`` for an index ``i`` known not to be negative: with an unsigned index numba adds no
     negative-index wraparound (a compare and a select per load), and constant offsets fold into
-    the address."""
+    the address. A plain kernel, inlined by LLVM (as :func:`set_at`, :func:`get_bit` and the
+    model helpers): numba's IR inlining of its hundreds of call sites cost seconds of compilation."""
     return a[np.uint64(i)]
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def set_at(a, i, v):
     """``a[i] = v`` for an index ``i`` known not to be negative (see :func:`at`)."""
     a[np.uint64(i)] = v
@@ -279,7 +280,7 @@ def get_raw(xa, xb, pos, words, nw, k):
     return v, xb, xa, pos
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def get_bit(xa, xb, pos, words, nw, p):
     """Decode a :data:`BIN` event of probability ``p / PROB_SCALE`` of a one: returns (bit, xa, xb, pos)."""
     slot = xa & (PROB_SCALE - 1)
@@ -311,19 +312,19 @@ MODEL_LIMIT = 32
 RATE_SHIFT = np.array([max(1, ((2 * (k + 2) ** 2).bit_length() - 1) // 2) for k in range(256)], np.int64)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def state_p(s):
     """The :data:`BIN` event probability (PROB_BITS) of a model's state ``s``."""
     return np.int64(s & 0xFFFF) >> (16 - PROB_BITS)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def state_next(s, bit):
     """A model's state ``s`` adapted to ``bit`` (integers only: encoder and decoder agree)."""
     return adapt_state(s, bit, MODEL_LIMIT)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def adapt_state(s, bit, limit):
     """State ``s`` (16-bit probability of a one, event count above it) adapted to ``bit``: the
     n-th update moves the probability 2**-RATE_SHIFT[min(n, limit)] (about 1 / (n + 2)) of the
@@ -340,13 +341,13 @@ def adapt_state(s, bit, limit):
     return np.uint32(p | (min(n + 1, 255) << 16))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def model_p(models, ctx):
     """The :data:`BIN` event probability (PROB_BITS) of context ``ctx``'s model."""
     return state_p(at(models, ctx))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def model_update(models, ctx, bit):
     """Adapt context ``ctx``'s model to ``bit``."""
     set_at(models, ctx, state_next(at(models, ctx), bit))
