@@ -76,8 +76,9 @@ class DecodeParams:
     ``max_drop``: at most this many finest bits are dropped for a coarser code.
     ``response``: the camera's response (stored value -> linear light). None: the one the
     capture's rig states (``radiometry.camera_response``), sRGB when it states none or there is
-    no rig, as :mod:`shared.scan.albedo` assumes. Without inverse patterns a bit is read against the white/black midpoint, and the
-    projector's half-way light lies at the midpoint of linear light, not of stored values: under
+    no rig, as :mod:`shared.scan.albedo` assumes. Without inverse patterns a bit is read against
+    the white/black midpoint, and the projector's half-way light lies at the midpoint of linear
+    light, not of stored values: under
     an sRGB camera the stored midpoint moves every stripe edge (median column error 0.19 against
     0.016 projector pixels on the simulated bunny). With inverses the response does not matter:
     pattern and inverse cross where their light is equal, whatever the curve.
