@@ -101,6 +101,10 @@ class _View:
     scale_mm: float
     gain: float = 1.0
 
+    def projector_centre_mm(self) -> np.ndarray:
+        """(3,) the projector's centre in this view's camera frame, mm (X_p = R X_c + T)."""
+        return -np.asarray(self.rig.R, np.float64).T @ np.asarray(self.rig.T, np.float64).ravel() * self.scale_mm
+
 
 @dataclass
 class PhotoSource:
@@ -168,8 +172,7 @@ class PhotoSource:
             alb[k, idx] = a
             wts[k, idx] = np.maximum(w, 0.0)
             if self.params.specular_lobe_deg > 0:
-                # The projector's centre in this camera's frame (mm): X_p = R X_c + T.
-                pc = -np.asarray(view.rig.R, np.float64).T @ np.asarray(view.rig.T, np.float64).ravel() * s
+                pc = view.projector_centre_mm()
                 Xi = X[idx]
                 to_proj = pc - Xi
                 half = to_cam[idx] + to_proj / np.maximum(np.linalg.norm(to_proj, axis=1, keepdims=True), 1e-12)
@@ -225,7 +228,7 @@ class PhotoSource:
         # One reference distance for all views (the median distance from view 0's projector), so
         # their albedos share a scale before the gains level what remains.
         v0 = self.views[0]
-        proj = -np.asarray(v0.rig.R, np.float64).T @ np.asarray(v0.rig.T, np.float64).ravel() * v0.scale_mm
+        proj = v0.projector_centre_mm()
         self.reference_distance_mm = float(np.median(np.linalg.norm(P - (v0.R @ proj + v0.T), axis=1)))
         alb, wts, lobe = self._per_view(P, N, scene)
         gains = np.ones(len(self.views))
