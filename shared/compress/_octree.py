@@ -281,6 +281,8 @@ def _lean(sz0, sz2):
 
 @njit(cache=True, nogil=True)
 def _any(v, mask):
+    # Callers pass the mask as np.int64(...), not a literal: numba compiles a copy of a kernel
+    # per literal argument value (nine copies of this one before).
     return np.int64((v & mask) != 0)
 
 
@@ -296,17 +298,17 @@ def _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2):
 @njit(cache=True, nogil=True)
 def _x_context(xm, ym, zm, xp, xm2):
     """Context of a single child's x bit: where the past neighbours' children lie along x."""
-    return C_X + (_any(xm, 0xAA) | (_any(xm, 0x55) << 1) | (((xp >> 8) & 1) << 2) | (_any(ym, 0xAA) << 3)
-                  | (_any(ym, 0x55) << 4) | (_any(zm, 0xAA) << 5) | (_any(zm, 0x55) << 6)
-                  | (_any(xm2, 0xAA) << 7) | (_any(xm2, 0x55) << 8))
+    return C_X + (_any(xm, np.int64(0xAA)) | (_any(xm, np.int64(0x55)) << 1) | (((xp >> 8) & 1) << 2) | (_any(ym, np.int64(0xAA)) << 3)
+                  | (_any(ym, np.int64(0x55)) << 4) | (_any(zm, np.int64(0xAA)) << 5) | (_any(zm, np.int64(0x55)) << 6)
+                  | (_any(xm2, np.int64(0xAA)) << 7) | (_any(xm2, np.int64(0x55)) << 8))
 
 
 @njit(cache=True, nogil=True)
 def _y_context(bx, xm, ym, zm, yp, ym2):
     """Context of a single child's y bit (its x bit ``bx`` known)."""
     return C_Y + (_any(ym, 0x44 << bx) | (_any(ym, 0x11 << bx) << 1) | (((yp >> 8) & 1) << 2)
-                  | (_any(xm, 0x22) << 3) | (_any(xm, 0x88) << 4) | (((zm >> (4 | bx)) & 1) << 5)
-                  | (((zm >> (6 | bx)) & 1) << 6) | (bx << 7) | (_any(ym2, 0xCC) << 8) | (_any(ym2, 0x33) << 9))
+                  | (_any(xm, np.int64(0x22)) << 3) | (_any(xm, np.int64(0x88)) << 4) | (((zm >> (4 | bx)) & 1) << 5)
+                  | (((zm >> (6 | bx)) & 1) << 6) | (bx << 7) | (_any(ym2, np.int64(0xCC)) << 8) | (_any(ym2, np.int64(0x33)) << 9))
 
 
 @njit(cache=True, nogil=True)
@@ -324,7 +326,7 @@ def _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, slope, lean):
     return C_Z + (col | (((zm >> (col | 4)) & 1) << 2) | (((zm >> col) & 1) << 3) | (((zp >> 8) & 1) << 4)
                   | (((xm >> (1 | (by << 1))) & 1) << 5) | (((xm >> (5 | (by << 1))) & 1) << 6)
                   | (((ym >> (bx | 2)) & 1) << 7) | (((ym >> (bx | 6)) & 1) << 8)
-                  | (_any(xm2, 0xF0) << 9) | (_any(xm2, 0x0F) << 10) | (_any(ym2, 0xF0) << 11) | (_any(ym2, 0x0F) << 12)
+                  | (_any(xm2, np.int64(0xF0)) << 9) | (_any(xm2, np.int64(0x0F)) << 10) | (_any(ym2, np.int64(0xF0)) << 11) | (_any(ym2, np.int64(0x0F)) << 12)
                   | ((slope & 3) << 13) | (lean << 15))
 
 
@@ -769,7 +771,7 @@ def decode_chunk(tables, words, nvox, npts, depth, log2d, codes_out, chan_out):
     """Decode one chunk: the Morton codes of its ``npts`` points (sorted, repeated per
     duplicate) into ``codes_out`` and the attribute differences into ``chan_out`` (N, C).
     Returns 0, or -1 for a corrupt stream."""
-    freq, used = unpack_tables(tables, NTABLES)
+    freq, used = unpack_tables(tables, np.int64(NTABLES))  # int64: one signature with the range codec's
     nw = words.shape[0]
     if used < 0 or used != tables.shape[0] or nw < 4:
         return -1
