@@ -66,6 +66,8 @@ class IsolationParams:
         belong to the support.
     support_gap : the object's lowest seen samples may stand this share of its height above the
         support plane (:func:`support_plane`).
+    disc_reach : the plate's disc is sought among the support plane's samples within this many of
+        the object's sphere radii of its centre.
     cluster_step : the object's samples are connected on a grid of this many sample sizes.
     min_object_share : the object (what moves, above the support) must hold at least this share of
         the set's samples, else the set is all backdrop.
@@ -80,6 +82,7 @@ class IsolationParams:
     fill_fraction: float = 0.03
     support_tolerance: float = 1.5
     support_gap: float = 0.15
+    disc_reach: float = 2.5
     cluster_step: float = 3.0
     min_object_share: float = 0.01
     foreign_static_ratio: float = 0.5
@@ -327,7 +330,8 @@ def isolate_object(views: Sequence[ViewCloud], scanset: ScanSet,
             keep = _object_cluster(label, sizes, owner[region], len(views))
             idx = np.flatnonzero(region)
             region[idx[~keep]] = False
-        disc = _disc(near_xyz, n, d, tol, pooled[region])
+        disc = _disc(_plane_samples(views, static, n, d, tol, first.center, params.disc_reach * first.radius), n, d, tol,
+                     pooled[region])
     if region.sum() < max(200, params.min_object_share * total):
         raise InputError("views", f"every view shows only geometry that does not turn ({100.0 * n_static / total:.1f} % "
                                   f"of the samples static, {100.0 * support_removed / total:.1f} % support; what moves "
@@ -405,6 +409,20 @@ def _object_cluster(label: np.ndarray, sizes: np.ndarray, owner: np.ndarray, n_v
         ok = views_in == views_in.max()
     best = int(np.argmax(np.where(ok, sizes, -1)))
     return label == best
+
+
+def _plane_samples(views: Sequence[ViewCloud], static: Sequence[np.ndarray], n: np.ndarray, d: float, tol: float,
+                   centre: np.ndarray, reach: float) -> np.ndarray:
+    """(N, 3) mm the static samples within ``tol`` of the plane ``n.x + d = 0`` and ``reach`` mm of
+    ``centre``: the plate's disc, which reaches past the object's sphere (the simulated teapot's
+    sphere is centred 106 mm off the axis of a 201 mm plate; cut at the sphere, the disc's visible
+    rim came out one-sided and its centre 9.6 mm off the axis, and the angle search failed)."""
+    out = []
+    for v, m in zip(views, static, strict=True):
+        s = v.xyz[m]
+        dc = s - centre
+        out.append(s[(np.abs(s @ n + d) <= tol) & (np.einsum("ij,ij->i", dc, dc) <= reach**2)])
+    return np.concatenate(out)
 
 
 def _disc(static_xyz: np.ndarray, n: np.ndarray, d: float, tol: float, obj: np.ndarray) -> dict[str, Any] | None:

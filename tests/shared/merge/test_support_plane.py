@@ -14,7 +14,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from shared.merge.isolate import support_plane
+from shared.merge.isolate import IsolationParams, _plane_samples, support_plane
+from shared.merge.isolate import _disc as _disc_of
+from shared.merge.views import ViewCloud
 
 UP = np.array([0.0, 0.94, -0.34])  # a camera looking down at the table
 UP /= np.linalg.norm(UP)
@@ -67,3 +69,35 @@ def test_a_plane_far_below_the_object_is_no_support() -> None:
     for size in (0.25, 1.0):
         static, body = _scene(size, lowest=80.0)
         assert support_plane(static, body, 1.5 * size) is None
+
+
+def test_the_plate_disc_is_whole_when_the_object_stands_off_its_sphere() -> None:
+    """The plate's disc (centre on the turntable's axis, radius at its rim) from the support plane's
+    samples, when the object's sphere is centred well off the axis (the simulated teapot at
+    2048x1536: 98 mm above the plate and 52 mm across it, radius 192 mm, on a 201 mm plate). Gathered
+    only within the sphere's reach, the plate's far side was cut away, the visible rim came out
+    one-sided and the centre 13.8 mm off the axis, which defeated the angle search."""
+    size = 0.25
+    tol = 1.5 * size
+    rng = np.random.default_rng(1)
+    plate_r = 201.0
+    plate = _disc(rng, 400000, 0.0, plate_r, 0.0, 0.3 * size)
+    rel = plate - ORIGIN
+    plate = plate[np.hypot(rel @ E1, rel @ E2) > 60.0]  # the object's foot hides the middle
+    table = _disc(rng, 200000, 215.0, 450.0, -12.0, 0.3 * size)
+    static = np.concatenate([plate, table])
+    view = ViewCloud(index=0, name="view_00", xyz=static, normals=np.tile(UP, (len(static), 1)).astype(np.float32),
+                     size=np.full(len(static), size, np.float32), confidence=np.ones(len(static), np.float32))
+    centre = ORIGIN + 98.0 * UP + 52.0 * E1
+    radius = 192.0
+    h = rng.uniform(5.0, 176.0, 20000)
+    a = rng.uniform(0.0, 2.0 * np.pi, 20000)
+    body = ORIGIN + np.outer(55.0 * np.cos(a), E1) + np.outer(55.0 * np.sin(a), E2) + np.outer(h, UP)
+    d = -float(UP @ ORIGIN)
+    on = _plane_samples([view], [np.ones(len(static), bool)], UP, d, tol, centre, IsolationParams().disc_reach * radius)
+    disc = _disc_of(on, UP, d, tol, body)
+    assert disc is not None
+    off = disc["centre"] - ORIGIN
+    off_axis = float(np.linalg.norm(off - UP * (off @ UP)))
+    print(f"disc centre {off_axis:.2f} mm off the axis, radius {disc['radius']:.2f} mm (true {plate_r} mm)")
+    assert off_axis <= 0.01 * plate_r and abs(disc["radius"] - plate_r) <= 0.02 * plate_r
