@@ -1,13 +1,13 @@
 """How the virtual rig (:mod:`shared.sim.simulate`) forms its images: :class:`ImagingParams` and
 the per-capture set-up the pattern images are rendered from.
 
-:func:`_render_setup` casts the camera's rays into the scene (which surface each pixel sees, its
-point and normal, the ground truth), builds the projector's shadow map, and tabulates what every
-pattern image shares: the projector coordinates and irradiance of each lit pixel, its albedo,
-ambient and specular terms, the defocus blur levels of the pattern (:class:`_Profiles`,
-:func:`_profile_table`) and, for planes that ask for it, one bounce of diffuse
-inter-reflection (:func:`_interreflection_setup`). :mod:`shared.sim.simulate` renders each
-pattern image from the :class:`_Render` it returns; this module never imports that one.
+:func:`_render_setup` casts the camera's rays into the scene (which surface each pixel sees: the
+ground truth), builds the projector's shadow map, and tabulates every per-pixel term the images
+share (:class:`_Shading`): a visible pixel's image is ``P * A + B``, ``P`` the pattern's value at
+its projector position, blurred to its defocus level (the profile tables of :class:`_Profiles`,
+:func:`_profile_table`), plus one bounce of diffuse inter-reflection between planes that ask for
+it (:func:`_interreflection_setup`). :mod:`shared.sim.simulate` renders each pattern image from
+the :class:`_Render` it returns; this module never imports that one.
 """
 
 from __future__ import annotations
