@@ -36,6 +36,7 @@ Larger axes stream in batches of pattern/inverse pairs (about 160 MB of images a
 whole-frame code planes. A small thread pool reads images ahead (PNG decoding releases the
 GIL): the row patterns load while the columns are decoded. Working memory is about 25 bytes
 per camera pixel plus one axis's images: a 15 MP 8-bit capture peaks near 1.1 GB.
+The kernels run on :func:`kernel_threads` threads, counted in :mod:`shared.scan._kernel_threads`.
 """
 
 from __future__ import annotations
@@ -46,7 +47,6 @@ import os
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
-from contextlib import contextmanager
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -61,7 +61,19 @@ from shared.formats.capture import Capture, CodeImage, code_bits
 from shared.formats.images import prepare_png_reading, probe_image, read_grey, read_grey_and_colour
 from shared.formats.rig import load_rig
 from shared.scan._decode_kernels import _bit_planes, _decode_rows, _finish_rows, _grey_rgb
+from shared.scan._kernel_threads import kernel_thread_scope, kernel_threads
 from shared.scan.albedo import CameraResponse, response_for_rig
+
+__all__ = [
+    "DecodeParams",
+    "Decoded",
+    "decode_capture",
+    "decode_stack",
+    "kernel_thread_scope",
+    "kernel_threads",
+    "load_decoded",
+    "save_decoded",
+]
 
 log = logging.getLogger(__name__)
 
@@ -118,105 +130,6 @@ class Decoded:
     @property
     def shape(self) -> tuple[int, int]:
         return (int(self.column.shape[0]), int(self.column.shape[1]))
-
-
-# --------------------------------------------------------------------------- threads
-
-
-def _read_proc(path: str) -> bytes | None:
-    """The bytes of a /proc file (one read: these are under a page), or None when it cannot be
-    read. Raw ``os`` calls: ``Path.read_text`` cost ~15 us a file, and :func:`kernel_threads`
-    reads one per thread of the process every decode."""
-    try:
-        fd = os.open(path, os.O_RDONLY)
-    except OSError:
-        return None
-    try:
-        return os.read(fd, 4096)
-    except OSError:
-        return None
-    finally:
-        os.close(fd)
-
-
-def _own_running() -> int:
-    """Runnable threads of this process right now (the caller among them), from
-    /proc/self/task; 1 when unknown."""
-    n = 0
-    try:
-        tasks = os.listdir("/proc/self/task")
-    except OSError:
-        return 1
-    for task in tasks:
-        stat = _read_proc(f"/proc/self/task/{task}/stat")
-        if stat is None:
-            continue  # the thread has ended
-        # The state letter follows the command name, which may itself hold ") ".
-        end = stat.rfind(b")")
-        n += stat[end + 2 : end + 3] == b"R"
-    return max(n, 1)
-
-
-def _running_tasks() -> int | None:
-    """Runnable tasks of the whole machine right now (the caller among them), from
-    /proc/loadavg, or None when unknown."""
-    loadavg = _read_proc("/proc/loadavg")
-    try:
-        return int(loadavg.split()[3].split(b"/")[0]) if loadavg is not None else None
-    except (ValueError, IndexError):
-        return None
-
-
-def _others_running() -> int | None:
-    """Runnable threads of other processes right now (from /proc/loadavg's count of runnable
-    tasks, less this process's own: its image readers and kernel workers are no competition),
-    or None when unknown."""
-    # Own threads first: one that stops running before loadavg is read then errs towards
-    # "free", which is what this count is for.
-    own = _own_running()
-    running = _running_tasks()
-    if running is None:
-        return None
-    return max(running - own, 0)
-
-
-def kernel_threads() -> int:
-    """Threads for the numba kernels: as many as there are cores free right now (cores less
-    the runnable threads of other processes at this moment), at least one, at most numba's.
-
-    Two costs decide it. A thread that another process deschedules mid-launch used to hold
-    up the whole launch with numba's fixed split of a prange; the kernels now hand bands out
-    dynamically (:mod:`shared.scan._bands`), so the others take its work. But every launch
-    still ends when all its threads have arrived, and a worker waiting for a core holds up
-    the end by a scheduler time slice: on 2 cores beside 4-5 busy processes, two threads
-    took 28-52 ms for the bench's 1.3 MP decode against 29 ms on one. The count is the
-    current one, not the 1-minute load average, which lags: on a shared machine that has
-    just come free the average kept one thread for a minute (half the speed), and on one
-    that has just filled it kept two.
-    """
-    limit = int(numba.config.NUMBA_NUM_THREADS)
-    budget = cpu_budget()
-    # The caller is one of the runnable tasks, so other processes have at most one fewer: when
-    # even that many leave every thread a core (a quiet machine), this process's own threads
-    # need not be counted, a read of /proc per thread (40-150 us, 2 % of the bench's decode).
-    running = _running_tasks()
-    if running is not None and budget - (running - 1) >= limit:
-        return limit
-    others = _others_running()
-    if others is None:
-        return limit
-    return max(1, min(limit, budget - others))
-
-
-@contextmanager
-def kernel_thread_scope() -> Iterator[None]:
-    """Run the enclosed numba kernels with :func:`kernel_threads` threads, then restore."""
-    before = numba.get_num_threads()
-    numba.set_num_threads(kernel_threads())
-    try:
-        yield
-    finally:
-        numba.set_num_threads(before)
 
 
 # --------------------------------------------------------------------------- streaming

@@ -11,7 +11,7 @@ import pytest
 from shared.core.errors import InputError
 from shared.formats.ply import read_ply, write_ply
 from shared.formats.potree import open_tiles
-from shared.render import octree
+from shared.render import _tileplan, octree
 from shared.render.octree import HIERARCHY_STEP, POINT_DTYPE, build_tiles, quantise
 from tests.support.clouds import synthetic_scan
 
@@ -153,9 +153,9 @@ def test_parallel_build_gives_the_same_bytes(
     change no byte."""
     if chunks_in == "files":
         monkeypatch.setattr(octree, "KEEP_POINTS", 0)
-    monkeypatch.setattr(octree, "MAX_OPEN_FILES", 2)
-    monkeypatch.setattr(octree, "MIN_PART_POINTS", 1_000)
-    monkeypatch.setattr(octree, "READ_CHUNK", 7_000)
+    monkeypatch.setattr(_tileplan, "MAX_OPEN_FILES", 2)
+    monkeypatch.setattr(_tileplan, "MIN_PART_POINTS", 1_000)
+    monkeypatch.setattr(_tileplan, "READ_CHUNK", 7_000)
     out = tmp_path / "par"
     build_tiles(scan, out, workers=2, max_chunk=6_000, max_leaf=300)
     for name in ("octree.bin", "hierarchy.bin", "metadata.json"):

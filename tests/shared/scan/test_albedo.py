@@ -27,9 +27,10 @@ from shared.scan.albedo import (
 from shared.scan.decode import decode_capture
 from shared.scan.pipeline import scan, view_albedo
 from shared.scan.triangulate import triangulate
+from shared.sim._imaging import _albedo
 from shared.sim.raycast import undistort_grid
 from shared.sim.scenes import build_scene
-from shared.sim.simulate import ImagingParams, _albedo, load_truth, make_rig, simulate_capture
+from shared.sim.simulate import ImagingParams, load_truth, make_rig, simulate_capture
 
 #: How the simulator forms today's images: linear sensor, projector cos^3 and camera cos^4 falloff.
 SIM = AlbedoParams(response=CameraResponse("linear"), projector_cos_power=3, camera_cos_power=4)

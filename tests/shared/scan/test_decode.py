@@ -256,7 +256,7 @@ def test_kernel_threads_count_free_cores_not_our_own_threads() -> None:
     import numba
 
     from shared.core.threads import cpu_budget
-    from shared.scan.decode import _others_running, _own_running, kernel_threads
+    from shared.scan._kernel_threads import _others_running, _own_running, kernel_threads
 
     @numba.njit(nogil=True)
     def spin(n: int) -> int:  # pragma: no cover
@@ -297,7 +297,7 @@ def test_bands_are_handed_out_once_each(monkeypatch: pytest.MonkeyPatch) -> None
     (one thread may take all of them), and the decode is the same on one thread as on all."""
     import numba
 
-    decode_module = importlib.import_module("shared.scan.decode")
+    kernel_threads_module = importlib.import_module("shared.scan._kernel_threads")
     from shared.scan._bands import next_item
 
     @numba.njit(parallel=True)
@@ -327,7 +327,7 @@ def test_bands_are_handed_out_once_each(monkeypatch: pytest.MonkeyPatch) -> None
     cols = [(5 - k, rng.integers(0, 255, (70, 90), dtype=np.uint8), rng.integers(0, 255, (70, 90), dtype=np.uint8))
             for k in range(6)]  # fmt: skip
     every = decode_stack(white, black, cols, [], (64, 48))
-    monkeypatch.setattr(decode_module, "kernel_threads", lambda: 1)
+    monkeypatch.setattr(kernel_threads_module, "kernel_threads", lambda: 1)
     one = decode_stack(white, black, cols, [], (64, 48))
     for name in ("column", "confidence", "lit", "column_level"):
         assert np.array_equal(getattr(one, name), getattr(every, name), equal_nan=True), name
