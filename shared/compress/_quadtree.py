@@ -1,6 +1,6 @@
 """Quadtree range-image band codec kernels (private; the public API is :mod:`shared.compress.range`).
 
-A band of rows is coded as one rANS stream (codec ``quadtree-lp-2``) of three parts:
+A band of rows is coded as one rANS stream (codec ``quadtree-lp-3``) of three parts:
 
 1. the validity mask, exactly: per row the lengths of alternating invalid/valid runs (the
    last run of a row is implied);
@@ -13,8 +13,9 @@ A band of rows is coded as one rANS stream (codec ``quadtree-lp-2``) of three pa
    detailed surfaces stay in large blocks. Model coefficients are integers (fixed point, so
    encoder and decoder evaluate bit-identical predictions), coded as differences from the
    previous leaf's model extrapolated to the new block;
-3. each leaf's predictor (its model, or one of the local predictors over the reconstructed
-   neighbours, :mod:`shared.compress._lpred`), a per-band bias-cancellation flag, then the
+3. per band the flags of bias cancellation and of the weighted predictor, the context merging
+   and the error-feedback weights, each leaf's predictor (its model, or one of the local
+   predictors over the reconstructed neighbours, :mod:`shared.compress._lpred`), then the
    residuals in raster order, each in one of :data:`NCTX` tables chosen by the local
    activity (the neighbours' prediction errors and the curvature of the row above).
 
@@ -432,25 +433,28 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
         return -1
     # 3. each leaf's residual predictor, then the residuals in raster order
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
-    lp.choose_predictors(t, valid, cells, leaves, lcoef, np.int64(nleaf), lossless, opts)
+    none = np.zeros((1, W), np.int64)  # the weighted predictor's arrays where it does not run
+    lp.choose_predictors(t, valid, cells, leaves, lcoef, np.int64(nleaf), lossless, opts, none, np.int64(0))
     # error feedback (lossless mode: in bounded mode the reconstruction's rounding noise in the
     # neighbours' errors made it cost more than it saved): the band's least-squares weights of
     # the W and N neighbours' errors
     aw, an = 0, 0
     if lossless and (opts & lp.OPT_FEEDBACK):
-        aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef)
+        aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef, none)
     aw = np.int64(aw)
     an = np.int64(an)
-    # the flag of bias cancellation, the weights and each leaf's predictor, then the residuals
-    n_res = n + 4 + nleaf
+    # the flags of bias cancellation and the weighted predictor, the weights and each leaf's
+    # predictor, then the residuals
+    n_res = n + 5 + nleaf
     if n < 0 or n_res + 1 > tab.shape[0]:
         return -1
     bias = 0
+    wp = 0
     if not lossless and (opts & lp.OPT_BIAS):
         # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on
         # noise: both ways, the smaller kept
         n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(1), aw, an, np.int64(T_RES),
-                                 tab, val, nb, n_res)
+                                 tab, val, nb, n_res, none, none, np.int64(0))
         if n1 < 0:
             return -1
         with_bias = lp.merged_cost(tab, val, n_res, n1, T_RES, NCTX, 0)
@@ -458,7 +462,7 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
         keep_val = val[n_res:n1].copy()
         keep_nb = nb[n_res:n1].copy()
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
-                                    np.int64(T_RES), tab, val, nb, n_res)
+                                    np.int64(T_RES), tab, val, nb, n_res, none, none, np.int64(0))
         if n_end < 0 or with_bias < lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0):
             bias = 1
             tab[n_res:n1] = keep_tab
@@ -467,9 +471,38 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
             n_end = n1
     else:
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
-                                    np.int64(T_RES), tab, val, nb, n_res)
+                                    np.int64(T_RES), tab, val, nb, n_res, none, none, np.int64(0))
         if n_end < 0:
             return -1
+        if lossless and (opts & lp.OPT_WP):
+            # the weighted predictor (a choice of every leaf, its error in the context): both
+            # ways, the smaller kept (it lost on the bunny at 4:1, where the plane fits)
+            without = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0)
+            keep_tab = tab[n_res:n_end].copy()
+            keep_val = val[n_res:n_end].copy()
+            keep_nb = nb[n_res:n_end].copy()
+            keep_k = leaves[:nleaf, 4].copy()
+            pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, np.int64(nleaf), lossless, opts, pw, np.int64(1))
+            aw1, an1 = 0, 0
+            if opts & lp.OPT_FEEDBACK:
+                aw1, an1 = lp.feedback_weights(t, valid, cells, leaves, lcoef, pw)
+            aw1 = np.int64(aw1)
+            an1 = np.int64(an1)
+            n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw1, an1,
+                                     np.int64(T_RES), tab, val, nb, n_res, pw, pe, np.int64(1))
+            if n1 < 0:
+                return -1
+            if lp.merged_cost(tab, val, n_res, n1, T_RES, NCTX, 0) < without:
+                wp = 1
+                aw = aw1
+                an = an1
+                n_end = n1
+            else:
+                tab[n_res:n_end] = keep_tab
+                val[n_res:n_end] = keep_val
+                nb[n_res:n_end] = keep_nb
+                leaves[:nleaf, 4] = keep_k
     # small bands: fewer residual tables where the tables cost more than the contexts save
     cshift = 0
     best = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0)
@@ -484,6 +517,7 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
                 tab[i] = T_RES + ((tab[i] - T_RES) >> cshift)
     n = put(tab, val, nb, n, T_PRED, bias, 0)
     n = put(tab, val, nb, n, T_PRED, cshift, 0)
+    n = put(tab, val, nb, n, T_PRED, wp, 0)
     n = put(tab, val, nb, n, T_PRED, aw + lp.FB_MAX, 0)
     n = put(tab, val, nb, n, T_PRED, an + lp.FB_MAX, 0)
     for i in range(nleaf):
@@ -608,20 +642,22 @@ def decode_band(tables, words, H, W, lossless, scale, out):
         return -1
     bias, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     cshift, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    wp, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     aw, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     an, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    if bias > 1 or cshift > 2 or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
+    # the weighted predictor runs in lossless bands only (the encoder's choice)
+    if bias > 1 or cshift > 2 or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
         return -1
     for i in range(nleaf):
         k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-        if k >= lp.NK:
+        if k >= (lp.NK if wp else lp.K_WP):
             return -1
         leaves[i, 4] = k
     if pos > nw:
         return -1
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
     xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, np.int64(bias),
-                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), np.int64(cshift), scale,
+                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), np.int64(cshift), np.int64(wp), scale,
                                       np.int64(T_RES), out)
     # A sound stream ends exactly at its last word, both states back where the encoder began.
     if pos != nw or xa != RANS_L or xb != RANS_L:
