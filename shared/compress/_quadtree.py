@@ -2,8 +2,8 @@
 
 A band of rows is coded as one rANS stream (codec ``quadtree-lp-3``) of three parts:
 
-1. the validity mask, exactly: per row the lengths of alternating invalid/valid runs (the
-   last run of a row is implied);
+1. the validity mask, exactly: per row where its alternating invalid/valid runs end, against
+   the row above (:mod:`shared.compress._mask`);
 2. the quadtree: every 64x64 block holding a valid sample either splits into four (down
    to 4x4) or is a leaf with a surface model -- constant, plane, bilinear or quadratic in
    depth -- or with local prediction, whichever the estimated code length favours (Gaussian
@@ -34,6 +34,7 @@ from numba import njit
 
 from shared.compress import _lpred as lp
 from shared.compress._lpred import A_SHIFT, F_SHIFT, FINE, MINB, Q_SHIFT
+from shared.compress._mask import decode_mask, encode_mask
 from shared.compress._rans import (
     NSYM,
     RANS_L,
@@ -57,18 +58,18 @@ NCTX = lp.NCTX
 
 T_SPLIT = 0  # 4 tables, one per splittable level (64, 32, 16, 8)
 T_MODEL = 4
+# T_RUN (8, 9): the mask's explicit run lengths by state (shared.compress._mask)
 T_C0 = 5
 T_C12 = 6
 T_C345 = 7
-T_RUN = 8  # 2 tables: invalid runs, valid runs
 T_PRED = 10  # the leaves' residual predictors
 T_RES = 11
-NTABLES = T_RES + NCTX
+T_EDGE = T_RES + NCTX  # 2 tables: the mask's edges by state (shared.compress._mask)
+NTABLES = T_EDGE + 2
 
 L_SPLIT = 1
 L_MODEL = 2
 L_COEF = 4
-L_RUN = 4
 L_RES = lp.L_RES
 
 #: Parameters of the models 0..3 (constant, plane, bilinear, quadratic) and their estimated bits.
@@ -321,17 +322,8 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
     """Every event of one band; returns the count, or -1 when the event buffers are too small."""
     H, W = t.shape
     n = 0
-    # 1. the mask, as run lengths
-    for y in range(H):
-        x = 0
-        state = False
-        while x < W:
-            e = x
-            while e < W and valid[y, e] == state:
-                e += 1
-            n = put_value(tab, val, nb, n, T_RUN + (1 if state else 0), _run_code(x, e, W), L_RUN)
-            x = e
-            state = not state
+    # 1. the mask, row by row against the row above
+    n = encode_mask(valid, tab, val, nb, n, T_EDGE)
     # 2. the quadtree with its leaves' models
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
     local = (opts & lp.OPT_PRED) != 0
@@ -631,7 +623,7 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     sym, fb = decode_tables(freq)
     xa, xb, pos = dec_init(words)
     valid = np.zeros((H, W), np.bool_)
-    ok, xa, xb, pos = _decode_mask(xa, xb, pos, words, nw, sym, fb, valid)
+    ok, xa, xb, pos = decode_mask(xa, xb, pos, words, nw, sym, fb, valid, T_EDGE)
     if not ok:
         return -1
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
@@ -663,28 +655,6 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     if pos != nw or xa != RANS_L or xb != RANS_L:
         return -1
     return 0
-
-
-@njit(cache=True, nogil=True)
-def _decode_mask(xa, xb, pos, words, nw, sym, fb, valid):
-    H, W = valid.shape
-    for y in range(H):
-        x = 0
-        state = False
-        while x < W:
-            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_RUN + (1 if state else 0), L_RUN)
-            v = np.int64(u)
-            if x == 0:
-                e = W if v == 0 else v - 1
-            else:
-                e = W if v == 0 else x + v
-            if e > W or e < x or pos > nw:
-                return False, xa, xb, pos
-            if state:
-                valid[y, x:e] = True
-            x = e
-            state = not state
-    return True, xa, xb, pos
 
 
 @njit(cache=True, nogil=True)
@@ -778,12 +748,3 @@ def _leaf_cells(H, W, leaves, nleaf):
         n = leaves[i, 2] // MINB
         cells[cy0 : min(cy0 + n, ch), cx0 : min(cx0 + n, cw)] = i
     return cells
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _run_code(x, e, W):
-    """The coded value of run [x, e) of a row of width W: 0 means "to the end of the row";
-    the first run (x == 0, possibly empty) is offset by one."""
-    if e >= W:
-        return 0
-    return e - x + 1 if x == 0 else e - x

@@ -335,3 +335,22 @@ def test_weighted_predictor_is_chosen_where_it_pays_and_round_trips() -> None:
     mask = ~np.isnan(z)
     np.testing.assert_array_equal(np.isnan(out), ~mask)
     np.testing.assert_array_equal(out[mask], expected_lossless(z, 0.02)[mask])
+
+
+def test_masks_coded_against_the_row_above_round_trip() -> None:
+    """Silhouettes drifting by 0 to 6 samples a row (edges within reach of the row above's and
+    beyond it), islands that appear and vanish, rows all valid or all holes, runs touching both
+    ends of the row: the mask decodes exactly, lossless and bounded."""
+    rng = np.random.default_rng(5)
+    h, w = 300, 257
+    yy, xx = np.mgrid[0:h, 0:w]
+    left = np.cumsum(rng.integers(-6, 7, h)) % 60
+    right = w - 1 - (np.cumsum(rng.integers(-3, 4, h)) % 40)
+    keep = (xx >= left[:, None]) & (xx <= right[:, None])
+    keep &= ~(((xx - 120) ** 2 + (yy - 150) ** 2 < 900) & (rng.random((h, w)) < 0.3))  # ragged hole
+    keep[40:44] = True
+    keep[80:83] = False
+    keep[100:140:7, 200:203] = False  # islands of holes in single rows
+    z = np.where(keep, 800.0 + 0.05 * xx + rng.normal(0, 0.1, (h, w)), np.nan).astype(np.float32)
+    check_lossless(z, 0.02)
+    check_bounded(z, 0.1)
