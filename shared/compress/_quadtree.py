@@ -45,13 +45,12 @@ from shared.compress._rans import (
     get_symbol,
     get_value,
     normalise,
-    pack_tables,
     put,
     put_value,
-    unpack_tables,
     unzigzag,
     zigzag,
 )
+from shared.compress._tables import pack_codes, quantise_tables, unpack_codes
 
 TOP = 64  # top block size (a band's height is a multiple of it)
 NCTX = lp.NCTX
@@ -570,9 +569,9 @@ def encode_band(t, valid, lossless, opts):
             break
         cap *= 4
     counts = count_symbols(tab, val, n, NTABLES)
-    freq = normalise(counts)
+    codes, freq = quantise_tables(normalise(counts))
     words = encode_events(tab, val, nb, n, freq)
-    return pack_tables(freq), words
+    return pack_codes(codes), words
 
 
 @njit(cache=True, nogil=True)
@@ -614,7 +613,7 @@ def _cell_integral(valid):
 def decode_band(tables, words, H, W, lossless, scale, out):
     """Decode one band into ``out`` (H, W) float32 (NaN where invalid). ``scale`` is the
     quantum (lossless) or the fine unit (bounded). Returns 0, or -1 for a corrupt stream."""
-    freq, used = unpack_tables(tables, NTABLES)
+    freq, used = unpack_codes(tables, NTABLES)
     if used < 0 or used != tables.shape[0]:
         return -1
     nw = words.shape[0]

@@ -354,3 +354,32 @@ def test_masks_coded_against_the_row_above_round_trip() -> None:
     z = np.where(keep, 800.0 + 0.05 * xx + rng.normal(0, 0.1, (h, w)), np.nan).astype(np.float32)
     check_lossless(z, 0.02)
     check_bounded(z, 0.1)
+
+
+def test_compact_tables_round_trip_and_refuse_damage() -> None:
+    """The log-scale table codes rebuild the frequencies the encoder coded with (every used
+    symbol kept, each table summing to the rANS scale); truncated or padded-with-ones tables
+    are refused."""
+    from shared.compress import _rans, _tables
+
+    rng = np.random.default_rng(3)
+    counts = np.zeros((6, _rans.NSYM), np.int64)
+    counts[0, :40] = (1e5 * np.exp(-np.arange(40) / 6.0)).astype(np.int64) + 1
+    counts[1, 7] = 12  # a single symbol
+    counts[3, rng.integers(0, _rans.NSYM, 50)] = rng.integers(1, 10_000, 50)  # sparse, wide
+    freq = _rans.normalise(counts)
+    codes, coded = _tables.quantise_tables(freq)
+    buf = _tables.pack_codes(codes)
+    back, used = _tables.unpack_codes(buf, 6)
+    assert used == buf.size
+    np.testing.assert_array_equal(back, coded)
+    np.testing.assert_array_equal(back > 0, counts > 0)
+    assert set(back.sum(1)) == {0, _rans.PROB_SCALE}
+    # within a step of 2**(1/8) (and the renormalisation) of the exact frequencies
+    m = freq > 64
+    assert np.abs(np.log2(back[m] / freq[m])).max() < 0.15
+    assert _tables.unpack_codes(buf[:-2], 6)[1] == -1
+    padded = buf.copy()
+    padded[-1] |= 1  # a stray bit after the last code (or a different code)
+    res = _tables.unpack_codes(padded, 6)
+    assert res[1] == -1 or not np.array_equal(res[0], coded)
