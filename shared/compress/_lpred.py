@@ -21,7 +21,8 @@ predictions above it):
   the W, N, NW, NE prediction errors and the curvature of the row above, in half-octave steps;
   in a band running the weighted predictor, half that plus twice the predictor's largest
   neighbour error (:func:`_wp_activity`); a small band merges neighbouring contexts (2 or 4 to
-  a table) where its stored tables would cost more than the contexts save (:func:`merged_cost`);
+  a table) where its stored tables would cost more than the contexts save, and every band
+  slides its tables along the activity levels to where its samples are (:func:`context_choice`);
 - bias cancellation (LOCO-I/CALIC), per band where it pays (bounded mode): per context of
   gradient signs and activity, the running mean of the prediction's error is added.
 
@@ -68,16 +69,20 @@ OPT_FEEDBACK = 16  # the W and N neighbours' prediction errors fed back into the
 OPT_WP = 32  # the weighted predictor (lossless mode: per band, where it pays)
 OPT_ALL = 63
 
-#: Context of an activity a (fine units): min(NCTX - 1, floor(2 log2(a / 4 + 1))).
-CTX_LUT = np.array([min(NCTX - 1, int(2 * math.log2(v + 1))) for v in range(1 << 10)], np.int64)
+#: Activity levels (half octaves) of the residuals: a band's NCTX tables take the levels from
+#: its offset (:func:`context_choice`) on, the ones below and above joining the ends.
+NLEVEL = 24
+MAX_COFS = NLEVEL - NCTX
+#: Level of an activity a (fine units): min(NLEVEL - 1, floor(2 log2(a / 4 + 1))).
+LEVEL_LUT = np.array([min(NLEVEL - 1, int(2 * math.log2(v + 1))) for v in range(1 << 12)], np.int8)
 #: 2**16 / n for the bias means (n < BIAS_RESET + 1).
 RECIP = np.array([0] + [(1 << 16) // n for n in range(1, BIAS_RESET + 1)], np.int64)
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _ctx_of(act):
+def _level_of(act):
     v = act >> 2
-    return at(CTX_LUT, v) if v < 1024 else NCTX - 1
+    return np.int64(at(LEVEL_LUT, v)) if v < 4096 else NLEVEL - 1
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -337,7 +342,7 @@ def _context(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
         act += 2 * ew + en + ((enw + ene) >> 1)
     if wp:
         act = _wp_activity(act, me)
-    return _ctx_of(act)
+    return _level_of(act)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -429,14 +434,14 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
             b = ra[x + 1]
             c = ra[x]
             d = ra[x + 2]
-            ctx = _context(a, b, c, d, eb[x], ea[x + 1], ea[x], ea[x + 2], grad, errs, wp, at(pe_row, x))
+            lev = _context(a, b, c, d, eb[x], ea[x + 1], ea[x], ea[x + 2], grad, errs, wp, at(pe_row, x))
             k = kr[x]
             pl = at(pw_row, x) if k == K_WP else local_pred(k, a, b, c, d, pf[x])
             p0 = pl + ((aw * sb[x] + an * sa[x + 1]) >> FB_SHIFT)
             q = 0
             p = p0
             if bias:
-                q = (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (ctx >> 2)
+                q = (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (min(lev, NCTX - 1) >> 2)
                 p += bcor[q]
             if lossless:
                 r = (t[y, x] >> F_SHIFT) - ((p + half) >> F_SHIFT)
@@ -444,7 +449,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
             else:
                 r = (t[y, x] - p + half) >> F_SHIFT
                 rec = p + (r << F_SHIFT)
-            n = put_value(tab, val, nb, n, t_res + ctx, zigzag(r), L_RES)
+            n = put_value(tab, val, nb, n, t_res + lev, zigzag(r), L_RES)  # a level: see context_choice
             rb[x + 1] = rec
             eb[x + 1] = min(abs(rec - p), E_LIM)
             sb[x + 1] = min(max(rec - pl, -E_LIM), E_LIM)
@@ -473,8 +478,8 @@ def _bias_update(bsum, bcnt, bcor, q, err):
 
 
 @njit(cache=True, nogil=True)
-def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, cshift, wp,
-                     scale, t_res, out):
+def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, cofs, cshift,
+                     wp, scale, t_res, out):
     """Inverse of :func:`encode_residuals` (with every option on) into ``out`` (H, W) float32,
     NaN where invalid, running the weighted predictor along when ``wp``; returns (xa, xb, pos)."""
     H, W = valid.shape
@@ -525,14 +530,15 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
             if wp:
                 pw, me = wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub)
                 act = _wp_activity(act, me)
-            ctx = _ctx_of(act)
+            lev = _level_of(act)
             pl = pw if k == K_WP else local_pred(k, a, b, c, d, at(pf, x))
             p0 = pl + ((aw * at(sb, x) + an * at(sa, x + 1)) >> FB_SHIFT)
             q = 0
             p = p0
             if bias:
-                q = (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (ctx >> 2)
+                q = (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (min(lev, NCTX - 1) >> 2)
                 p += at(bcor, q)
+            ctx = min(max(lev - cofs, 0), NCTX - 1)
             u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + (ctx >> cshift), L_RES)
             r = unzigzag(u)
             if lossless:
@@ -560,30 +566,54 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
 
 
 @njit(cache=True, nogil=True)
-def merged_cost(tab, val, n0, n1, t0, nt, shift):
-    """Estimated bits of the residual events n0..n1-1 (tables t0..t0+nt-1) with their contexts
-    merged ``shift`` times (table ``t0 + (ctx >> shift)``): the static-table code length plus the
-    stored tables (:mod:`shared.compress._tables`: about 4 bits a symbol used, 2 a symbol absent,
-    up to the last used; measured against 8 and 16, the old byte-wise tables' cost, on the
-    dragon scans 5.089 -> 5.068 and 4.892 -> 4.880 bits per valid sample, lossless)."""
-    counts = np.zeros((nt, 512), np.int64)
+def context_choice(tab, val, n0, n1, t0):
+    """The residual tables of events n0..n1-1 (coded by :func:`encode_residuals` with their
+    activity level as table ``t0 + level``): the offset ``cofs`` (0..:data:`MAX_COFS`) and the
+    merging ``cshift`` (0..2) of the least estimated bits, the table of a level being
+    ``t0 + (min(max(level - cofs, 0), NCTX - 1) >> cshift)``. Returns (bits, cofs, cshift). The
+    bits: the static-table code length plus the stored tables (:mod:`shared.compress._tables`:
+    about 4 bits a symbol used, 2 a symbol absent, up to the last used; measured against 8 and
+    16, the old byte-wise tables' cost, on the dragon scans 5.089 -> 5.068 and 4.892 -> 4.880
+    bits per valid sample, lossless). Noisy depth fills the top levels (a fixed offset 0 put
+    30 % of the bunny's samples at 1:1 in the last table); the offset follows the band's noise."""
+    counts = np.zeros((NLEVEL, 512), np.int64)
     for i in range(n0, n1):
         t = tab[i] - t0
-        if 0 <= t < nt:
-            counts[t >> shift, val[i]] += 1
-    bits = 0.0
-    for t in range(nt):
-        tot = 0
-        last = -1
-        for s in range(512):
-            tot += counts[t, s]
-            if counts[t, s] > 0:
-                last = s
-        for s in range(last + 1):
-            c = counts[t, s]
-            if c > 0:
-                bits += c * math.log2(tot / c)
-                bits += 4.0
-            else:
-                bits += 2.0
-    return bits
+        if 0 <= t < NLEVEL:
+            counts[t, val[i]] += 1
+    merged = np.zeros((NCTX, 512), np.int64)
+    best = 1e300
+    best_o = 0
+    best_s = 0
+    for cofs in range(MAX_COFS + 1):
+        for shift in range(3):
+            merged[:, :] = 0
+            for lev in range(NLEVEL):
+                merged[min(max(lev - cofs, 0), NCTX - 1) >> shift, :] += counts[lev, :]
+            bits = 0.0
+            for t in range(NCTX >> shift):
+                tot = 0
+                last = -1
+                for s in range(512):
+                    tot += merged[t, s]
+                    if merged[t, s] > 0:
+                        last = s
+                for s in range(last + 1):
+                    c = merged[t, s]
+                    if c > 0:
+                        bits += c * math.log2(tot / c) + 4.0
+                    else:
+                        bits += 2.0
+            if bits < best:
+                best = bits
+                best_o = cofs
+                best_s = shift
+    return best, best_o, best_s
+
+
+@njit(cache=True, nogil=True)
+def apply_contexts(tab, n0, n1, t0, cofs, cshift):
+    """Turn the levels of the residual events n0..n1-1 into their tables (:func:`context_choice`)."""
+    for i in range(n0, n1):
+        if tab[i] >= t0:
+            tab[i] = t0 + (min(max(tab[i] - t0 - cofs, 0), NCTX - 1) >> cshift)

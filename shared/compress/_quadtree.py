@@ -77,7 +77,7 @@ WS_SIZE = 96
 MODEL_BITS = np.array([8.0, 24.0, 32.0, 48.0])
 TWO_PI_E = 2.0 * math.pi * math.e
 
-assert NSYM >= (1 << L_RES) + 64 and NTABLES <= 32 and lp.NK <= NSYM and 2 * lp.FB_MAX < NSYM
+assert NSYM >= (1 << L_RES) + 64 and NTABLES <= 32 and T_RES + lp.NLEVEL < 128 and lp.NK <= NSYM and 2 * lp.FB_MAX < NSYM
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -436,7 +436,7 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
     an = np.int64(an)
     # the flags of bias cancellation and the weighted predictor, the weights and each leaf's
     # predictor, then the residuals
-    n_res = n + 5 + nleaf
+    n_res = n + 6 + nleaf
     if n < 0 or n_res + 1 > tab.shape[0]:
         return -1
     bias = 0
@@ -448,13 +448,13 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
                                  tab, val, nb, n_res, none, none, np.int64(0))
         if n1 < 0:
             return -1
-        with_bias = lp.merged_cost(tab, val, n_res, n1, T_RES, NCTX, 0)
+        with_bias = lp.context_choice(tab, val, n_res, n1, T_RES)[0]
         keep_tab = tab[n_res:n1].copy()
         keep_val = val[n_res:n1].copy()
         keep_nb = nb[n_res:n1].copy()
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
                                     np.int64(T_RES), tab, val, nb, n_res, none, none, np.int64(0))
-        if n_end < 0 or with_bias < lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0):
+        if n_end < 0 or with_bias < lp.context_choice(tab, val, n_res, n_end, T_RES)[0]:
             bias = 1
             tab[n_res:n1] = keep_tab
             val[n_res:n1] = keep_val
@@ -468,7 +468,7 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
         if lossless and (opts & lp.OPT_WP):
             # the weighted predictor (a choice of every leaf, its error in the context): both
             # ways, the smaller kept (it lost on the bunny at 4:1, where the plane fits)
-            without = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0)
+            without = lp.context_choice(tab, val, n_res, n_end, T_RES)[0]
             keep_tab = tab[n_res:n_end].copy()
             keep_val = val[n_res:n_end].copy()
             keep_nb = nb[n_res:n_end].copy()
@@ -484,7 +484,7 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
                                      np.int64(T_RES), tab, val, nb, n_res, pw, pe, np.int64(1))
             if n1 < 0:
                 return -1
-            if lp.merged_cost(tab, val, n_res, n1, T_RES, NCTX, 0) < without:
+            if lp.context_choice(tab, val, n_res, n1, T_RES)[0] < without:
                 wp = 1
                 aw = aw1
                 an = an1
@@ -494,19 +494,12 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
                 val[n_res:n_end] = keep_val
                 nb[n_res:n_end] = keep_nb
                 leaves[:nleaf, 4] = keep_k
-    # small bands: fewer residual tables where the tables cost more than the contexts save
-    cshift = 0
-    best = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0)
-    for shift in range(1, 3):
-        cost_m = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, shift)
-        if cost_m < best:
-            best = cost_m
-            cshift = shift
-    if cshift:
-        for i in range(n_res, n_end):
-            if tab[i] >= T_RES:
-                tab[i] = T_RES + ((tab[i] - T_RES) >> cshift)
+    # the residual tables: where along the activity levels, and fewer in a small band where the
+    # tables cost more than the contexts save
+    _, cofs, cshift = lp.context_choice(tab, val, n_res, n_end, T_RES)
+    lp.apply_contexts(tab, n_res, n_end, T_RES, cofs, cshift)
     n = put(tab, val, nb, n, T_PRED, bias, 0)
+    n = put(tab, val, nb, n, T_PRED, cofs, 0)
     n = put(tab, val, nb, n, T_PRED, cshift, 0)
     n = put(tab, val, nb, n, T_PRED, wp, 0)
     n = put(tab, val, nb, n, T_PRED, aw + lp.FB_MAX, 0)
@@ -632,12 +625,13 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     if nleaf < 0 or pos > nw:
         return -1
     bias, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    cofs, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     cshift, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     wp, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     aw, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     an, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     # the weighted predictor runs in lossless bands only (the encoder's choice)
-    if bias > 1 or cshift > 2 or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
+    if bias > 1 or cofs > lp.MAX_COFS or cshift > 2 or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
         return -1
     for i in range(nleaf):
         k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
@@ -648,7 +642,7 @@ def decode_band(tables, words, H, W, lossless, scale, out):
         return -1
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
     xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, np.int64(bias),
-                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), np.int64(cshift), np.int64(wp), scale,
+                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), np.int64(cofs), np.int64(cshift), np.int64(wp), scale,
                                       np.int64(T_RES), out)
     # A sound stream ends exactly at its last word, both states back where the encoder began.
     if pos != nw or xa != RANS_L or xb != RANS_L:
