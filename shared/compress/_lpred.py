@@ -566,21 +566,24 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
 
 
 @njit(cache=True, nogil=True)
-def context_choice(tab, val, n0, n1, t0):
+def context_choice(tab, val, nb, n0, n1, t0):
     """The residual tables of events n0..n1-1 (coded by :func:`encode_residuals` with their
     activity level as table ``t0 + level``): the offset ``cofs`` (0..:data:`MAX_COFS`) and the
     merging ``cshift`` (0..2) of the least estimated bits, the table of a level being
     ``t0 + (min(max(level - cofs, 0), NCTX - 1) >> cshift)``. Returns (bits, cofs, cshift). The
-    bits: the static-table code length plus the stored tables (:mod:`shared.compress._tables`:
+    bits: the static-table code length, the escapes' raw bits (``nb``) and the stored tables (:mod:`shared.compress._tables`:
     about 4 bits a symbol used, 2 a symbol absent, up to the last used; measured against 8 and
     16, the old byte-wise tables' cost, on the dragon scans 5.089 -> 5.068 and 4.892 -> 4.880
     bits per valid sample, lossless). Noisy depth fills the top levels (a fixed offset 0 put
     30 % of the bunny's samples at 1:1 in the last table); the offset follows the band's noise."""
     counts = np.zeros((NLEVEL, 512), np.int64)
+    raw = 0.0  # the escapes' raw bits (the same whatever the tables)
     for i in range(n0, n1):
         t = tab[i] - t0
         if 0 <= t < NLEVEL:
             counts[t, val[i]] += 1
+        elif tab[i] < 0:
+            raw += nb[i]
     merged = np.zeros((NCTX, 512), np.int64)
     best = 1e300
     best_o = 0
@@ -590,7 +593,7 @@ def context_choice(tab, val, n0, n1, t0):
             merged[:, :] = 0
             for lev in range(NLEVEL):
                 merged[min(max(lev - cofs, 0), NCTX - 1) >> shift, :] += counts[lev, :]
-            bits = 0.0
+            bits = raw
             for t in range(NCTX >> shift):
                 tot = 0
                 last = -1

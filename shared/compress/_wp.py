@@ -27,17 +27,14 @@ both ends). Holes have zero errors.
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 from numba import njit
+from numba.cpython.unsafe.numbers import leading_zeros
 
 from shared.compress._rans import at
 
 #: Sub-predictor errors in fine units >> ERR_SHIFT (quanta).
 ERR_SHIFT = 5
-#: Largest weight of each sub-predictor (JPEG-XL's defaults: the plane a little ahead).
-MAXW = np.array([13, 12, 12, 12], np.int64)
 #: (1 << 24) // (v + 1) for the weights' reciprocals (v < 64 after the shift).
 RECIP24 = np.array([(1 << 24) // (v + 1) for v in range(64)], np.int64)
 #: Differences from N are clamped to this many fine units before they are weighed (hostile
@@ -49,8 +46,8 @@ TE_LIM = 1 << 40
 
 @njit(cache=True, nogil=True)
 def _floor_log2(v):
-    """floor(log2(v)) of an integer 1 <= v < 2**53 (exact: the float conversion is)."""
-    return np.int64(math.frexp(np.float64(v))[1]) - 1
+    """floor(log2(v)) of an integer v >= 1 (one count-leading-zeros instruction)."""
+    return 63 - np.int64(leading_zeros(np.uint64(v)))
 
 
 @njit(cache=True, nogil=True)
@@ -61,6 +58,12 @@ def _weight(s, mw):
 
 
 @njit(cache=True, nogil=True)
+def _err_sum(err_a, err_b, k, i):
+    """Sub-predictor k's errors at N, NW, NE, W and WW of pixel index i."""
+    return err_a[k, i] + err_a[k, i - 1] + err_a[k, i + 1] + err_b[k, i - 1] + err_b[k, i - 2]
+
+
+@njit(cache=True, nogil=True, inline="always")  # two call sites: encoder and decoder
 def wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub):
     """The weighted prediction (fine units) of pixel x from its neighbours W ``a``, N ``b``, NW
     ``c``, NE ``d`` and the error rows (above ``*_a``, current ``*_b``); ``sub`` (4,) int64
@@ -75,18 +78,10 @@ def wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub):
     sub[1] = b - (((tw + tn + tne) * 16) >> 5)
     sub[2] = a - (((tw + tn + tnw) * 10) >> 5)
     sub[3] = b - (((tnw + tn + tne) * 7) >> 5)
-    w0 = w1 = w2 = w3 = 0
-    for k in range(4):
-        s = err_a[k, i] + err_a[k, i - 1] + err_a[k, i + 1] + err_b[k, i - 1] + err_b[k, i - 2]
-        w = _weight(s, at(MAXW, k))
-        if k == 0:
-            w0 = w
-        elif k == 1:
-            w1 = w
-        elif k == 2:
-            w2 = w
-        else:
-            w3 = w
+    w0 = _weight(_err_sum(err_a, err_b, 0, i), 13)  # JPEG-XL's default largest weights
+    w1 = _weight(_err_sum(err_a, err_b, 1, i), 12)
+    w2 = _weight(_err_sum(err_a, err_b, 2, i), 12)
+    w3 = _weight(_err_sum(err_a, err_b, 3, i), 12)
     sh = _floor_log2(w0 + w1 + w2 + w3) - 4
     w0 >>= sh
     w1 >>= sh
@@ -103,7 +98,7 @@ def wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub):
     return p, m
 
 
-@njit(cache=True, nogil=True)
+@njit(cache=True, nogil=True, inline="always")  # two call sites: encoder and decoder
 def wp_update(x, v, p, sub, err_b, te_b):
     """Record pixel x's reconstructed value ``v`` against its weighted prediction ``p`` and
     sub-predictions ``sub``."""
