@@ -37,6 +37,7 @@ from shared.compress._lpred import A_SHIFT, F_SHIFT, FINE, MINB, Q_SHIFT
 from shared.compress._mask import decode_mask, encode_mask
 from shared.compress._rans import (
     NSYM,
+    PROB_BITS,
     RANS_L,
     count_symbols,
     dec_init,
@@ -277,14 +278,18 @@ def fit_block(t, valid, y0, x0, B, coef, ws):
 WP_MIN_GAIN = 0.005
 #: Estimated bits of a leaf coded by local prediction (its constant and predictor).
 LOCAL_BITS = 16.0
-#: A block splits only where its children's estimated bits undercut its own by this many bits
-#: plus this share of its own (lossless, bounded). The estimates favour splitting: each child's
-#: Gaussian or Laplacian fits its own samples, while the coder shares its context tables across
-#: the band, and a child's model costs more than :data:`MODEL_BITS` on noisy depth. Measured
-#: (bits per valid sample, lossless at 0.02 mm / within 0.1 mm, no margin -> this one): the
-#: Cyberware dragon scan 5.76 -> 5.40 / 2.87 -> 2.74, the simulated relief at 2:1 2.23 -> 2.19 /
-#: 0.580 -> 0.579, the bunny at 1:1 4.36 -> 4.31 / 1.487 -> 1.494 (see the bench's table).
-SPLIT_MARGIN = ((200.0, 0.0), (50.0, 0.05))
+#: A block splits only where its children's estimated bits undercut its own by a margin: a
+#: number of bits plus a share of its own. The estimates favour splitting: each child's Gaussian
+#: or Laplacian fits its own samples, while the coder shares its context tables across the band,
+#: and a child's model costs more than :data:`MODEL_BITS` on noisy depth. Lossless mode codes
+#: a band with each margin of SPLIT_LOSSLESS and keeps the smaller stream: measured with one
+#: margin for all (bits per valid sample at 0.02 mm, margins 0 / 200 / 1600 bits), the Cyberware
+#: dragon scans 5.76 / 5.02 / 4.85 and 5.71 / 4.89 / 4.70 (noisy, holed: few leaves pay), the
+#: relief at 1:1 2.59 / 2.53 / 2.59 and 2:1 2.23 / 2.14 / 2.20, the bunny at 4:1 2.70 / 2.61 /
+#: 2.59. Bounded mode: 50 bits + 5 % (dragon 2.87 -> 2.74, relief 2:1 0.580 -> 0.579, bunny 1:1
+#: 1.487 -> 1.494 from no margin).
+SPLIT_LOSSLESS = (200.0, 1600.0)
+SPLIT_BOUNDED = (50.0, 0.05)
 
 
 @njit(cache=True, nogil=True)
@@ -321,7 +326,7 @@ def _predict_coefs(pm, pc, px, py, pB, x0, y0, B, out):
 
 
 @njit(cache=True, nogil=True)
-def _encode_events(t, valid, lossless, opts, tab, val, nb):
+def _encode_events(t, valid, lossless, opts, margin, share, tab, val, nb):
     """Every event of one band; returns the count, or -1 when the event buffers are too small."""
     H, W = t.shape
     n = 0
@@ -330,7 +335,6 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
     # 2. the quadtree with its leaves' models
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
     local = (opts & lp.OPT_PRED) != 0
-    margin, share = SPLIT_MARGIN[0] if lossless else SPLIT_MARGIN[1]
     S = lp.local_cost_integral(t, valid, lossless) if local else np.zeros((1, 1), np.int64)
     leaves = np.zeros((nleaf_max, 5), np.int64)  # x0, y0, B, model, residual predictor
     lcoef = np.empty((nleaf_max, 6), np.int64)
@@ -556,20 +560,44 @@ def encode_band(t, valid, lossless, opts):
     encoder's options (:data:`shared.compress._lpred.OPT_ALL` for a decodable stream; fewer for
     ablation). Returns (packed tables uint8, rANS words uint16)."""
     H, W = t.shape
+    if lossless:
+        tab, val, nb, n, codes, freq, bits = _coded_events(t, valid, lossless, opts, SPLIT_LOSSLESS[0], 0.0)
+        for margin in SPLIT_LOSSLESS[1:]:
+            tab2, val2, nb2, n2, codes2, freq2, bits2 = _coded_events(t, valid, lossless, opts, margin, 0.0)
+            if bits2 < bits:
+                tab, val, nb, n, codes, freq, bits = tab2, val2, nb2, n2, codes2, freq2, bits2
+    else:
+        tab, val, nb, n, codes, freq, bits = _coded_events(t, valid, lossless, opts, SPLIT_BOUNDED[0], SPLIT_BOUNDED[1])
+    words = encode_events(tab, val, nb, n, freq)
+    return pack_codes(codes), words
+
+
+@njit(cache=True, nogil=True)
+def _coded_events(t, valid, lossless, opts, margin, share):
+    """The events of a band with the tree's split margin (``margin`` bits + ``share`` of the
+    block's): (tab, val, nb, count, table codes, frequencies, the stream's bits)."""
+    H, W = t.shape
     # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
     cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
     while True:
         tab = np.empty(cap, np.int8)
         val = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
         nb = np.empty(cap, np.int8)
-        n = _encode_events(t, valid, lossless, opts, tab, val, nb)
+        n = _encode_events(t, valid, lossless, opts, margin, share, tab, val, nb)
         if n >= 0:
             break
         cap *= 4
     counts = count_symbols(tab, val, n, NTABLES)
     codes, freq = quantise_tables(normalise(counts))
-    words = encode_events(tab, val, nb, n, freq)
-    return pack_codes(codes), words
+    bits = 8.0 * pack_codes(codes).size
+    for i in range(n):
+        if tab[i] < 0:
+            bits += nb[i]  # raw
+    for k in range(NTABLES):
+        for s in range(NSYM):
+            if counts[k, s] > 0:
+                bits += counts[k, s] * (PROB_BITS - math.log2(freq[k, s]))
+    return tab, val, nb, n, codes, freq, bits
 
 
 @njit(cache=True, nogil=True)
