@@ -590,9 +590,14 @@ def context_choice(tab, val, nb, n0, n1, t0):
     best_s = 0
     for cofs in range(MAX_COFS + 1):
         for shift in range(3):
-            merged[:, :] = 0
+            # scalar loops (slice arithmetic costs seconds of compilation)
+            for t in range(NCTX):
+                for s in range(512):
+                    merged[t, s] = 0
             for lev in range(NLEVEL):
-                merged[min(max(lev - cofs, 0), NCTX - 1) >> shift, :] += counts[lev, :]
+                t = min(max(lev - cofs, 0), NCTX - 1) >> shift
+                for s in range(512):
+                    merged[t, s] += counts[lev, s]
             bits = raw
             for t in range(NCTX >> shift):
                 tot = 0

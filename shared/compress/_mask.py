@@ -134,7 +134,8 @@ def decode_mask(xa, xb, pos, words, nw, sym, fb, valid, t_edge):
             if e < x or (e == x and x > 0) or e > W or (e == W and c != END):
                 return False, xa, xb, pos
             if state:
-                row[x:e] = True
+                for i in range(x, e):
+                    row[i] = True
             x = e
             state = not state
             if e >= W:

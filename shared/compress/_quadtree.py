@@ -560,33 +560,37 @@ def encode_band(t, valid, lossless, opts):
     encoder's options (:data:`shared.compress._lpred.OPT_ALL` for a decodable stream; fewer for
     ablation). Returns (packed tables uint8, rANS words uint16)."""
     H, W = t.shape
-    if lossless:
-        tab, val, nb, n, codes, freq, bits = _coded_events(t, valid, lossless, opts, SPLIT_LOSSLESS[0], 0.0)
-        for margin in SPLIT_LOSSLESS[1:]:
-            tab2, val2, nb2, n2, codes2, freq2, bits2 = _coded_events(t, valid, lossless, opts, margin, 0.0)
-            if bits2 < bits:
-                tab, val, nb, n, codes, freq, bits = tab2, val2, nb2, n2, codes2, freq2, bits2
-    else:
-        tab, val, nb, n, codes, freq, bits = _coded_events(t, valid, lossless, opts, SPLIT_BOUNDED[0], SPLIT_BOUNDED[1])
+    nm = len(SPLIT_LOSSLESS) if lossless else 1
+    best = np.inf
+    tab = np.empty(0, np.int8)
+    val = np.empty(0, np.int16)
+    nb = np.empty(0, np.int8)
+    n = 0
+    # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
+    cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
+    for i in range(nm):
+        margin = SPLIT_LOSSLESS[i] if lossless else SPLIT_BOUNDED[0]
+        share = 0.0 if lossless else SPLIT_BOUNDED[1]
+        while True:
+            tab_i = np.empty(cap, np.int8)
+            val_i = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
+            nb_i = np.empty(cap, np.int8)
+            n_i = _encode_events(t, valid, lossless, opts, margin, share, tab_i, val_i, nb_i)
+            if n_i >= 0:
+                break
+            cap *= 4
+        bits = _stream_bits(tab_i, val_i, nb_i, n_i) if nm > 1 else 0.0
+        if bits < best:
+            best = bits
+            tab, val, nb, n = tab_i, val_i, nb_i, n_i
+    codes, freq = quantise_tables(normalise(count_symbols(tab, val, n, NTABLES)))
     words = encode_events(tab, val, nb, n, freq)
     return pack_codes(codes), words
 
 
 @njit(cache=True, nogil=True)
-def _coded_events(t, valid, lossless, opts, margin, share):
-    """The events of a band with the tree's split margin (``margin`` bits + ``share`` of the
-    block's): (tab, val, nb, count, table codes, frequencies, the stream's bits)."""
-    H, W = t.shape
-    # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
-    cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
-    while True:
-        tab = np.empty(cap, np.int8)
-        val = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
-        nb = np.empty(cap, np.int8)
-        n = _encode_events(t, valid, lossless, opts, margin, share, tab, val, nb)
-        if n >= 0:
-            break
-        cap *= 4
+def _stream_bits(tab, val, nb, n):
+    """The coded size in bits of events 0..n-1: their tables' code lengths, raw bits and stored tables."""
     counts = count_symbols(tab, val, n, NTABLES)
     codes, freq = quantise_tables(normalise(counts))
     bits = 8.0 * pack_codes(codes).size
@@ -597,7 +601,7 @@ def _coded_events(t, valid, lossless, opts, margin, share):
         for s in range(NSYM):
             if counts[k, s] > 0:
                 bits += counts[k, s] * (PROB_BITS - math.log2(freq[k, s]))
-    return tab, val, nb, n, codes, freq, bits
+    return bits
 
 
 @njit(cache=True, nogil=True)

@@ -63,7 +63,7 @@ def _err_sum(err_a, err_b, k, i):
     return err_a[k, i] + err_a[k, i - 1] + err_a[k, i + 1] + err_b[k, i - 1] + err_b[k, i - 2]
 
 
-@njit(cache=True, nogil=True, inline="always")  # two call sites: encoder and decoder
+@njit(cache=True, nogil=True)
 def wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub):
     """The weighted prediction (fine units) of pixel x from its neighbours W ``a``, N ``b``, NW
     ``c``, NE ``d`` and the error rows (above ``*_a``, current ``*_b``); ``sub`` (4,) int64
@@ -98,7 +98,7 @@ def wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub):
     return p, m
 
 
-@njit(cache=True, nogil=True, inline="always")  # two call sites: encoder and decoder
+@njit(cache=True, nogil=True)
 def wp_update(x, v, p, sub, err_b, te_b):
     """Record pixel x's reconstructed value ``v`` against its weighted prediction ``p`` and
     sub-predictions ``sub``."""
