@@ -3,7 +3,7 @@
 
 A row is a sequence of runs, invalid first (possibly empty), then valid, and so on. Each run's
 end -- where the next run starts -- is coded as one symbol of the table of the run's state
-(:data:`T_EDGE` + state): like fax group 4's vertical mode, the distance (within
+(``t_edge`` + state): like fax group 4's vertical mode, the distance (within
 :data:`VERT` samples) to the first run of the same new state starting at or after the run's
 start in the row above; else an explicit length (the symbol :data:`EXPLICIT`, then the length
 in the run tables :data:`T_RUN` + state); or :data:`END`, the run goes to the end of the row.
@@ -30,38 +30,20 @@ END = EXPLICIT + 1
 
 
 @njit(cache=True, nogil=True)
-def _starts(row, W, out):
-    """The starts of the valid runs (``out[0, :]``) and of the invalid runs after a valid one
-    (``out[1, :]``) of a mask row, each list ended by W; returns nothing (``out`` (2, W + 2))."""
-    n0 = 0
-    n1 = 0
-    prev = False
-    for x in range(W):
-        v = row[x]
-        if v != prev:
-            if v:
-                out[0, n0] = x
-                n0 += 1
-            else:
-                out[1, n1] = x
-                n1 += 1
-            prev = v
-    out[0, n0] = W
-    out[1, n1] = W
-
-
-@njit(cache=True, nogil=True)
 def encode_mask(valid, tab, val, nb, n, t_edge):
     """Append the events of the mask ``valid`` (H, W) bool after event ``n``; returns the count
     (or -1 when the buffers are full)."""
     H, W = valid.shape
     ref = np.empty((2, W + 2), np.int64)
+    cur = np.empty((2, W + 2), np.int64)
     ref[0, 0] = W  # the row above the first: no runs
     ref[1, 0] = W
     for y in range(H):
         row = valid[y]
         j0 = 0  # the first start in ref[0] / ref[1] at or after x
         j1 = 0
+        n0 = 0
+        n1 = 0
         x = 0
         state = False
         while x < W:
@@ -86,9 +68,17 @@ def encode_mask(valid, tab, val, nb, n, t_edge):
             else:
                 n = put(tab, val, nb, n, t_edge + s, EXPLICIT, 0)
                 n = put_value(tab, val, nb, n, T_RUN + s, e - x, L_RUN)
+            if s == 0:
+                cur[0, n0] = e  # the row's runs' starts, for the next row
+                n0 += 1
+            else:
+                cur[1, n1] = e
+                n1 += 1
             x = e
             state = not state
-        _starts(row, W, ref)
+        cur[0, n0] = W
+        cur[1, n1] = W
+        ref, cur = cur, ref
     return n
 
 
@@ -98,12 +88,15 @@ def decode_mask(xa, xb, pos, words, nw, sym, fb, valid, t_edge):
     (ok, xa, xb, pos), ok False for a corrupt stream."""
     H, W = valid.shape
     ref = np.empty((2, W + 2), np.int64)
+    cur = np.empty((2, W + 2), np.int64)
     ref[0, 0] = W
     ref[1, 0] = W
     for y in range(H):
         row = valid[y]
         j0 = 0
         j1 = 0
+        n0 = 0
+        n1 = 0
         x = 0
         state = False
         while True:
@@ -136,9 +129,17 @@ def decode_mask(xa, xb, pos, words, nw, sym, fb, valid, t_edge):
             if state:
                 for i in range(x, e):
                     row[i] = True
+            elif e < W:
+                cur[0, n0] = e  # the row's runs' starts, for the next row
+                n0 += 1
+            if state and e < W:
+                cur[1, n1] = e
+                n1 += 1
             x = e
             state = not state
             if e >= W:
                 break
-        _starts(row, W, ref)
+        cur[0, n0] = W
+        cur[1, n1] = W
+        ref, cur = cur, ref
     return True, xa, xb, pos
