@@ -272,9 +272,10 @@ def fit_block(t, valid, y0, x0, B, coef, ws):
     return best_m, best_cost, n
 
 
-#: Least share of a band's residual bits the weighted predictor must save to be used: it halves
-#: the band's decoding speed (lossless relief 2:1 62 -> 31 MP per CPU second) for 0.8-1.4 % on
-#: the simulated relief but 0.1-0.3 % on the bunny, fandisk and spot and 0.07 % on white noise.
+#: Least share of a band's residual bits the weighted predictor must save to be used: it more
+#: than halves the band's decoding speed (lossless relief 2:1 about 64 -> 29 MP per CPU second)
+#: for 0.8-1.4 % on the simulated relief but 0.1-0.3 % on the bunny, fandisk and spot and 0.07 %
+#: on white noise.
 WP_MIN_GAIN = 0.005
 #: Estimated bits of a leaf coded by local prediction (its constant and predictor).
 LOCAL_BITS = 16.0

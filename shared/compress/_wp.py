@@ -17,8 +17,8 @@ largest of the neighbours' errors (:func:`wp_predict`'s second value) measures h
 predictor is doing here: the coding context of a band that uses it.
 
 Everything is integers (the decoder runs the same arithmetic): sub-predictor errors are kept
-in quanta (fine units >> :data:`ERR_SHIFT`), the weights' reciprocals come from a table of 64
-entries and the average's division from another.
+in quanta (fine units >> :data:`ERR_SHIFT`; shifts of 2 and 3 coded within 0.05 % of it), and
+the weights' reciprocals and the average's division come from one table of 64 entries.
 
 State: two rows (above, current) of the four sub-predictors' absolute errors ``err`` (4, W + 4)
 int64 and of the signed errors ``te`` (W + 4,) int64, pixel x at index x + 2 (zero padding at
