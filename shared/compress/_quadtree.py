@@ -1,9 +1,9 @@
 """Quadtree range-image band codec kernels (private; the public API is :mod:`shared.compress.range`).
 
-A band of rows is coded as one rANS stream (codec ``quadtree-lp-2``) of three parts:
+A band of rows is coded as one rANS stream (codec ``quadtree-lp-3``) of three parts:
 
-1. the validity mask, exactly: per row the lengths of alternating invalid/valid runs (the
-   last run of a row is implied);
+1. the validity mask, exactly: per row where its alternating invalid/valid runs end, against
+   the row above (:mod:`shared.compress._mask`);
 2. the quadtree: every 64x64 block holding a valid sample either splits into four (down
    to 4x4) or is a leaf with a surface model -- constant, plane, bilinear or quadratic in
    depth -- or with local prediction, whichever the estimated code length favours (Gaussian
@@ -13,8 +13,9 @@ A band of rows is coded as one rANS stream (codec ``quadtree-lp-2``) of three pa
    detailed surfaces stay in large blocks. Model coefficients are integers (fixed point, so
    encoder and decoder evaluate bit-identical predictions), coded as differences from the
    previous leaf's model extrapolated to the new block;
-3. each leaf's predictor (its model, or one of the local predictors over the reconstructed
-   neighbours, :mod:`shared.compress._lpred`), a per-band bias-cancellation flag, then the
+3. per band the flags of bias cancellation and of the weighted predictor, the context merging
+   and the error-feedback weights, each leaf's predictor (its model, or one of the local
+   predictors over the reconstructed neighbours, :mod:`shared.compress._lpred`), then the
    residuals in raster order, each in one of :data:`NCTX` tables chosen by the local
    activity (the neighbours' prediction errors and the curvature of the row above).
 
@@ -33,8 +34,10 @@ from numba import njit
 
 from shared.compress import _lpred as lp
 from shared.compress._lpred import A_SHIFT, F_SHIFT, FINE, MINB, Q_SHIFT
+from shared.compress._mask import decode_mask, encode_mask
 from shared.compress._rans import (
     NSYM,
+    PROB_BITS,
     RANS_L,
     count_symbols,
     dec_init,
@@ -43,31 +46,30 @@ from shared.compress._rans import (
     get_symbol,
     get_value,
     normalise,
-    pack_tables,
     put,
     put_value,
-    unpack_tables,
     unzigzag,
     zigzag,
 )
+from shared.compress._tables import pack_codes, quantise_tables, unpack_codes
 
 TOP = 64  # top block size (a band's height is a multiple of it)
 NCTX = lp.NCTX
 
 T_SPLIT = 0  # 4 tables, one per splittable level (64, 32, 16, 8)
 T_MODEL = 4
+# T_RUN (8, 9): the mask's explicit run lengths by state (shared.compress._mask)
 T_C0 = 5
 T_C12 = 6
 T_C345 = 7
-T_RUN = 8  # 2 tables: invalid runs, valid runs
 T_PRED = 10  # the leaves' residual predictors
 T_RES = 11
-NTABLES = T_RES + NCTX
+T_EDGE = T_RES + NCTX  # 2 tables: the mask's edges by state (shared.compress._mask)
+NTABLES = T_EDGE + 2
 
 L_SPLIT = 1
 L_MODEL = 2
 L_COEF = 4
-L_RUN = 4
 L_RES = lp.L_RES
 
 #: Parameters of the models 0..3 (constant, plane, bilinear, quadratic) and their estimated bits.
@@ -76,7 +78,7 @@ WS_SIZE = 96
 MODEL_BITS = np.array([8.0, 24.0, 32.0, 48.0])
 TWO_PI_E = 2.0 * math.pi * math.e
 
-assert NSYM >= (1 << L_RES) + 64 and NTABLES <= 32 and lp.NK <= NSYM and 2 * lp.FB_MAX < NSYM
+assert NSYM >= (1 << L_RES) + 64 and NTABLES <= 32 and T_RES + lp.NLEVEL < 128 and lp.NK <= NSYM and 2 * lp.FB_MAX < NSYM
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -270,8 +272,25 @@ def fit_block(t, valid, y0, x0, B, coef, ws):
     return best_m, best_cost, n
 
 
+#: Least share of a band's residual bits the weighted predictor must save to be used: it more
+#: than halves the band's decoding speed (lossless relief 2:1 about 64 -> 29 MP per CPU second)
+#: for 0.8-1.4 % on the simulated relief but 0.1-0.3 % on the bunny, fandisk and spot and 0.07 %
+#: on white noise.
+WP_MIN_GAIN = 0.005
 #: Estimated bits of a leaf coded by local prediction (its constant and predictor).
 LOCAL_BITS = 16.0
+#: A block splits only where its children's estimated bits undercut its own by a margin: a
+#: number of bits plus a share of its own. The estimates favour splitting: each child's Gaussian
+#: or Laplacian fits its own samples, while the coder shares its context tables across the band,
+#: and a child's model costs more than :data:`MODEL_BITS` on noisy depth. Lossless mode codes
+#: a band with each margin of SPLIT_LOSSLESS and keeps the smaller stream: measured with one
+#: margin for all (bits per valid sample at 0.02 mm, margins 0 / 200 / 1600 bits), the Cyberware
+#: dragon scans 5.76 / 5.02 / 4.85 and 5.71 / 4.89 / 4.70 (noisy, holed: few leaves pay), the
+#: relief at 1:1 2.59 / 2.53 / 2.59 and 2:1 2.23 / 2.14 / 2.20, the bunny at 4:1 2.70 / 2.61 /
+#: 2.59. Bounded mode: 50 bits + 5 % (dragon 2.87 -> 2.74, relief 2:1 0.580 -> 0.579, bunny 1:1
+#: 1.487 -> 1.494 from no margin).
+SPLIT_LOSSLESS = (200.0, 1600.0)
+SPLIT_BOUNDED = (50.0, 0.05)
 
 
 @njit(cache=True, nogil=True)
@@ -308,21 +327,12 @@ def _predict_coefs(pm, pc, px, py, pB, x0, y0, B, out):
 
 
 @njit(cache=True, nogil=True)
-def _encode_events(t, valid, lossless, opts, tab, val, nb):
+def _encode_events(t, valid, lossless, opts, margin, share, tab, val, nb):
     """Every event of one band; returns the count, or -1 when the event buffers are too small."""
     H, W = t.shape
     n = 0
-    # 1. the mask, as run lengths
-    for y in range(H):
-        x = 0
-        state = False
-        while x < W:
-            e = x
-            while e < W and valid[y, e] == state:
-                e += 1
-            n = put_value(tab, val, nb, n, T_RUN + (1 if state else 0), _run_code(x, e, W), L_RUN)
-            x = e
-            state = not state
+    # 1. the mask, row by row against the row above
+    n = encode_mask(valid, tab, val, nb, n, T_EDGE)
     # 2. the quadtree with its leaves' models
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
     local = (opts & lp.OPT_PRED) != 0
@@ -378,7 +388,7 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
                         kid_m[k], kid_cost[k], kc = _node(t, valid, S, np.int64(ky), np.int64(kx), np.int64(h), kids[k], ws, local)
                         if kc > 0:
                             split_cost += kid_cost[k]
-                    split = split_cost < cost
+                    split = split_cost + margin + share * cost < cost
                     n = put(tab, val, nb, n, T_SPLIT + lev, 1 if split else 0, 0)
                     if split:
                         for k in range(3, -1, -1):  # pushed in reverse: popped in Z order
@@ -423,34 +433,37 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
         return -1
     # 3. each leaf's residual predictor, then the residuals in raster order
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
-    lp.choose_predictors(t, valid, cells, leaves, lcoef, np.int64(nleaf), lossless, opts)
+    none = np.zeros((1, W), np.int64)  # the weighted predictor's arrays where it does not run
+    lp.choose_predictors(t, valid, cells, leaves, lcoef, np.int64(nleaf), lossless, opts, none, np.int64(0))
     # error feedback (lossless mode: in bounded mode the reconstruction's rounding noise in the
     # neighbours' errors made it cost more than it saved): the band's least-squares weights of
     # the W and N neighbours' errors
     aw, an = 0, 0
     if lossless and (opts & lp.OPT_FEEDBACK):
-        aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef)
+        aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef, none)
     aw = np.int64(aw)
     an = np.int64(an)
-    # the flag of bias cancellation, the weights and each leaf's predictor, then the residuals
-    n_res = n + 4 + nleaf
+    # the flags of bias cancellation and the weighted predictor, the weights and each leaf's
+    # predictor, then the residuals
+    n_res = n + 6 + nleaf
     if n < 0 or n_res + 1 > tab.shape[0]:
         return -1
     bias = 0
+    wp = 0
     if not lossless and (opts & lp.OPT_BIAS):
         # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on
         # noise: both ways, the smaller kept
         n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(1), aw, an, np.int64(T_RES),
-                                 tab, val, nb, n_res)
+                                 tab, val, nb, n_res, none, none, np.int64(0))
         if n1 < 0:
             return -1
-        with_bias = lp.merged_cost(tab, val, n_res, n1, T_RES, NCTX, 0)
+        with_bias = lp.context_choice(tab, val, nb, n_res, n1, T_RES)[0]
         keep_tab = tab[n_res:n1].copy()
         keep_val = val[n_res:n1].copy()
         keep_nb = nb[n_res:n1].copy()
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
-                                    np.int64(T_RES), tab, val, nb, n_res)
-        if n_end < 0 or with_bias < lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0):
+                                    np.int64(T_RES), tab, val, nb, n_res, none, none, np.int64(0))
+        if n_end < 0 or with_bias < lp.context_choice(tab, val, nb, n_res, n_end, T_RES)[0]:
             bias = 1
             tab[n_res:n1] = keep_tab
             val[n_res:n1] = keep_val
@@ -458,23 +471,47 @@ def _encode_events(t, valid, lossless, opts, tab, val, nb):
             n_end = n1
     else:
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
-                                    np.int64(T_RES), tab, val, nb, n_res)
+                                    np.int64(T_RES), tab, val, nb, n_res, none, none, np.int64(0))
         if n_end < 0:
             return -1
-    # small bands: fewer residual tables where the tables cost more than the contexts save
-    cshift = 0
-    best = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, 0)
-    for shift in range(1, 3):
-        cost_m = lp.merged_cost(tab, val, n_res, n_end, T_RES, NCTX, shift)
-        if cost_m < best:
-            best = cost_m
-            cshift = shift
-    if cshift:
-        for i in range(n_res, n_end):
-            if tab[i] >= T_RES:
-                tab[i] = T_RES + ((tab[i] - T_RES) >> cshift)
+        if lossless and (opts & lp.OPT_WP):
+            # the weighted predictor (a choice of every leaf, its error in the context): both
+            # ways, kept where it saves WP_MIN_GAIN (it lost on the bunny at 4:1, where the
+            # plane fits)
+            without = lp.context_choice(tab, val, nb, n_res, n_end, T_RES)[0]
+            keep_tab = tab[n_res:n_end].copy()
+            keep_val = val[n_res:n_end].copy()
+            keep_nb = nb[n_res:n_end].copy()
+            keep_k = leaves[:nleaf, 4].copy()
+            pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, np.int64(nleaf), lossless, opts, pw, np.int64(1))
+            aw1, an1 = 0, 0
+            if opts & lp.OPT_FEEDBACK:
+                aw1, an1 = lp.feedback_weights(t, valid, cells, leaves, lcoef, pw)
+            aw1 = np.int64(aw1)
+            an1 = np.int64(an1)
+            n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw1, an1,
+                                     np.int64(T_RES), tab, val, nb, n_res, pw, pe, np.int64(1))
+            if n1 < 0:
+                return -1
+            if lp.context_choice(tab, val, nb, n_res, n1, T_RES)[0] < (1.0 - WP_MIN_GAIN) * without:
+                wp = 1
+                aw = aw1
+                an = an1
+                n_end = n1
+            else:
+                tab[n_res:n_end] = keep_tab
+                val[n_res:n_end] = keep_val
+                nb[n_res:n_end] = keep_nb
+                leaves[:nleaf, 4] = keep_k
+    # the residual tables: where along the activity levels, and fewer in a small band where the
+    # tables cost more than the contexts save
+    _, cofs, cshift = lp.context_choice(tab, val, nb, n_res, n_end, T_RES)
+    lp.apply_contexts(tab, n_res, n_end, T_RES, cofs, cshift)
     n = put(tab, val, nb, n, T_PRED, bias, 0)
+    n = put(tab, val, nb, n, T_PRED, cofs, 0)
     n = put(tab, val, nb, n, T_PRED, cshift, 0)
+    n = put(tab, val, nb, n, T_PRED, wp, 0)
     n = put(tab, val, nb, n, T_PRED, aw + lp.FB_MAX, 0)
     n = put(tab, val, nb, n, T_PRED, an + lp.FB_MAX, 0)
     for i in range(nleaf):
@@ -524,20 +561,48 @@ def encode_band(t, valid, lossless, opts):
     encoder's options (:data:`shared.compress._lpred.OPT_ALL` for a decodable stream; fewer for
     ablation). Returns (packed tables uint8, rANS words uint16)."""
     H, W = t.shape
+    nm = len(SPLIT_LOSSLESS) if lossless else 1
+    best = np.inf
+    tab = np.empty(0, np.int8)
+    val = np.empty(0, np.int16)
+    nb = np.empty(0, np.int8)
+    n = 0
     # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
     cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
-    while True:
-        tab = np.empty(cap, np.int8)
-        val = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
-        nb = np.empty(cap, np.int8)
-        n = _encode_events(t, valid, lossless, opts, tab, val, nb)
-        if n >= 0:
-            break
-        cap *= 4
-    counts = count_symbols(tab, val, n, NTABLES)
-    freq = normalise(counts)
+    for i in range(nm):
+        margin = SPLIT_LOSSLESS[i] if lossless else SPLIT_BOUNDED[0]
+        share = 0.0 if lossless else SPLIT_BOUNDED[1]
+        while True:
+            tab_i = np.empty(cap, np.int8)
+            val_i = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
+            nb_i = np.empty(cap, np.int8)
+            n_i = _encode_events(t, valid, lossless, opts, margin, share, tab_i, val_i, nb_i)
+            if n_i >= 0:
+                break
+            cap *= 4
+        bits = _stream_bits(tab_i, val_i, nb_i, n_i) if nm > 1 else 0.0
+        if bits < best:
+            best = bits
+            tab, val, nb, n = tab_i, val_i, nb_i, n_i
+    codes, freq = quantise_tables(normalise(count_symbols(tab, val, n, NTABLES)))
     words = encode_events(tab, val, nb, n, freq)
-    return pack_tables(freq), words
+    return pack_codes(codes), words
+
+
+@njit(cache=True, nogil=True)
+def _stream_bits(tab, val, nb, n):
+    """The coded size in bits of events 0..n-1: their tables' code lengths, raw bits and stored tables."""
+    counts = count_symbols(tab, val, n, NTABLES)
+    codes, freq = quantise_tables(normalise(counts))
+    bits = 8.0 * pack_codes(codes).size
+    for i in range(n):
+        if tab[i] < 0:
+            bits += nb[i]  # raw
+    for k in range(NTABLES):
+        for s in range(NSYM):
+            if counts[k, s] > 0:
+                bits += counts[k, s] * (PROB_BITS - math.log2(freq[k, s]))
+    return bits
 
 
 @njit(cache=True, nogil=True)
@@ -579,7 +644,7 @@ def _cell_integral(valid):
 def decode_band(tables, words, H, W, lossless, scale, out):
     """Decode one band into ``out`` (H, W) float32 (NaN where invalid). ``scale`` is the
     quantum (lossless) or the fine unit (bounded). Returns 0, or -1 for a corrupt stream."""
-    freq, used = unpack_tables(tables, NTABLES)
+    freq, used = unpack_codes(tables, NTABLES)
     if used < 0 or used != tables.shape[0]:
         return -1
     nw = words.shape[0]
@@ -588,7 +653,7 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     sym, fb = decode_tables(freq)
     xa, xb, pos = dec_init(words)
     valid = np.zeros((H, W), np.bool_)
-    ok, xa, xb, pos = _decode_mask(xa, xb, pos, words, nw, sym, fb, valid)
+    ok, xa, xb, pos = decode_mask(xa, xb, pos, words, nw, sym, fb, valid, T_EDGE)
     if not ok:
         return -1
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
@@ -598,48 +663,29 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     if nleaf < 0 or pos > nw:
         return -1
     bias, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    cofs, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     cshift, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    wp, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     aw, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     an, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    if bias > 1 or cshift > 2 or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
+    # the weighted predictor runs in lossless bands only (the encoder's choice)
+    if bias > 1 or cofs > lp.MAX_COFS or cshift > 2 or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
         return -1
     for i in range(nleaf):
         k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-        if k >= lp.NK:
+        if k >= (lp.NK if wp else lp.K_WP):
             return -1
         leaves[i, 4] = k
     if pos > nw:
         return -1
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
     xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, np.int64(bias),
-                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), np.int64(cshift), scale,
+                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), np.int64(cofs), np.int64(cshift), np.int64(wp), scale,
                                       np.int64(T_RES), out)
     # A sound stream ends exactly at its last word, both states back where the encoder began.
     if pos != nw or xa != RANS_L or xb != RANS_L:
         return -1
     return 0
-
-
-@njit(cache=True, nogil=True)
-def _decode_mask(xa, xb, pos, words, nw, sym, fb, valid):
-    H, W = valid.shape
-    for y in range(H):
-        x = 0
-        state = False
-        while x < W:
-            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_RUN + (1 if state else 0), L_RUN)
-            v = np.int64(u)
-            if x == 0:
-                e = W if v == 0 else v - 1
-            else:
-                e = W if v == 0 else x + v
-            if e > W or e < x or pos > nw:
-                return False, xa, xb, pos
-            if state:
-                valid[y, x:e] = True
-            x = e
-            state = not state
-    return True, xa, xb, pos
 
 
 @njit(cache=True, nogil=True)
@@ -733,12 +779,3 @@ def _leaf_cells(H, W, leaves, nleaf):
         n = leaves[i, 2] // MINB
         cells[cy0 : min(cy0 + n, ch), cx0 : min(cx0 + n, cw)] = i
     return cells
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _run_code(x, e, W):
-    """The coded value of run [x, e) of a row of width W: 0 means "to the end of the row";
-    the first run (x == 0, possibly empty) is offset by one."""
-    if e >= W:
-        return 0
-    return e - x + 1 if x == 0 else e - x

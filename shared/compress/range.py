@@ -1,5 +1,5 @@
 """Range images (depth on the camera grid) coded by a quadtree of surface models, local
-prediction (LOCO-I/CALIC-style) and rANS: codec ``quadtree-lp-2``.
+prediction (LOCO-I/CALIC-style, JPEG-XL's weighted predictor) and rANS: codec ``quadtree-lp-3``.
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -12,14 +12,16 @@ A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (
 The validity mask (the non-NaN samples) is always coded exactly. The image is cut into
 bands of :data:`BAND_ROWS` rows, each an independent chunk of the container
 (:mod:`shared.formats.container`, kind ``range``), coded and decoded on a thread pool by
-``nogil`` kernels (:mod:`shared.compress._quadtree`, :mod:`shared.compress._lpred`), so memory
-stays proportional to a few bands and both cores work. Files of the earlier codec
-``quadtree-rans-1`` are refused by name (re-encode them from the ``range.npz``).
+``nogil`` kernels (:mod:`shared.compress._quadtree`, :mod:`shared.compress._lpred`,
+:mod:`shared.compress._wp`), so memory stays proportional to a few bands and both cores work.
+Files of the earlier codecs (:data:`OLD_CODECS`) are refused by name (re-encode them from the
+``range.npz``).
 
 Measured (``tests/bench/bench_compress.py``, bits per valid sample, lossless at 0.02 mm / within
-0.1 mm): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768 projector 2.23 /
-0.58 (the previous codec 3.85 / 0.85; JPEG-XL effort 7 2.16, JPEG-LS 2.44, JPEG-LS NEAR 1.29,
-SZ3 0.51); a synthetic image with 0.2 mm white noise 5.58 / 2.28 (JPEG-XL 5.73, SZ3 2.72).
+0.1 mm): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768 projector 2.14 /
+0.573 (``quadtree-lp-2`` 2.23 / 0.580; JPEG-XL effort 7 2.16, JPEG-LS 2.44, JPEG-LS NEAR 1.29,
+SZ3 0.51); the Cyberware dragon scan 4.85 / 2.47 (``quadtree-lp-2`` 5.76 / 2.87; JPEG-XL 4.55,
+JPEG-LS NEAR 3.00); a synthetic image with 0.2 mm white noise 5.51 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
 """
 
 from __future__ import annotations
@@ -48,9 +50,9 @@ log = logging.getLogger(__name__)
 
 #: Rows per chunk (a multiple of the quadtree's top block).
 BAND_ROWS = 256
-CODEC = "quadtree-lp-2"
+CODEC = "quadtree-lp-3"
 #: Range codecs of earlier releases, refused by name (their streams are not read any more).
-OLD_CODECS = ("quadtree-rans-1",)
+OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2")
 #: The encoder's options: every tool on (fewer only for the bench's ablation; such streams do
 #: not decode).
 _ENCODER_OPTS = lp.OPT_ALL
