@@ -63,12 +63,13 @@ def _check_pair(quantum: float | None, max_error: float | None) -> None:
 
 
 def compress_file(src: str | os.PathLike[str], out: str | os.PathLike[str], *, quantum: float | None = None,
-                  max_error: float | None = None) -> dict[str, Any]:
+                  max_error: float | None = None, effort: int = 1) -> dict[str, Any]:
     """Compress ``src`` (scan folder, range.npz or PLY) into the container ``out``.
 
     Range images: lossless at ``quantum`` or within ``max_error`` (default: lossless at
-    :data:`DEFAULT_QUANTUM_MM` in the data's units). Clouds: geometry on a grid of step
-    ``quantum``, or of ``2 * max_error`` (default grid: the default quantum).
+    :data:`DEFAULT_QUANTUM_MM` in the data's units), at the range encoder's ``effort``
+    (:data:`shared.compress.range.EFFORTS`). Clouds: geometry on a grid of step ``quantum``, or
+    of ``2 * max_error`` (default grid: the default quantum); ``effort`` does not apply.
     """
     _check_pair(quantum, max_error)
     kind, path = input_kind(src)
@@ -77,7 +78,7 @@ def compress_file(src: str | os.PathLike[str], out: str | os.PathLike[str], *, q
         img = load_range_npz(path)
         if quantum is None and max_error is None:
             quantum = default_quantum(img.units)
-        size = write_range(out, img, quantum=quantum, max_error=max_error)
+        size = write_range(out, img, quantum=quantum, max_error=max_error, effort=effort)
         count = int(np.count_nonzero(~np.isnan(img.z)))
         raw = img.z.nbytes
         per = "bits_per_valid_sample"

@@ -303,7 +303,7 @@ def table_images() -> list[tuple[str, np.ndarray]]:
 
 
 #: The table's codecs: (group, name). Group "L": lossless at Q (or within Q / 2); "B": within 0.1 mm.
-TABLE_CODECS = [("L", "ours"), ("L", "JPEG-XL e7"), ("L", "JPEG-LS"), ("L", "PNG-16"), ("L", f"LERC {Q / 2:g}"),
+TABLE_CODECS = [("L", "ours"), ("L", "ours effort 2"), ("L", "JPEG-XL e7"), ("L", "JPEG-LS"), ("L", "PNG-16"), ("L", f"LERC {Q / 2:g}"),
                 ("L", f"SZ3 {Q / 2:g}"), ("B", "ours"), ("B", "JPEG-LS NEAR"), ("B", "SZ3"), ("B", "LERC"),
                 ("B", "JPEG-XL e3 q0.2")]
 
@@ -326,6 +326,8 @@ def table_row(z: np.ndarray) -> tuple[dict[tuple[str, str], float | None], dict[
     assert np.abs(hi[1] - z[m]).max() <= 0.1
     put(("L", "ours"), lo)
     put(("B", "ours"), hi)
+    # effort 2 (the weighted predictor tried per lossless band): its size only, the speed is effort 1's
+    bits[("L", "ours effort 2")] = len(encode_range(RangeImage(z), quantum=Q, effort=2)) * 8 / nv
     speed = {"enc L": mp / lo[2].cpu, "dec L": mp / lo[3].cpu, "enc B": mp / hi[2].cpu, "dec B": mp / hi[3].cpu}
     jd = imagecodecs.jpegxl_decode
     put(("L", "JPEG-XL e7"), peer16(lambda a: imagecodecs.jpegxl_encode(a, lossless=True, effort=7), jd, z, Q, 0))
@@ -363,7 +365,7 @@ def section_table() -> None:
         bits, speed = table_row(z)
         ranks = {}
         for g in "LB":
-            vals = sorted(v for (gg, _), v in bits.items() if gg == g and v is not None)
+            vals = sorted(v for (gg, n), v in bits.items() if gg == g and v is not None and n != "ours effort 2")
             ranks[g] = 1 + vals.index(bits[(g, "ours")])  # type: ignore[arg-type]
         rl = _ratio(bits[("L", "ours")], bits[("L", "JPEG-XL e7")], bits[("L", "JPEG-LS")])
         rb = _ratio(bits[("B", "ours")], bits[("B", "JPEG-LS NEAR")], bits[("B", "SZ3")])
@@ -373,7 +375,9 @@ def section_table() -> None:
         print(f"  {name[:40]:40s} {100 * np.mean(~np.isnan(z)):5.1f}% {cells} {ranks['L']:6d} {ranks['B']:6d} {fl:>9s} {fb:>9s}"
               f" {speed['enc L']:9.0f}/{speed['dec L']:<9.0f} {speed['enc B']:5.0f}/{speed['dec B']:<5.0f}", flush=True)
         if rl is not None and rl > 0.95:
-            misses.append(f"{name}: lossless {rl:.3f} x the better of JPEG-XL e7 / JPEG-LS (target 0.95)")
+            r2 = _ratio(bits[("L", "ours effort 2")], bits[("L", "JPEG-XL e7")], bits[("L", "JPEG-LS")])
+            misses.append(f"{name}: lossless {rl:.3f} (effort 2: {r2:.3f}) x the better of JPEG-XL e7 / JPEG-LS "
+                          "(target 0.95)")
         if rb is not None and rb > 0.9:
             misses.append(f"{name}: 0.1 mm {rb:.3f} x the better of JPEG-LS NEAR / SZ3 (target 0.9)")
     print("  (L/target, B/target: our size over the target size; <= 1 reaches it)")

@@ -155,7 +155,7 @@ def test_oversampled_smooth_depth_round_trips_and_local_prediction_pays(monkeypa
     bits = {0.02: check_lossless(z, 0.02), 0.1: check_bounded(z, 0.1)}
     # The same image with every leaf on its surface model alone (the encoder's ablation switch;
     # such streams are only measured, not decoded): local prediction must code it smaller.
-    monkeypatch.setattr(rg, "_ENCODER_OPTS", 0)
+    monkeypatch.setitem(rg.EFFORTS, 1, 0)
     model_only = len(encode_range(RangeImage(z), quantum=0.02)) * 8 / np.count_nonzero(~np.isnan(z))
     assert bits[0.02] < 0.9 * model_only, (bits, model_only)
 
@@ -344,6 +344,25 @@ def test_weighted_predictor_is_chosen_where_it_pays_and_round_trips() -> None:
     mask = ~np.isnan(z)
     np.testing.assert_array_equal(np.isnan(out), ~mask)
     np.testing.assert_array_equal(out[mask], expected_lossless(z, 0.02)[mask])
+
+
+@pytest.mark.parametrize("q", [0.02, 0.1])
+def test_effort_2_round_trips_and_bad_efforts_are_refused(q: float) -> None:
+    """Effort 2 (the weighted predictor tried per lossless band) decodes exactly and is no larger
+    than effort 1 on the oversampled image; an effort that is not 1 or 2 is refused by name."""
+    z = oversampled()
+    mask = ~np.isnan(z)
+    sizes = {}
+    for effort in (1, 2):
+        blob = encode_range(RangeImage(z), quantum=q, effort=effort)
+        out = read_range(blob).z
+        np.testing.assert_array_equal(np.isnan(out), ~mask)
+        np.testing.assert_array_equal(out[mask], expected_lossless(z, q)[mask])
+        sizes[effort] = len(blob)
+    assert sizes[2] <= sizes[1]
+    for bad in (0, 3, True, "2", 1.5):
+        with pytest.raises(InputError, match="--effort"):
+            encode_range(RangeImage(z), quantum=q, effort=bad)  # type: ignore[arg-type]
 
 
 def test_masks_coded_against_the_row_above_round_trip() -> None:
