@@ -555,37 +555,37 @@ def quantise(z, scale, lossless):
     return t, valid
 
 
-@njit(cache=True, nogil=True)
-def encode_band(t, valid, lossless, opts):
+def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> tuple[np.ndarray, np.ndarray]:
     """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool; ``opts`` the
     encoder's options (:data:`shared.compress._lpred.OPT_ALL` for a decodable stream; fewer for
-    ablation). Returns (packed tables uint8, rANS words uint16)."""
+    ablation). Returns (packed tables uint8, rANS words uint16).
+
+    Plain Python over the kernels (each releases the GIL, so bands still code in parallel
+    threads): as a kernel of its own it cost numba 2.2 s to compile, its module linking and
+    optimising again every kernel it calls, for a handful of calls a band."""
     H, W = t.shape
-    nm = len(SPLIT_LOSSLESS) if lossless else 1
+    margins = SPLIT_LOSSLESS if lossless else SPLIT_BOUNDED[:1]
+    share = 0.0 if lossless else SPLIT_BOUNDED[1]
     best = np.inf
-    tab = np.empty(0, np.int8)
-    val = np.empty(0, np.int16)
-    nb = np.empty(0, np.int8)
+    tab = val = nb = None
     n = 0
     # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
     cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
-    for i in range(nm):
-        margin = SPLIT_LOSSLESS[i] if lossless else SPLIT_BOUNDED[0]
-        share = 0.0 if lossless else SPLIT_BOUNDED[1]
+    for margin in margins:
         while True:
             tab_i = np.empty(cap, np.int8)
             val_i = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
             nb_i = np.empty(cap, np.int8)
-            n_i = _encode_events(t, valid, lossless, opts, margin, share, tab_i, val_i, nb_i)
+            n_i = _encode_events(t, valid, bool(lossless), np.int64(opts), float(margin), float(share), tab_i, val_i, nb_i)
             if n_i >= 0:
                 break
             cap *= 4
-        bits = _stream_bits(tab_i, val_i, nb_i, n_i) if nm > 1 else 0.0
+        bits = _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) if len(margins) > 1 else 0.0
         if bits < best:
             best = bits
             tab, val, nb, n = tab_i, val_i, nb_i, n_i
-    codes, freq = quantise_tables(normalise(count_symbols(tab, val, n, NTABLES)))
-    words = encode_events(tab, val, nb, n, freq)
+    codes, freq = quantise_tables(normalise(count_symbols(tab, val, np.int64(n), np.int64(NTABLES))))
+    words = encode_events(tab, val, nb, np.int64(n), freq)
     return pack_codes(codes), words
 
 
