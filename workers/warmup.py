@@ -51,7 +51,8 @@ KERNEL_MODULES: dict[str, tuple[str, ...]] = {
     "scan": ("shared.scan._decode_kernels", "shared.scan.decode", "shared.scan.triangulate", "shared.formats._png"),  # _png: frame reading
     "render": ("shared.render._octree_kernels", "shared.render.octree", "shared.render.raster", "shared.render._shading", "shared.render._neighbours",
                "shared.render._match", "shared.compress.tilenode"),  # tilenode: the tiles' octree-coded nodes
-    "compress": ("shared.compress._rans", "shared.compress._lpred", "shared.compress._quadtree", "shared.compress._octree"),
+    "compress": ("shared.compress._rans", "shared.compress._tables", "shared.compress._mask", "shared.compress._wp",
+                 "shared.compress._lpred", "shared.compress._quadtree", "shared.compress._octree"),
     "merge": ("shared.merge._kernels", "shared.merge._fusion_kernels"),
     "derive": ("shared.derive._raster",),  # the texture baker's UV rasteriser
 }
@@ -162,14 +163,21 @@ def _module_kernels(domains: Sequence[str]) -> dict[str, list[Any]]:
 
 def stale_kernel_modules(domains: Sequence[str] = DOMAINS) -> list[str]:
     """Kernel modules whose cached machine code numba would load although the ``shared``
-    modules they import changed since their last warm-up (or were never recorded)."""
+    modules they import changed since their last warm-up (or were never recorded), or although
+    a kernel module they import has kernels missing from the cache (its file touched, its
+    content the same: a checkout, an edit undone): their cached code would load with the
+    callees' inside it, those callees would never compile, and the warm-up's check would fail."""
+    modules = _module_kernels(domains)
+    complete = {name: all(cached_signatures(d) for d in ds) for name, ds in modules.items()}
     stale = []
-    for name, dispatchers in _module_kernels(domains).items():
+    for name, dispatchers in modules.items():
         try:
             recorded = json.loads(_manifest(name, dispatchers).read_text(encoding="utf-8"))
         except (OSError, ValueError):
             recorded = None
-        if recorded != kernel_dependencies(name) and any(cached_signatures(d) for d in dispatchers):
+        deps = kernel_dependencies(name)
+        lost = [dep for dep in deps if dep in complete and not complete[dep]]
+        if any(cached_signatures(d) for d in dispatchers) and (recorded != deps or lost):
             stale.append(name)
     return stale
 
