@@ -327,18 +327,23 @@ def _predict_coefs(pm, pc, px, py, pB, x0, y0, B, out):
 
 
 @njit(cache=True, nogil=True)
-def _encode_events(t, valid, lossless, opts, margin, share, tab, val, nb):
-    """Every event of one band; returns the count, or -1 when the event buffers are too small."""
+def _put_coef(tab, val, nb, n, t, u):
+    # A leaf's coefficients, a few a leaf: called, not the coder's IR inlined at six sites of
+    # the tree's kernel (numba copies an inlined function's IR at every call site).
+    return put_value(tab, val, nb, n, t, u, L_COEF)
+
+
+@njit(cache=True, nogil=True)
+def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, lcoef):
+    """The mask's and the quadtree's events of one band (its leaves into ``leaves`` (n, 5) and
+    ``lcoef`` (n, 6) int64); returns (events, leaves), events -1 when the buffers are too small."""
     H, W = t.shape
     n = 0
     # 1. the mask, row by row against the row above
     n = encode_mask(valid, tab, val, nb, n, T_EDGE)
     # 2. the quadtree with its leaves' models
-    nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
     local = (opts & lp.OPT_PRED) != 0
     S = lp.local_cost_integral(t, valid, lossless) if local else np.zeros((1, 1), np.int64)
-    leaves = np.zeros((nleaf_max, 5), np.int64)  # x0, y0, B, model, residual predictor
-    lcoef = np.empty((nleaf_max, 6), np.int64)
     nleaf = 0
     st_xyb = np.empty((64, 4), np.int64)  # x0, y0, B, level
     st_fit = np.empty((64, 6), np.int64)
@@ -406,15 +411,15 @@ def _encode_events(t, valid, lossless, opts, margin, share, tab, val, nb):
                 # a leaf
                 n = put(tab, val, nb, n, T_MODEL, m, 0)
                 _predict_coefs(pm, pc, px, py, pB, x0, y0, B, pred)
-                n = put_value(tab, val, nb, n, T_C0, zigzag(coef[0] - pred[0]), L_COEF)
+                n = _put_coef(tab, val, nb, n, T_C0, zigzag(coef[0] - pred[0]))
                 if m >= 1:
-                    n = put_value(tab, val, nb, n, T_C12, zigzag(coef[1] - pred[1]), L_COEF)
-                    n = put_value(tab, val, nb, n, T_C12, zigzag(coef[2] - pred[2]), L_COEF)
+                    n = _put_coef(tab, val, nb, n, T_C12, zigzag(coef[1] - pred[1]))
+                    n = _put_coef(tab, val, nb, n, T_C12, zigzag(coef[2] - pred[2]))
                 if m >= 2:
-                    n = put_value(tab, val, nb, n, T_C345, zigzag(coef[3] - pred[3]), L_COEF)
+                    n = _put_coef(tab, val, nb, n, T_C345, zigzag(coef[3] - pred[3]))
                 if m == 3:
-                    n = put_value(tab, val, nb, n, T_C345, zigzag(coef[4] - pred[4]), L_COEF)
-                    n = put_value(tab, val, nb, n, T_C345, zigzag(coef[5] - pred[5]), L_COEF)
+                    n = _put_coef(tab, val, nb, n, T_C345, zigzag(coef[4] - pred[4]))
+                    n = _put_coef(tab, val, nb, n, T_C345, zigzag(coef[5] - pred[5]))
                 for i in range(6):
                     if (i >= 1 and m == 0) or (i >= 3 and m == 1) or (i >= 4 and m == 2):
                         coef[i] = 0
@@ -429,12 +434,37 @@ def _encode_events(t, valid, lossless, opts, margin, share, tab, val, nb):
                 px = x0
                 py = y0
                 pB = B
+    return (n if n >= 0 else -1), nleaf
+
+
+#: int64 arguments of the kernels called from Python (one signature each, as from a kernel)
+ZERO = np.int64(0)
+ONE = np.int64(1)
+TR = np.int64(T_RES)
+
+
+def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, margin: float, share: float,
+                   tab: np.ndarray, val: np.ndarray, nb: np.ndarray) -> int:
+    """Every event of one band; returns the count, or -1 when the event buffers are too small.
+
+    Plain Python over the kernels (the tree's, the predictors', the residuals'), each compiled
+    once on its own: as one kernel it spent 4.7 s of numba's time linking and optimising them
+    all again."""
+    H, W = t.shape
+    lossless = bool(lossless)
+    opts = np.int64(opts)
+    nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
+    leaves = np.zeros((nleaf_max, 5), np.int64)  # x0, y0, B, model, residual predictor
+    lcoef = np.empty((nleaf_max, 6), np.int64)
+    n, nleaf = _encode_tree(t, valid, lossless, opts, float(margin), float(share), tab, val, nb, leaves, lcoef)
     if n < 0:
         return -1
+    n = np.int64(n)
+    nleaf = np.int64(nleaf)
     # 3. each leaf's residual predictor, then the residuals in raster order
-    cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
+    cells = _leaf_cells(np.int64(H), np.int64(W), leaves, nleaf)
     none = np.zeros((1, W), np.int64)  # the weighted predictor's arrays where it does not run
-    lp.choose_predictors(t, valid, cells, leaves, lcoef, np.int64(nleaf), lossless, opts, none, np.int64(0))
+    lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO)
     # error feedback (lossless mode: in bounded mode the reconstruction's rounding noise in the
     # neighbours' errors made it cost more than it saved): the band's least-squares weights of
     # the W and N neighbours' errors
@@ -445,7 +475,7 @@ def _encode_events(t, valid, lossless, opts, margin, share, tab, val, nb):
     an = np.int64(an)
     # the flags of bias cancellation and the weighted predictor, the weights and each leaf's
     # predictor, then the residuals
-    n_res = n + 6 + nleaf
+    n_res = np.int64(n + 6 + nleaf)
     if n < 0 or n_res + 1 > tab.shape[0]:
         return -1
     bias = 0
@@ -453,48 +483,48 @@ def _encode_events(t, valid, lossless, opts, margin, share, tab, val, nb):
     if not lossless and (opts & lp.OPT_BIAS):
         # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on
         # noise: both ways, the smaller kept
-        n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(1), aw, an, np.int64(T_RES),
-                                 tab, val, nb, n_res, none, none, np.int64(0))
+        n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ONE, aw, an, TR,
+                                 tab, val, nb, n_res, none, none, ZERO)
         if n1 < 0:
             return -1
-        with_bias = lp.context_choice(tab, val, nb, n_res, n1, T_RES)[0]
+        with_bias = lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0]
         keep_tab = tab[n_res:n1].copy()
         keep_val = val[n_res:n1].copy()
         keep_nb = nb[n_res:n1].copy()
-        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
-                                    np.int64(T_RES), tab, val, nb, n_res, none, none, np.int64(0))
-        if n_end < 0 or with_bias < lp.context_choice(tab, val, nb, n_res, n_end, T_RES)[0]:
+        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
+                                    TR, tab, val, nb, n_res, none, none, ZERO)
+        if n_end < 0 or with_bias < lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]:
             bias = 1
             tab[n_res:n1] = keep_tab
             val[n_res:n1] = keep_val
             nb[n_res:n1] = keep_nb
             n_end = n1
     else:
-        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw, an,
-                                    np.int64(T_RES), tab, val, nb, n_res, none, none, np.int64(0))
+        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
+                                    TR, tab, val, nb, n_res, none, none, ZERO)
         if n_end < 0:
             return -1
         if lossless and (opts & lp.OPT_WP):
             # the weighted predictor (a choice of every leaf, its error in the context): both
             # ways, kept where it saves WP_MIN_GAIN (it lost on the bunny at 4:1, where the
             # plane fits)
-            without = lp.context_choice(tab, val, nb, n_res, n_end, T_RES)[0]
+            without = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
             keep_tab = tab[n_res:n_end].copy()
             keep_val = val[n_res:n_end].copy()
             keep_nb = nb[n_res:n_end].copy()
             keep_k = leaves[:nleaf, 4].copy()
             pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
-            lp.choose_predictors(t, valid, cells, leaves, lcoef, np.int64(nleaf), lossless, opts, pw, np.int64(1))
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, ONE)
             aw1, an1 = 0, 0
             if opts & lp.OPT_FEEDBACK:
                 aw1, an1 = lp.feedback_weights(t, valid, cells, leaves, lcoef, pw)
             aw1 = np.int64(aw1)
             an1 = np.int64(an1)
-            n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(0), aw1, an1,
-                                     np.int64(T_RES), tab, val, nb, n_res, pw, pe, np.int64(1))
+            n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw1, an1,
+                                     TR, tab, val, nb, n_res, pw, pe, ONE)
             if n1 < 0:
                 return -1
-            if lp.context_choice(tab, val, nb, n_res, n1, T_RES)[0] < (1.0 - WP_MIN_GAIN) * without:
+            if lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0] < (1.0 - WP_MIN_GAIN) * without:
                 wp = 1
                 aw = aw1
                 an = an1
@@ -506,17 +536,23 @@ def _encode_events(t, valid, lossless, opts, margin, share, tab, val, nb):
                 leaves[:nleaf, 4] = keep_k
     # the residual tables: where along the activity levels, and fewer in a small band where the
     # tables cost more than the contexts save
-    _, cofs, cshift = lp.context_choice(tab, val, nb, n_res, n_end, T_RES)
-    lp.apply_contexts(tab, n_res, n_end, T_RES, cofs, cshift)
-    n = put(tab, val, nb, n, T_PRED, bias, 0)
-    n = put(tab, val, nb, n, T_PRED, cofs, 0)
-    n = put(tab, val, nb, n, T_PRED, cshift, 0)
-    n = put(tab, val, nb, n, T_PRED, wp, 0)
-    n = put(tab, val, nb, n, T_PRED, aw + lp.FB_MAX, 0)
-    n = put(tab, val, nb, n, T_PRED, an + lp.FB_MAX, 0)
+    _, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
+    lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
+    head = np.array([bias, cofs, cshift, wp, aw + lp.FB_MAX, an + lp.FB_MAX], np.int64)
+    _put_predictors(tab, val, nb, n, head, leaves, nleaf)
+    return int(n_end)
+
+
+@njit(cache=True, nogil=True)
+def _put_predictors(tab, val, nb, n, head, leaves, nleaf):
+    """The band's six flags and weights ``head`` (6,) int64 and each leaf's predictor, from event ``n``."""
+    for i in range(6):
+        n = put(tab, val, nb, n, T_PRED, head[i], 0)
     for i in range(nleaf):
         n = put(tab, val, nb, n, T_PRED, leaves[i, 4], 0)
-    return n_end
+    return n
+
+
 
 
 @njit(cache=True, nogil=True)
