@@ -18,10 +18,11 @@ Files of the earlier codecs (:data:`OLD_CODECS`) are refused by name (re-encode 
 ``range.npz``).
 
 Measured (``tests/bench/bench_compress.py``, bits per valid sample, lossless at 0.02 mm / within
-0.1 mm): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768 projector 2.14 /
-0.573 (``quadtree-lp-2`` 2.23 / 0.580; JPEG-XL effort 7 2.16, JPEG-LS 2.44, JPEG-LS NEAR 1.29,
-SZ3 0.51); the Cyberware dragon scan 4.85 / 2.47 (``quadtree-lp-2`` 5.76 / 2.87; JPEG-XL 4.55,
-JPEG-LS NEAR 3.00); a synthetic image with 0.2 mm white noise 5.51 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
+0.1 mm, effort 1): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768
+projector 2.165 / 0.573 (effort 2: 2.14 lossless; ``quadtree-lp-2`` 2.23 / 0.580; JPEG-XL effort 7
+2.16, JPEG-LS 2.44, JPEG-LS NEAR 1.29, SZ3 0.51); the Cyberware dragon scan 4.95 / 2.47 (effort 2:
+4.85; ``quadtree-lp-2`` 5.76 / 2.87; JPEG-XL 4.55, JPEG-LS NEAR 3.00); a synthetic image with
+0.2 mm white noise 5.51 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
 """
 
 from __future__ import annotations

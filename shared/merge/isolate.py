@@ -416,7 +416,7 @@ def _plane_samples(views: Sequence[ViewCloud], static: Sequence[np.ndarray], n: 
     """(N, 3) mm the static samples within ``tol`` of the plane ``n.x + d = 0`` and ``reach`` mm of
     ``centre``: the plate's disc, which reaches past the object's sphere (the simulated teapot's
     sphere is centred 106 mm off the axis of a 201 mm plate; cut at the sphere, the disc's visible
-    rim came out one-sided and its centre 9.6 mm off the axis, and the angle search failed)."""
+    rim came out one-sided and its centre 13.8 mm off the axis, and the angle search failed)."""
     out = []
     for v, m in zip(views, static, strict=True):
         s = v.xyz[m]
