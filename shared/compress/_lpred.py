@@ -346,6 +346,13 @@ def _context(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _bias_context(a, b, c, d, lev):
+    """Bias cancellation's context (< NBIAS): the signs of the gradients W-NW, N-NW, NE-N and the
+    activity level in four groups."""
+    return (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (min(lev, NCTX - 1) >> 2)
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _wp_activity(act, me):
     """The activity of a band running the weighted predictor: half the usual one plus twice the
     weighted predictor's largest neighbour error ``me`` (fine units). Measured against the usual
@@ -441,7 +448,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
             q = 0
             p = p0
             if bias:
-                q = (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (min(lev, NCTX - 1) >> 2)
+                q = _bias_context(a, b, c, d, lev)
                 p += bcor[q]
             if lossless:
                 r = (t[y, x] >> F_SHIFT) - ((p + half) >> F_SHIFT)
@@ -524,19 +531,18 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
             b = at(ra, x + 1)
             c = at(ra, x)
             d = at(ra, x + 2)
-            act = min(abs(d - 2 * b + c), E_LIM) + 2 * at(eb, x) + at(ea, x + 1) + ((at(ea, x) + at(ea, x + 2)) >> 1)
             k = at(kr, x)
             pw = 0
+            me = 0
             if wp:
                 pw, me = wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub)
-                act = _wp_activity(act, me)
-            lev = _level_of(act)
+            lev = _context(a, b, c, d, at(eb, x), at(ea, x + 1), at(ea, x), at(ea, x + 2), True, True, wp, me)
             pl = pw if k == K_WP else local_pred(k, a, b, c, d, at(pf, x))
             p0 = pl + ((aw * at(sb, x) + an * at(sa, x + 1)) >> FB_SHIFT)
             q = 0
             p = p0
             if bias:
-                q = (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (min(lev, NCTX - 1) >> 2)
+                q = _bias_context(a, b, c, d, lev)
                 p += at(bcor, q)
             ctx = min(max(lev - cofs, 0), NCTX - 1)
             u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + (ctx >> cshift), L_RES)

@@ -29,19 +29,31 @@ EXPLICIT = 2 * VERT + 1
 END = EXPLICIT + 1
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _start_above(ref, j, s, x):
+    """The row above's first start of a run of state ``s`` at or after ``x`` (``ref[s]``, ended by
+    W), its cursor ``j[s]`` moved on to it: the encoder and the decoder read the same one."""
+    k = j[s]
+    while ref[s, k] < x:
+        k += 1
+    j[s] = k
+    return ref[s, k]
+
+
 @njit(cache=True, nogil=True)
 def encode_mask(valid, tab, val, nb, n, t_edge):
     """Append the events of the mask ``valid`` (H, W) bool after event ``n``; returns the count
     (or -1 when the buffers are full)."""
     H, W = valid.shape
     ref = np.empty((2, W + 2), np.int64)
+    j = np.zeros(2, np.int64)  # cursors into ref[0] and ref[1]
     cur = np.empty((2, W + 2), np.int64)
     ref[0, 0] = W  # the row above the first: no runs
     ref[1, 0] = W
     for y in range(H):
         row = valid[y]
-        j0 = 0  # the first start in ref[0] / ref[1] at or after x
-        j1 = 0
+        j[0] = 0  # the first start in ref[0] / ref[1] at or after x
+        j[1] = 0
         n0 = 0
         n1 = 0
         x = 0
@@ -55,14 +67,7 @@ def encode_mask(valid, tab, val, nb, n, t_edge):
                 n = put(tab, val, nb, n, t_edge + s, END, 0)
                 break
             # a run of the new state starts at e: the row above's first such start from x on
-            if s == 0:
-                while ref[0, j0] < x:
-                    j0 += 1
-                b = ref[0, j0]
-            else:
-                while ref[1, j1] < x:
-                    j1 += 1
-                b = ref[1, j1]
+            b = _start_above(ref, j, s, x)
             if b < W and abs(e - b) <= VERT:
                 n = put(tab, val, nb, n, t_edge + s, e - b + VERT, 0)
             else:
@@ -88,13 +93,14 @@ def decode_mask(xa, xb, pos, words, nw, sym, fb, valid, t_edge):
     (ok, xa, xb, pos), ok False for a corrupt stream."""
     H, W = valid.shape
     ref = np.empty((2, W + 2), np.int64)
+    j = np.zeros(2, np.int64)  # cursors into ref[0] and ref[1]
     cur = np.empty((2, W + 2), np.int64)
     ref[0, 0] = W
     ref[1, 0] = W
     for y in range(H):
         row = valid[y]
-        j0 = 0
-        j1 = 0
+        j[0] = 0
+        j[1] = 0
         n0 = 0
         n1 = 0
         x = 0
@@ -112,14 +118,7 @@ def decode_mask(xa, xb, pos, words, nw, sym, fb, valid, t_edge):
                     return False, xa, xb, pos
                 e = x + np.int64(u)
             else:
-                if s == 0:
-                    while ref[0, j0] < x:
-                        j0 += 1
-                    b = ref[0, j0]
-                else:
-                    while ref[1, j1] < x:
-                        j1 += 1
-                    b = ref[1, j1]
+                b = _start_above(ref, j, s, x)
                 if b >= W:
                     return False, xa, xb, pos
                 e = b + c - VERT
