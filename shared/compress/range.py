@@ -27,7 +27,6 @@ projector 2.165 / 0.573 (effort 2: 2.14 lossless; ``quadtree-lp-2`` 2.23 / 0.580
 
 from __future__ import annotations
 
-import dataclasses
 import io
 import logging
 import math
@@ -94,10 +93,17 @@ class _Plan:
     lossless: bool
     scale: float  # the quantum (lossless) or the fine unit (bounded), in units
     step: float  # the residual quantum in units
-    opts: int = EFFORTS[1]  # the encoder's options (:data:`EFFORTS`)
+    opts: int  # the encoder's options (:data:`EFFORTS`)
 
 
-def _plan(z: np.ndarray, quantum: float | None, max_error: float | None) -> _Plan:
+def _effort_opts(effort: int) -> int:
+    if isinstance(effort, bool) or effort not in EFFORTS:
+        raise InputError("--effort", f"must be one of {sorted(EFFORTS)}, got {effort!r}")
+    return EFFORTS[effort]
+
+
+def _plan(z: np.ndarray, quantum: float | None, max_error: float | None, effort: int = 1) -> _Plan:
+    opts = _effort_opts(effort)
     if (quantum is None) == (max_error is None):
         raise InputError("--quantum/--max-error", "give exactly one of a quantum and an error bound")
     zmax, nvalid = qt.finite_abs_max(z)
@@ -111,7 +117,7 @@ def _plan(z: np.ndarray, quantum: float | None, max_error: float | None) -> _Pla
             raise InputError("--quantum", f"{q:g} is finer than float32 can hold at depth {zmax:g} (spacing {ulp:.3g})")
         if zmax / q > _MAX_QUANTA:
             raise InputError("--quantum", f"{q:g} is too fine for depths up to {zmax:g}")
-        return _Plan(True, q, q)
+        return _Plan(True, q, q, opts)
     e = float(max_error)  # type: ignore[arg-type]
     if not math.isfinite(e) or e <= 0:
         raise InputError("--max-error", f"must be a positive number, got {max_error!r}")
@@ -121,7 +127,7 @@ def _plan(z: np.ndarray, quantum: float | None, max_error: float | None) -> _Pla
         raise InputError("--max-error", f"{e:g} is finer than float32 can hold at depth {zmax:g} (spacing {ulp:.3g})")
     if zmax / step > _MAX_QUANTA:
         raise InputError("--max-error", f"{e:g} is too fine for depths up to {zmax:g}")
-    return _Plan(False, step / qt.FINE, step)
+    return _Plan(False, step / qt.FINE, step, opts)
 
 
 def check_range(z: np.ndarray, where: str = "z") -> np.ndarray:
@@ -185,12 +191,6 @@ def _meta(img: RangeImage, z: np.ndarray, plan: _Plan, quantum: float | None, ma
     }
 
 
-def _effort_opts(effort: int) -> int:
-    if isinstance(effort, bool) or effort not in EFFORTS:
-        raise InputError("--effort", f"must be one of {sorted(EFFORTS)}, got {effort!r}")
-    return EFFORTS[effort]
-
-
 def write_range(path: str | os.PathLike[str], img: RangeImage, *, quantum: float | None = None,
                 max_error: float | None = None, effort: int = 1) -> int:
     """Code ``img`` into the container file ``path`` (atomically); returns its size in bytes.
@@ -200,7 +200,7 @@ def write_range(path: str | os.PathLike[str], img: RangeImage, *, quantum: float
     2 is up to 2 % smaller lossless, and slower to code and to decode).
     """
     z = check_range(img.z)
-    plan = dataclasses.replace(_plan(z, quantum, max_error), opts=_effort_opts(effort))
+    plan = _plan(z, quantum, max_error, effort)
     return write_container(path, "range", _meta(img, z, plan, quantum, max_error), _encoded_chunks(z, plan))
 
 
@@ -208,7 +208,7 @@ def encode_range(img: RangeImage, *, quantum: float | None = None, max_error: fl
                  effort: int = 1) -> bytes:
     """:func:`write_range` into memory: the container's bytes."""
     z = check_range(img.z)
-    plan = dataclasses.replace(_plan(z, quantum, max_error), opts=_effort_opts(effort))
+    plan = _plan(z, quantum, max_error, effort)
     buf = io.BytesIO()
     write_stream(buf, "range", _meta(img, z, plan, quantum, max_error), _encoded_chunks(z, plan))
     return buf.getvalue()
