@@ -168,7 +168,8 @@ def stale_kernel_modules(domains: Sequence[str] = DOMAINS) -> list[str]:
     content the same: a checkout, an edit undone): their cached code would load with the
     callees' inside it, those callees would never compile, and the warm-up's check would fail."""
     modules = _module_kernels(domains)
-    complete = {name: all(cached_signatures(d) for d in ds) for name, ds in modules.items()}
+    # per module, whether each kernel has machine code in the cache (each index read once)
+    cached = {name: [bool(cached_signatures(d)) for d in ds] for name, ds in modules.items()}
     stale = []
     for name, dispatchers in modules.items():
         try:
@@ -176,8 +177,8 @@ def stale_kernel_modules(domains: Sequence[str] = DOMAINS) -> list[str]:
         except (OSError, ValueError):
             recorded = None
         deps = kernel_dependencies(name)
-        lost = [dep for dep in deps if dep in complete and not complete[dep]]
-        if any(cached_signatures(d) for d in dispatchers) and (recorded != deps or lost):
+        lost = [dep for dep in deps if dep in cached and not all(cached[dep])]
+        if any(cached[name]) and (recorded != deps or lost):
             stale.append(name)
     return stale
 

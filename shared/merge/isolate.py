@@ -212,7 +212,8 @@ def _ransac_planes(xyz: np.ndarray, tol: float, planes: int, rng: np.random.Gene
     return out
 
 
-def support_plane(static_xyz: np.ndarray, object_xyz: np.ndarray, tol: float, max_gap_share: float = 0.15,
+def support_plane(static_xyz: np.ndarray, object_xyz: np.ndarray, tol: float,
+                  max_gap_share: float = IsolationParams.support_gap,
                   seed: int = 0) -> tuple[np.ndarray, float] | None:
     """The plane the object stands on: of the planes RANSAC finds among the static samples near the
     object (``static_xyz`` (N, 3) mm), the one with (almost) all of ``object_xyz`` (M, 3) on one
