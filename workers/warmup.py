@@ -432,11 +432,12 @@ def _compress_inputs(work: Path) -> tuple[list[Path], Path]:
 
 
 def _warm_compress_ranges(work: Path, folders: list[Path]) -> None:
-    """Range images of every scan-like folder, lossless and error-bounded, encoded and decoded."""
+    """Range images of every scan-like folder, lossless (at both encoder efforts: effort 2 runs the
+    weighted predictor's kernels) and error-bounded, encoded and decoded."""
     from shared.compress.files import compress_file, decompress_file
 
     for k, folder in enumerate(folders):
-        for name, kw in (("lossless", {}), ("bounded", {"max_error": 0.1})):
+        for name, kw in (("lossless", {}), ("lossless-effort-2", {"effort": 2}), ("bounded", {"max_error": 0.1})):
             packed = compress_file(folder, work / f"range_{k}_{name}.glr", **kw)["output"]
             decompress_file(packed, work / f"range_{k}_{name}")
 
