@@ -38,7 +38,7 @@ import math
 import numpy as np
 from numba import njit
 
-from shared.compress._rans import at, get_value, put_value, set_at, unzigzag, zigzag
+from shared.compress._rans import at, bitlen, get_value, put_value, set_at, unzigzag, zigzag
 from shared.compress._wp import wp_hole, wp_predict, wp_update
 
 MINB = 4
@@ -54,6 +54,13 @@ K_WP = 8
 #: Coding contexts of the residuals (activity levels).
 NCTX = 16
 L_RES = 8
+#: Sign contexts (a band's choice, :func:`_sign_context`): the residual tables are then
+#: :data:`NGRP` groups of four activity levels times :data:`NSUB` patterns of the rounding
+#: offset and the N neighbour's residual sign.
+NGRP = 4
+NSUB = 6
+#: Residual tables of a band (either way).
+NRES = max(NCTX, NGRP * NSUB)
 #: Bias contexts: 27 patterns of gradient signs x 4 activity groups.
 NBIAS = 27 * 4
 BIAS_RESET = 64
@@ -67,7 +74,9 @@ OPT_ERR = 4  # previous prediction errors in the context
 OPT_BIAS = 8  # bias cancellation (bounded mode: per band, where it pays)
 OPT_FEEDBACK = 16  # the W and N neighbours' prediction errors fed back into the prediction
 OPT_WP = 32  # the weighted predictor (lossless mode: per band, where it pays)
-OPT_ALL = 63
+OPT_SIGN = 64  # sign contexts (per band, where they pay)
+OPT_INTERP = 128  # hierarchical interpolation (bounded mode: per band, where it pays)
+OPT_ALL = 255
 
 #: Activity levels (half octaves) of the residuals: a band's NCTX tables take the levels from
 #: its offset (:func:`context_choice`) on, the ones below and above joining the ends.
@@ -353,6 +362,26 @@ def _bias_context(a, b, c, d, lev):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def _sign_context(p, rn, lossless):
+    """A band's sign context of a sample predicted ``p`` (fine units) whose N neighbour's residual
+    was ``rn`` (quanta): (pattern < :data:`NSUB`, flip). In lossless mode ``p`` rounds to the
+    nearest quantum, so its offset f from it says which sign the residual leans to: with
+    ``flip`` (f < 0) the residual is coded negated, so every table sees the lean one way, and
+    |f| >= a quarter quantum is a pattern of its own; the N neighbour's residual sign (as
+    flipped) joins it. An oversampling camera's sub-pixel depth leaves residuals of the same
+    sign along a stripe, which the error feedback's linear weights do not take."""
+    flip = False
+    far = 0
+    if lossless:
+        f = ((p + (FINE >> 1)) & (FINE - 1)) - (FINE >> 1)
+        flip = f < 0
+        far = 3 if abs(f) >= (FINE >> 2) else 0
+    if flip:
+        rn = -rn
+    return far + (0 if rn < 0 else (1 if rn == 0 else 2)), flip
+
+
+@njit(cache=True, nogil=True, inline="always")
 def _wp_activity(act, me):
     """The activity of a band running the weighted predictor: half the usual one plus twice the
     weighted predictor's largest neighbour error ``me`` (fine units). Measured against the usual
@@ -401,12 +430,18 @@ def wp_band(t, valid, cells, leaves, lcoef):
 
 
 @njit(cache=True, nogil=True)
-def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, an, t_res, tab, val, nb, n, pw, pe, wp):
+def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, an, t_res, tab, val, nb, n, pw, pe, wp,
+                     sc, cofs, alt):
     """Append the residual events of a band (raster order) after event ``n``, with bias
     cancellation when ``bias`` and error feedback ``aw``, ``an`` (:func:`feedback_weights`);
     with ``wp`` (lossless mode), ``pw`` and ``pe`` (H, W) are the weighted predictor's
-    predictions and errors (:func:`wp_band`), else unused. Returns the count (or -1 when the
-    buffers are full)."""
+    predictions and errors (:func:`wp_band`), else unused. Without sign contexts (``sc`` 0)
+    each event's table is ``t_res`` plus its activity level (:func:`context_choice` then
+    :func:`apply_contexts` make them tables); with them (``sc`` 1) it is its final table, the
+    levels slid by ``cofs`` (:func:`_sign_context`); without them, ``alt`` (NLEVEL * NSUB, NSYM)
+    int32 (or a (1, 1) placeholder) receives the symbol counts the residuals would have with them,
+    by level and pattern (:func:`sign_bits`: the encoder runs the second way only where it pays).
+    Returns the count (or -1 when the buffers are full)."""
     H, W = t.shape
     pf = np.zeros(W, np.int64)
     kr = np.zeros(W, np.int64)
@@ -416,11 +451,16 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
     eb = np.zeros(W + 3, np.int64)
     sa = np.zeros(W + 3, np.int64)  # signed errors of the local predictors (feedback), row above
     sb = np.zeros(W + 3, np.int64)
+    qa = np.zeros(W + 3, np.int64)  # residuals (quanta) of the row above (sign contexts)
+    qb = np.zeros(W + 3, np.int64)
     bsum = np.zeros(NBIAS, np.int64)
     bcnt = np.zeros(NBIAS, np.int64)
     bcor = np.zeros(NBIAS, np.int64)
     grad = (opts & OPT_GRAD) != 0
     errs = (opts & OPT_ERR) != 0
+    count_alt = sc == 0 and alt.shape[0] > 1
+    if count_alt:
+        alt[:] = 0
     half = FINE >> 1
     for y in range(H):
         row_prediction(y, W, cells, leaves, lcoef, pf, kr)
@@ -436,6 +476,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
                     rb[x + 1] = rb[x]
                 eb[x + 1] = 0
                 sb[x + 1] = 0
+                qb[x + 1] = 0
                 continue
             a = rb[x] if x > 0 else ra[1]
             b = ra[x + 1]
@@ -456,7 +497,18 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
             else:
                 r = (t[y, x] - p + half) >> F_SHIFT
                 rec = p + (r << F_SHIFT)
-            n = put_value(tab, val, nb, n, t_res + lev, zigzag(r), L_RES)  # a level: see context_choice
+            if sc:
+                pat, flip = _sign_context(p, qa[x + 1], lossless)
+                g = min(max(lev - cofs, 0), NCTX - 1) >> 2
+                n = put_value(tab, val, nb, n, t_res + g * NSUB + pat, zigzag(-r if flip else r), L_RES)
+            else:
+                n = put_value(tab, val, nb, n, t_res + lev, zigzag(r), L_RES)  # a level: see context_choice
+                if count_alt:
+                    pat, flip = _sign_context(p, qa[x + 1], lossless)
+                    u = np.int64(zigzag(-r if flip else r))
+                    s = u if u < (1 << L_RES) else (1 << L_RES) + np.int64(bitlen(np.uint64(u))) - L_RES - 1
+                    alt[lev * NSUB + pat, s] += 1
+            qb[x + 1] = r
             rb[x + 1] = rec
             eb[x + 1] = min(abs(rec - p), E_LIM)
             sb[x + 1] = min(max(rec - pl, -E_LIM), E_LIM)
@@ -468,6 +520,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
         ra, rb = rb, ra
         ea, eb = eb, ea
         sa, sb = sb, sa
+        qa, qb = qb, qa
         sb[0] = 0
     return n
 
@@ -486,9 +539,10 @@ def _bias_update(bsum, bcnt, bcor, q, err):
 
 @njit(cache=True, nogil=True)
 def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, cofs, cshift,
-                     wp, scale, t_res, out):
+                     wp, sc, scale, t_res, out):
     """Inverse of :func:`encode_residuals` (with every option on) into ``out`` (H, W) float32,
-    NaN where invalid, running the weighted predictor along when ``wp``; returns (xa, xb, pos)."""
+    NaN where invalid, running the weighted predictor along when ``wp``, with sign contexts
+    when ``sc``; returns (xa, xb, pos)."""
     H, W = valid.shape
     pf = np.zeros(W, np.int64)
     kr = np.zeros(W, np.int64)
@@ -498,6 +552,8 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
     eb = np.zeros(W + 3, np.int64)
     sa = np.zeros(W + 3, np.int64)
     sb = np.zeros(W + 3, np.int64)
+    qa = np.zeros(W + 3, np.int64)
+    qb = np.zeros(W + 3, np.int64)
     bsum = np.zeros(NBIAS, np.int64)
     bcnt = np.zeros(NBIAS, np.int64)
     bcor = np.zeros(NBIAS, np.int64)
@@ -523,6 +579,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
                     set_at(rb, x + 1, at(rb, x))
                 set_at(eb, x + 1, 0)
                 set_at(sb, x + 1, 0)
+                set_at(qb, x + 1, 0)
                 set_at(orow, x, nan)
                 if wp:
                     wp_hole(x, err_b, te_b)
@@ -545,8 +602,17 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
                 q = _bias_context(a, b, c, d, lev)
                 p += at(bcor, q)
             ctx = min(max(lev - cofs, 0), NCTX - 1)
-            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + (ctx >> cshift), L_RES)
+            flip = False
+            if sc:
+                pat, flip = _sign_context(p, at(qa, x + 1), lossless)
+                tb = (ctx >> 2) * NSUB + pat
+            else:
+                tb = ctx >> cshift
+            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + tb, L_RES)
             r = unzigzag(u)
+            if flip:
+                r = -r
+            set_at(qb, x + 1, r)
             if lossless:
                 rec = (((p + half) >> F_SHIFT) + r) << F_SHIFT
             else:
@@ -565,6 +631,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
         ra, rb = rb, ra
         ea, eb = eb, ea
         sa, sb = sb, sa
+        qa, qb = qb, qa
         sb[0] = 0
         err_a, err_b = err_b, err_a
         te_a, te_b = te_b, te_a
@@ -623,6 +690,38 @@ def context_choice(tab, val, nb, n0, n1, t0):
                 best_o = cofs
                 best_s = shift
     return best, best_o, best_s
+
+
+@njit(cache=True, nogil=True)
+def sign_bits(alt, cofs, tab, nb, n0, n1):
+    """Estimated bits of a band's residuals (events n0..n1-1, coded without sign contexts) had
+    they been coded with them, the levels slid by ``cofs``: from the counts ``alt``
+    (:func:`encode_residuals`), as :func:`context_choice` counts bits, the escapes' raw bits
+    taken as they are (a residual's sign changes them by at most one bit)."""
+    counts = np.zeros((NRES, 512), np.int64)
+    bits = 0.0
+    for i in range(n0, n1):
+        if tab[i] < 0:
+            bits += nb[i]
+    for lev in range(NLEVEL):
+        g = min(max(lev - cofs, 0), NCTX - 1) >> 2
+        for k in range(NSUB):
+            for s in range(alt.shape[1]):
+                counts[g * NSUB + k, s] += alt[lev * NSUB + k, s]
+    for t in range(NRES):
+        tot = 0
+        last = -1
+        for s in range(512):
+            tot += counts[t, s]
+            if counts[t, s] > 0:
+                last = s
+        for s in range(last + 1):
+            c = counts[t, s]
+            if c > 0:
+                bits += c * math.log2(tot / c) + 4.0
+            else:
+                bits += 2.0
+    return bits
 
 
 @njit(cache=True, nogil=True)

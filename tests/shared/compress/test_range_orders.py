@@ -1,0 +1,135 @@
+"""The range codec's per-band choices of ``quadtree-lp-4``: hierarchical interpolation (bounded
+mode) and sign contexts (both modes): each is taken where it codes smaller, its streams decode
+exactly (lossless) or within the bound (every sample), masks exact, on smooth oversampled depth
+and on hostile masks and shapes; an interpolation stream is refused in a lossless band."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shared.compress import _lpred as lp
+from shared.compress import _quadtree as qt
+from shared.compress import expected_lossless
+from shared.compress.range import _plan
+
+
+def relief(h: int = 256, w: int = 320, seed: int = 0, hold: tuple[int, int] = (2, 2)) -> np.ndarray:
+    """Oversampled smooth detailed depth as a fine camera over a coarser projector sees it: a
+    tilted, curved surface with carved ridges, sub-pixel noise about 0.04 mm held constant over
+    blocks of ``hold`` (rows, columns) camera pixels (one projector pixel at 2:1), a small
+    shadow hole."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64)
+    z = 700.0 + 0.03 * xx - 0.02 * yy + 0.0002 * (xx - w / 2) ** 2 + 0.8 * np.sin(xx / 7.0) * np.sin(yy / 11.0)
+    hy, hx = hold
+    z += np.kron(rng.normal(0.0, 0.04, (h // hy + 1, w // hx + 1)), np.ones(hold))[:h, :w]
+    z[(xx - 0.3 * w) ** 2 + (yy - 0.6 * h) ** 2 < 60] = np.nan
+    return z.astype(np.float32)
+
+
+def band_bits(tables: np.ndarray, words: np.ndarray) -> int:
+    return int(tables.size * 8 + words.size * 16)
+
+
+def decoded(tables: np.ndarray, words: np.ndarray, shape: tuple[int, int], lossless: bool, scale: float) -> np.ndarray:
+    out = np.empty(shape, np.float32)
+    assert qt.decode_band(tables, words, shape[0], shape[1], lossless, scale, out) == 0
+    return out
+
+
+def check_bound(z: np.ndarray, out: np.ndarray, e: float) -> None:
+    mask = ~np.isnan(z)
+    np.testing.assert_array_equal(np.isnan(out), ~mask)
+    if mask.any():
+        assert np.abs(out[mask].astype(np.float64) - z[mask]).max() <= e
+
+
+def test_interpolation_is_taken_on_smooth_oversampled_depth_within_the_bound() -> None:
+    z = relief()
+    plan = _plan(z, None, 0.1)
+    t, valid = qt.quantise(z, plan.scale, False)
+    with_interp = qt.encode_band(t, valid, False, lp.OPT_ALL)
+    without = qt.encode_band(t, valid, False, lp.OPT_ALL & ~lp.OPT_INTERP)
+    # interpolation predicts each sample from both sides: smaller here by a clear margin
+    assert band_bits(*with_interp) < 0.95 * band_bits(*without), (band_bits(*with_interp), band_bits(*without))
+    check_bound(z, decoded(*with_interp, z.shape, False, plan.scale), 0.1)
+    check_bound(z, decoded(*without, z.shape, False, plan.scale), 0.1)
+
+
+def test_noise_keeps_the_raster_order() -> None:
+    # white noise of 0.5 mm within 0.1 mm: interpolation's two-sided mean does not pay, the
+    # encoder keeps the raster order (the stream is the one coded without the option)
+    rng = np.random.default_rng(1)
+    z = (800.0 + rng.normal(0.0, 0.5, (128, 200))).astype(np.float32)
+    plan = _plan(z, None, 0.1)
+    t, valid = qt.quantise(z, plan.scale, False)
+    a = qt.encode_band(t, valid, False, lp.OPT_ALL)
+    b = qt.encode_band(t, valid, False, lp.OPT_ALL & ~lp.OPT_INTERP)
+    assert band_bits(*a) == band_bits(*b)
+    check_bound(z, decoded(*a, z.shape, False, plan.scale), 0.1)
+
+
+def _masks() -> list[tuple[str, np.ndarray]]:
+    rng = np.random.default_rng(7)
+    out = []
+    for h, w in [(1, 1), (1, 37), (37, 1), (17, 33), (64, 70), (256, 45)]:
+        z = (500.0 + 0.1 * np.arange(w)[None, :] + rng.normal(0, 0.05, (h, w))).astype(np.float32)
+        for share in (0.0, 0.3, 0.9):
+            zz = z.copy()
+            zz[rng.random(z.shape) < share] = np.nan
+            out.append((f"{h}x{w} {int(share * 100)} % holes", zz))
+    board = np.where(np.indices((48, 48)).sum(0) % 2 == 0, 640.0, np.nan).astype(np.float32)
+    out.append(("checkerboard", board))
+    grid = np.full((80, 96), 300.0, np.float32)
+    grid[::16, :] = np.nan  # every coarse grid row a hole: predictions fall back
+    grid[:, ::16] = np.nan
+    out.append(("holes on the coarse grid", grid))
+    out.append(("all holes", np.full((20, 30), np.nan, np.float32)))
+    jumps = np.where(np.indices((64, 64))[1] % 5 < 2, 2000.0, -1500.0).astype(np.float32)
+    out.append(("depth jumps of 3.5 m", jumps))
+    return out
+
+
+@pytest.mark.parametrize("name, z", _masks(), ids=[n for n, _ in _masks()])
+@pytest.mark.parametrize("e", [0.1, 2.0])
+def test_interpolation_streams_decode_within_the_bound_on_hostile_masks(name: str, z: np.ndarray, e: float) -> None:
+    # the interpolation order's stream itself (whatever the encoder would choose)
+    plan = _plan(np.nan_to_num(z, nan=0.0) if np.isnan(z).all() else z, None, e)
+    t, valid = qt.quantise(z, plan.scale, False)
+    cap = 2 * z.size + 4096
+    tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+    n = qt._interp_band(t, valid, tab, val, nb)
+    assert n >= 0
+    check_bound(z, decoded(*qt._pack(tab, val, nb, n), z.shape, False, plan.scale), e)
+
+
+def test_an_interpolation_stream_in_a_lossless_band_is_refused() -> None:
+    z = relief(64, 64)
+    t, valid = qt.quantise(z, 0.02, True)
+    cap = 2 * z.size + 4096
+    tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+    n = qt._interp_band(t, valid, tab, val, nb)
+    tables, words = qt._pack(tab, val, nb, n)
+    out = np.empty(z.shape, np.float32)
+    assert qt.decode_band(tables, words, 64, 64, True, 0.02, out) == -1
+
+
+@pytest.mark.parametrize("lossless", [True, False])
+def test_sign_contexts_pay_on_oversampled_depth_and_round_trip(lossless: bool) -> None:
+    # sub-pixel errors held along a stripe (4 rows) leave the N neighbour's residual sign
+    # telling: the band takes sign contexts and codes smaller
+    z = relief(hold=(4, 1))
+    scale = 0.02 if lossless else _plan(z, None, 0.1).scale
+    t, valid = qt.quantise(z, scale, lossless)
+    keep = lp.OPT_ALL & ~lp.OPT_INTERP  # the raster order, with and without sign contexts
+    a = qt.encode_band(t, valid, lossless, keep)
+    b = qt.encode_band(t, valid, lossless, keep & ~lp.OPT_SIGN)
+    assert band_bits(*a) < band_bits(*b), (band_bits(*a), band_bits(*b))
+    out = decoded(*a, z.shape, lossless, scale)
+    if lossless:
+        mask = ~np.isnan(z)
+        np.testing.assert_array_equal(np.isnan(out), ~mask)
+        np.testing.assert_array_equal(out[mask], expected_lossless(z, 0.02)[mask])
+    else:
+        check_bound(z, out, 0.1)
