@@ -1,5 +1,6 @@
 """Range images (depth on the camera grid) coded by a quadtree of surface models, local
-prediction (LOCO-I/CALIC-style, JPEG-XL's weighted predictor) and rANS: codec ``quadtree-lp-4``.
+prediction (LOCO-I/CALIC-style, JPEG-XL's weighted predictor) or, error-bounded, hierarchical
+interpolation (SZ3's order), and rANS: codec ``quadtree-lp-4``.
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -13,16 +14,16 @@ The validity mask (the non-NaN samples) is always coded exactly. The image is cu
 bands of :data:`BAND_ROWS` rows, each an independent chunk of the container
 (:mod:`shared.formats.container`, kind ``range``), coded and decoded on a thread pool by
 ``nogil`` kernels (:mod:`shared.compress._quadtree`, :mod:`shared.compress._lpred`,
-:mod:`shared.compress._wp`), so memory stays proportional to a few bands and both cores work.
+:mod:`shared.compress._wp`, :mod:`shared.compress._interp`), so memory stays proportional to a few bands and both cores work.
 Files of the earlier codecs (:data:`OLD_CODECS`) are refused by name (re-encode them from the
 ``range.npz``).
 
 Measured (``tests/bench/bench_compress.py``, bits per valid sample, lossless at 0.02 mm / within
 0.1 mm, effort 1): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768
-projector 2.165 / 0.573 (effort 2: 2.14 lossless; ``quadtree-lp-2`` 2.23 / 0.580; JPEG-XL effort 7
-2.16, JPEG-LS 2.44, JPEG-LS NEAR 1.29, SZ3 0.51); the Cyberware dragon scan 4.95 / 2.47 (effort 2:
-4.85; ``quadtree-lp-2`` 5.76 / 2.87; JPEG-XL 4.55, JPEG-LS NEAR 3.00); a synthetic image with
-0.2 mm white noise 5.51 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
+projector 2.085 / 0.438 (``quadtree-lp-3`` 2.165 / 0.573, without sign contexts and
+interpolation; JPEG-XL effort 7 2.16, JPEG-LS 2.44, JPEG-LS NEAR 1.29, SZ3 0.51); the Cyberware
+dragon scan 4.95 / 2.01 (effort 2: 4.85 lossless; JPEG-XL 4.55, JPEG-LS NEAR 3.00); a synthetic
+image with 0.2 mm white noise 5.51 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ CODEC = "quadtree-lp-4"
 OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3")
 #: The encoder's options per effort. 1 (the default): every tool but JPEG-XL's weighted
 #: predictor; 2: the weighted predictor tried too, per lossless band, kept where it saves 0.5 %.
-#: Measured A/B in one run (MP per CPU second; bits per valid sample at 0.02 mm, effort 1 / 2):
+#: Measured A/B in one run with ``quadtree-lp-3`` (MP per CPU second; bits per valid sample at 0.02 mm, effort 1 / 2):
 #: the relief at 2:1 2.165 / 2.141, the bunny at 1:1 4.204 / 4.196, the Cyberware dragon scan 0
 #: 4.953 / 4.851, the synthetic image 5.512 either way; lossless encoding 15-18 / 6-10, decoding
 #: of the bands that take the predictor 61-68 / 28-43 (the targets, 30 MP/s encoding and
