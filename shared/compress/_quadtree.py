@@ -336,7 +336,9 @@ def _put_coef(tab, val, nb, n, t, u):
 @njit(cache=True, nogil=True)
 def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, lcoef):
     """The mask's and the quadtree's events of one band (its leaves into ``leaves`` (n, 5) and
-    ``lcoef`` (n, 6) int64); returns (events, leaves), events -1 when the buffers are too small."""
+    ``lcoef`` (n, 6) int64); returns (events, leaves), events -1 when the buffers are too small.
+    (Arrays copied by loops, not ``a[:] = b``: numba links a shape mismatch's error message into
+    every kernel holding one, 0.2 s more compilation each, 2.4 s once a process.)"""
     H, W = t.shape
     n = 0
     # 1. the mask, row by row against the row above
@@ -370,7 +372,8 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
             st_xyb[0, 1] = ty
             st_xyb[0, 2] = TOP
             st_xyb[0, 3] = 0
-            st_fit[0, :] = coef
+            for i in range(6):
+                st_fit[0, i] = coef[i]
             st_m[0] = m
             st_cost[0] = cost
             sp = 1
@@ -403,7 +406,8 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
                             st_xyb[sp, 1] = y0 + (k >> 1) * h
                             st_xyb[sp, 2] = h
                             st_xyb[sp, 3] = lev + 1
-                            st_fit[sp, :] = kids[k]
+                            for i in range(6):
+                                st_fit[sp, i] = kids[k, i]
                             st_m[sp] = kid_m[k]
                             st_cost[sp] = kid_cost[k]
                             sp += 1
@@ -411,15 +415,16 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
                 # a leaf
                 n = put(tab, val, nb, n, T_MODEL, m, 0)
                 _predict_coefs(pm, pc, px, py, pB, x0, y0, B, pred)
-                n = _put_coef(tab, val, nb, n, T_C0, zigzag(coef[0] - pred[0]))
+                # the tables as int64 values, not literals: _put_coef is compiled once, not once a table
+                n = _put_coef(tab, val, nb, n, np.int64(T_C0), zigzag(coef[0] - pred[0]))
                 if m >= 1:
-                    n = _put_coef(tab, val, nb, n, T_C12, zigzag(coef[1] - pred[1]))
-                    n = _put_coef(tab, val, nb, n, T_C12, zigzag(coef[2] - pred[2]))
+                    n = _put_coef(tab, val, nb, n, np.int64(T_C12), zigzag(coef[1] - pred[1]))
+                    n = _put_coef(tab, val, nb, n, np.int64(T_C12), zigzag(coef[2] - pred[2]))
                 if m >= 2:
-                    n = _put_coef(tab, val, nb, n, T_C345, zigzag(coef[3] - pred[3]))
+                    n = _put_coef(tab, val, nb, n, np.int64(T_C345), zigzag(coef[3] - pred[3]))
                 if m == 3:
-                    n = _put_coef(tab, val, nb, n, T_C345, zigzag(coef[4] - pred[4]))
-                    n = _put_coef(tab, val, nb, n, T_C345, zigzag(coef[5] - pred[5]))
+                    n = _put_coef(tab, val, nb, n, np.int64(T_C345), zigzag(coef[4] - pred[4]))
+                    n = _put_coef(tab, val, nb, n, np.int64(T_C345), zigzag(coef[5] - pred[5]))
                 for i in range(6):
                     if (i >= 1 and m == 0) or (i >= 3 and m == 1) or (i >= 4 and m == 2):
                         coef[i] = 0
@@ -427,10 +432,11 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
                 leaves[nleaf, 1] = y0
                 leaves[nleaf, 2] = B
                 leaves[nleaf, 3] = m
-                lcoef[nleaf, :] = coef
+                for i in range(6):
+                    lcoef[nleaf, i] = coef[i]
+                    pc[i] = coef[i]
                 nleaf += 1
                 pm = m
-                pc[:] = coef
                 px = x0
                 py = y0
                 pB = B
@@ -553,8 +559,6 @@ def _put_predictors(tab, val, nb, n, head, leaves, nleaf):
     return n
 
 
-
-
 @njit(cache=True, nogil=True)
 def finite_abs_max(z):
     """Largest ``|z|`` over the valid (non-NaN) samples of ``z`` (H, W) float32, as a float, and
@@ -628,7 +632,7 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
 @njit(cache=True, nogil=True)
 def _stream_bits(tab, val, nb, n):
     """The coded size in bits of events 0..n-1: their tables' code lengths, raw bits and stored tables."""
-    counts = count_symbols(tab, val, n, NTABLES)
+    counts = count_symbols(tab, val, n, np.int64(NTABLES))  # int64: one signature with encode_band's
     codes, freq = quantise_tables(normalise(counts))
     bits = 8.0 * pack_codes(codes).size
     for i in range(n):
@@ -676,11 +680,13 @@ def _cell_integral(valid):
     return ii
 
 
-@njit(cache=True, nogil=True)
-def decode_band(tables, words, H, W, lossless, scale, out):
-    """Decode one band into ``out`` (H, W) float32 (NaN where invalid). ``scale`` is the
-    quantum (lossless) or the fine unit (bounded). Returns 0, or -1 for a corrupt stream."""
-    freq, used = unpack_codes(tables, NTABLES)
+def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless: bool, scale: float,
+                out: np.ndarray) -> int:
+    """Decode one band (``tables`` uint8, ``words`` uint16 from :func:`encode_band`) into ``out``
+    (H, W) float32 (NaN where invalid). ``scale`` is the quantum (lossless) or the fine unit
+    (bounded). Returns 0, or -1 for a corrupt stream. Plain Python over the kernels (each
+    releases the GIL): as a kernel it cost numba 2.7 s more to compile, relinking them all."""
+    freq, used = unpack_codes(tables, np.int64(NTABLES))  # int64: one signature
     if used < 0 or used != tables.shape[0]:
         return -1
     nw = words.shape[0]
@@ -695,29 +701,14 @@ def decode_band(tables, words, H, W, lossless, scale, out):
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
     leaves = np.zeros((nleaf_max, 5), np.int64)
     lcoef = np.zeros((nleaf_max, 6), np.int64)
-    nleaf, xa, xb, pos = _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef)
-    if nleaf < 0 or pos > nw:
+    head = np.zeros(6, np.int64)
+    nleaf, xa, xb, pos = _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, bool(lossless), leaves, lcoef, head)
+    if nleaf < 0:
         return -1
-    bias, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    cofs, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    cshift, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    wp, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    aw, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    an, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    # the weighted predictor runs in lossless bands only (the encoder's choice)
-    if bias > 1 or cofs > lp.MAX_COFS or cshift > 2 or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
-        return -1
-    for i in range(nleaf):
-        k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-        if k >= (lp.NK if wp else lp.K_WP):
-            return -1
-        leaves[i, 4] = k
-    if pos > nw:
-        return -1
+    bias, cofs, cshift, wp, aw, an = (np.int64(v) for v in head)
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
-    xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, np.int64(bias),
-                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), np.int64(cofs), np.int64(cshift), np.int64(wp), scale,
-                                      np.int64(T_RES), out)
+    xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, bool(lossless), bias,
+                                      aw - lp.FB_MAX, an - lp.FB_MAX, cofs, cshift, wp, float(scale), TR, out)
     # A sound stream ends exactly at its last word, both states back where the encoder began.
     if pos != nw or xa != RANS_L or xb != RANS_L:
         return -1
@@ -725,7 +716,11 @@ def decode_band(tables, words, H, W, lossless, scale, out):
 
 
 @njit(cache=True, nogil=True)
-def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef):
+def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef, head):
+    """A band's quadtree, its mask ``valid`` decoded: the leaves into ``leaves`` (n, 5) (x0, y0,
+    B, model, predictor) and ``lcoef`` (n, 6) int64, then the six flags and weights into ``head``
+    (6,) int64 (as :func:`_put_predictors` put them). Returns (leaves, xa, xb, pos), -1 leaves
+    for a corrupt stream."""
     H, W = valid.shape
     ii = _cell_integral(valid)
     nleaf = 0
@@ -775,31 +770,38 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef):
                     return -1, xa, xb, pos
                 _predict_coefs(pm, pc, px, py, pB, x0, y0, B, pred)
                 c = lcoef[nleaf]
-                u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C0, L_COEF)
-                c[0] = pred[0] + unzigzag(u)
-                if m >= 1:
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C12, L_COEF)
-                    c[1] = pred[1] + unzigzag(u)
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C12, L_COEF)
-                    c[2] = pred[2] + unzigzag(u)
-                if m >= 2:
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C345, L_COEF)
-                    c[3] = pred[3] + unzigzag(u)
-                if m == 3:
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C345, L_COEF)
-                    c[4] = pred[4] + unzigzag(u)
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C345, L_COEF)
-                    c[5] = pred[5] + unzigzag(u)
+                # the K_OF[m] coefficients: one inlined value decoder, not six (numba copies its IR per site)
+                for i in range(K_OF[m]):
+                    tc = T_C0 if i == 0 else (T_C12 if i < 3 else T_C345)
+                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, tc, L_COEF)
+                    c[i] = pred[i] + unzigzag(u)
                 leaves[nleaf, 0] = x0
                 leaves[nleaf, 1] = y0
                 leaves[nleaf, 2] = B
                 leaves[nleaf, 3] = m
                 nleaf += 1
                 pm = m
-                pc[:] = c
+                for i in range(6):
+                    pc[i] = c[i]
                 px = x0
                 py = y0
                 pB = B
+    if pos > nw:
+        return -1, xa, xb, pos
+    for i in range(6):
+        v, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+        head[i] = v
+    bias, cofs, cshift, wp, aw, an = head[0], head[1], head[2], head[3], head[4], head[5]
+    # the weighted predictor runs in lossless bands only (the encoder's choice)
+    if bias > 1 or cofs > lp.MAX_COFS or cshift > 2 or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX or an > 2 * lp.FB_MAX:
+        return -1, xa, xb, pos
+    for i in range(nleaf):
+        k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+        if k >= (lp.NK if wp else lp.K_WP):
+            return -1, xa, xb, pos
+        leaves[i, 4] = k
+    if pos > nw:
+        return -1, xa, xb, pos
     return nleaf, xa, xb, pos
 
 
