@@ -1,9 +1,12 @@
-"""Quadtree range-image band codec kernels (private; the public API is :mod:`shared.compress.range`).
+"""Quadtree range-image band codec kernels (private; the public API is :mod:`shared.compress.range`,
+the band's encoder and decoder over these kernels :mod:`shared.compress._band`).
 
 A band of rows is coded as one rANS stream (codec ``quadtree-lp-4``) of three parts:
 
 1. the validity mask, exactly: per row where its alternating invalid/valid runs end, against
-   the row above (:mod:`shared.compress._mask`);
+   the row above (:mod:`shared.compress._mask`), then the band's order: :data:`MODE_RASTER` (the
+   rest of this list) or, in bounded mode, :data:`MODE_INTERP` (the residual tables' offset and
+   merging, then the residuals in hierarchical interpolation order, :mod:`shared.compress._interp`);
 2. the quadtree: every 64x64 block holding a valid sample either splits into four (down
    to 4x4) or is a leaf with a surface model -- constant, plane, bilinear or quadratic in
    depth -- or with local prediction, whichever the estimated code length favours (Gaussian
@@ -14,7 +17,7 @@ A band of rows is coded as one rANS stream (codec ``quadtree-lp-4``) of three pa
    encoder and decoder evaluate bit-identical predictions), coded as differences from the
    previous leaf's model extrapolated to the new block;
 3. per band the flags of bias cancellation and of the weighted predictor, the context merging
-   and the error-feedback weights, each leaf's predictor (its model, or one of the local
+   and the error-feedback weights, the flag of sign contexts, each leaf's predictor (its model, or one of the local
    predictors over the reconstructed neighbours, :mod:`shared.compress._lpred`), then the
    residuals in raster order, each in one of :data:`NCTX` tables chosen by the local
    activity (the neighbours' prediction errors and the curvature of the row above).
@@ -28,23 +31,17 @@ target ``t`` and prediction ``p`` (reconstruction within half a quantum of ``t``
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 from numba import njit
 
 from shared.compress import _lpred as lp
-from shared.compress._interp import interp_decode, interp_events
 from shared.compress._lpred import A_SHIFT, F_SHIFT, FINE, MINB, Q_SHIFT
-from shared.compress._mask import decode_mask, encode_mask
+from shared.compress._mask import encode_mask
 from shared.compress._rans import (
     NSYM,
     PROB_BITS,
-    RANS_L,
     count_symbols,
-    dec_init,
-    decode_tables,
-    encode_events,
     get_symbol,
     get_value,
     normalise,
@@ -53,7 +50,7 @@ from shared.compress._rans import (
     unzigzag,
     zigzag,
 )
-from shared.compress._tables import pack_codes, quantise_tables, unpack_codes
+from shared.compress._tables import pack_codes, quantise_tables
 
 TOP = 64  # top block size (a band's height is a multiple of it)
 NCTX = lp.NCTX
@@ -279,11 +276,6 @@ def fit_block(t, valid, y0, x0, B, coef, ws):
     return best_m, best_cost, n
 
 
-#: Least share of a band's residual bits the weighted predictor must save to be used: it more
-#: than halves the band's decoding speed (lossless relief 2:1 about 64 -> 29 MP per CPU second)
-#: for 0.8-1.4 % on the simulated relief but 0.1-0.3 % on the bunny, fandisk and spot and 0.07 %
-#: on white noise.
-WP_MIN_GAIN = 0.005
 #: Estimated bits of a leaf coded by local prediction (its constant and predictor).
 LOCAL_BITS = 16.0
 #: A block splits only where its children's estimated bits undercut its own by a margin: a
@@ -343,7 +335,9 @@ def _put_coef(tab, val, nb, n, t, u):
 @njit(cache=True, nogil=True)
 def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, lcoef):
     """The mask's and the quadtree's events of one band (its leaves into ``leaves`` (n, 5) and
-    ``lcoef`` (n, 6) int64); returns (events, leaves), events -1 when the buffers are too small."""
+    ``lcoef`` (n, 6) int64); returns (events, leaves), events -1 when the buffers are too small.
+    (Arrays copied by loops, not ``a[:] = b``: numba links a shape mismatch's error message into
+    every kernel holding one, 0.2 s more compilation each, 2.4 s once a process.)"""
     H, W = t.shape
     n = 0
     # 1. the mask, row by row against the row above
@@ -378,7 +372,8 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
             st_xyb[0, 1] = ty
             st_xyb[0, 2] = TOP
             st_xyb[0, 3] = 0
-            st_fit[0, :] = coef
+            for i in range(6):
+                st_fit[0, i] = coef[i]
             st_m[0] = m
             st_cost[0] = cost
             sp = 1
@@ -411,7 +406,8 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
                             st_xyb[sp, 1] = y0 + (k >> 1) * h
                             st_xyb[sp, 2] = h
                             st_xyb[sp, 3] = lev + 1
-                            st_fit[sp, :] = kids[k]
+                            for i in range(6):
+                                st_fit[sp, i] = kids[k, i]
                             st_m[sp] = kid_m[k]
                             st_cost[sp] = kid_cost[k]
                             sp += 1
@@ -419,15 +415,16 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
                 # a leaf
                 n = put(tab, val, nb, n, T_MODEL, m, 0)
                 _predict_coefs(pm, pc, px, py, pB, x0, y0, B, pred)
-                n = _put_coef(tab, val, nb, n, T_C0, zigzag(coef[0] - pred[0]))
+                # the tables as int64 values, not literals: _put_coef is compiled once, not once a table
+                n = _put_coef(tab, val, nb, n, np.int64(T_C0), zigzag(coef[0] - pred[0]))
                 if m >= 1:
-                    n = _put_coef(tab, val, nb, n, T_C12, zigzag(coef[1] - pred[1]))
-                    n = _put_coef(tab, val, nb, n, T_C12, zigzag(coef[2] - pred[2]))
+                    n = _put_coef(tab, val, nb, n, np.int64(T_C12), zigzag(coef[1] - pred[1]))
+                    n = _put_coef(tab, val, nb, n, np.int64(T_C12), zigzag(coef[2] - pred[2]))
                 if m >= 2:
-                    n = _put_coef(tab, val, nb, n, T_C345, zigzag(coef[3] - pred[3]))
+                    n = _put_coef(tab, val, nb, n, np.int64(T_C345), zigzag(coef[3] - pred[3]))
                 if m == 3:
-                    n = _put_coef(tab, val, nb, n, T_C345, zigzag(coef[4] - pred[4]))
-                    n = _put_coef(tab, val, nb, n, T_C345, zigzag(coef[5] - pred[5]))
+                    n = _put_coef(tab, val, nb, n, np.int64(T_C345), zigzag(coef[4] - pred[4]))
+                    n = _put_coef(tab, val, nb, n, np.int64(T_C345), zigzag(coef[5] - pred[5]))
                 for i in range(6):
                     if (i >= 1 and m == 0) or (i >= 3 and m == 1) or (i >= 4 and m == 2):
                         coef[i] = 0
@@ -435,172 +432,15 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
                 leaves[nleaf, 1] = y0
                 leaves[nleaf, 2] = B
                 leaves[nleaf, 3] = m
-                lcoef[nleaf, :] = coef
+                for i in range(6):
+                    lcoef[nleaf, i] = coef[i]
+                    pc[i] = coef[i]
                 nleaf += 1
                 pm = m
-                pc[:] = coef
                 px = x0
                 py = y0
                 pB = B
     return (n if n >= 0 else -1), nleaf
-
-
-#: int64 arguments of the kernels called from Python (one signature each, as from a kernel)
-ZERO = np.int64(0)
-ONE = np.int64(1)
-TR = np.int64(T_RES)
-
-
-def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, margin: float, share: float,
-                   tab: np.ndarray, val: np.ndarray, nb: np.ndarray) -> tuple[int, _SignPass | None]:
-    """Every event of one band, the residuals without sign contexts; returns the count (or -1
-    when the event buffers are too small) and what coding them with sign contexts needs.
-
-    Plain Python over the kernels (the tree's, the predictors', the residuals'), each compiled
-    once on its own: as one kernel it spent 4.7 s of numba's time linking and optimising them
-    all again."""
-    H, W = t.shape
-    lossless = bool(lossless)
-    opts = np.int64(opts)
-    nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
-    leaves = np.zeros((nleaf_max, 5), np.int64)  # x0, y0, B, model, residual predictor
-    lcoef = np.empty((nleaf_max, 6), np.int64)
-    n, nleaf = _encode_tree(t, valid, lossless, opts, float(margin), float(share), tab, val, nb, leaves, lcoef)
-    if n < 0:
-        return -1, None
-    n = np.int64(n)
-    nleaf = np.int64(nleaf)
-    # 3. each leaf's residual predictor, then the residuals in raster order
-    cells = _leaf_cells(np.int64(H), np.int64(W), leaves, nleaf)
-    none = np.zeros((1, W), np.int64)  # the weighted predictor's arrays where it does not run
-    pw = pe = none
-    # the residuals' symbol counts with sign contexts, by level and pattern (lp.sign_bits), of
-    # the way kept (alt) and of the way tried beside it (alt_b)
-    count = (opts & lp.OPT_SIGN) != 0
-    alt = np.zeros((lp.NLEVEL * lp.NSUB, NSYM) if count else (1, 1), np.int32)
-    alt_b = np.zeros_like(alt)
-    lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO)
-    # error feedback (lossless mode: in bounded mode the reconstruction's rounding noise in the
-    # neighbours' errors made it cost more than it saved): the band's least-squares weights of
-    # the W and N neighbours' errors
-    aw, an = 0, 0
-    if lossless and (opts & lp.OPT_FEEDBACK):
-        aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef, none)
-    aw = np.int64(aw)
-    an = np.int64(an)
-    # the flags of bias cancellation and the weighted predictor, the weights and each leaf's
-    # predictor, then the residuals
-    n_res = np.int64(n + 7 + nleaf)
-    if n < 0 or n_res + 1 > tab.shape[0]:
-        return -1, None
-    bias = 0
-    wp = 0
-    if not lossless and (opts & lp.OPT_BIAS):
-        # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on
-        # noise: both ways, the smaller kept
-        n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ONE, aw, an, TR,
-                                 tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt_b)
-        if n1 < 0:
-            return -1, None
-        with_bias = lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0]
-        keep_tab = tab[n_res:n1].copy()
-        keep_val = val[n_res:n1].copy()
-        keep_nb = nb[n_res:n1].copy()
-        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
-                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt)
-        if n_end < 0 or with_bias < lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]:
-            bias = 1
-            tab[n_res:n1] = keep_tab
-            val[n_res:n1] = keep_val
-            nb[n_res:n1] = keep_nb
-            n_end = n1
-            alt, alt_b = alt_b, alt
-    else:
-        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
-                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt)
-        if n_end < 0:
-            return -1, None
-        if lossless and (opts & lp.OPT_WP):
-            # the weighted predictor (a choice of every leaf, its error in the context): both
-            # ways, kept where it saves WP_MIN_GAIN (it lost on the bunny at 4:1, where the
-            # plane fits)
-            without = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
-            keep_tab = tab[n_res:n_end].copy()
-            keep_val = val[n_res:n_end].copy()
-            keep_nb = nb[n_res:n_end].copy()
-            keep_k = leaves[:nleaf, 4].copy()
-            pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
-            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, ONE)
-            aw1, an1 = 0, 0
-            if opts & lp.OPT_FEEDBACK:
-                aw1, an1 = lp.feedback_weights(t, valid, cells, leaves, lcoef, pw)
-            aw1 = np.int64(aw1)
-            an1 = np.int64(an1)
-            n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw1, an1,
-                                     TR, tab, val, nb, n_res, pw, pe, ONE, ZERO, ZERO, alt_b)
-            if n1 < 0:
-                return -1, None
-            if lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0] < (1.0 - WP_MIN_GAIN) * without:
-                wp = 1
-                aw = aw1
-                an = an1
-                n_end = n1
-                alt, alt_b = alt_b, alt
-            else:
-                tab[n_res:n_end] = keep_tab
-                val[n_res:n_end] = keep_val
-                nb[n_res:n_end] = keep_nb
-                leaves[:nleaf, 4] = keep_k
-    # the residual tables: where along the activity levels, and fewer in a small band where the
-    # tables cost more than the contexts save
-    bits, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
-    lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
-    head = np.array([bias, cofs, cshift, wp, aw + lp.FB_MAX, an + lp.FB_MAX, 0], np.int64)
-    _put_predictors(tab, val, nb, n, head, leaves, nleaf)
-    gain = 0.0
-    if opts & lp.OPT_SIGN:
-        gain = bits - lp.sign_bits(alt, np.int64(cofs), tab, nb, n_res, np.int64(n_end))
-    signs = _SignPass(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, pw, pe, np.int64(wp),
-                      np.int64(cofs), alt, n + 6, n_res, gain)
-    return int(n_end), signs
-
-
-@dataclass
-class _SignPass:
-    """What the residuals of a band coded without sign contexts need to be coded again with
-    them (:func:`_with_signs`), and the bits that would save (estimated; <= 0: none)."""
-
-    t: np.ndarray
-    valid: np.ndarray
-    cells: np.ndarray
-    leaves: np.ndarray
-    lcoef: np.ndarray
-    lossless: bool
-    opts: np.int64
-    bias: np.int64
-    aw: np.int64
-    an: np.int64
-    pw: np.ndarray
-    pe: np.ndarray
-    wp: np.int64
-    cofs: np.int64
-    alt: np.ndarray
-    flag: int  # the event holding the band's sign-context flag
-    n_res: np.int64
-    gain: float
-
-
-def _with_signs(p: _SignPass, tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n_end: int) -> int:
-    """Code the band's residuals again with sign contexts (from event ``p.n_res``; the flag set);
-    returns the new count, or ``n_end`` with the events unchanged when the buffers are too small."""
-    keep = (tab[p.n_res:n_end].copy(), val[p.n_res:n_end].copy(), nb[p.n_res:n_end].copy())
-    n1 = lp.encode_residuals(p.t, p.valid, p.cells, p.leaves, p.lcoef, p.lossless, p.opts, p.bias, p.aw, p.an, TR,
-                             tab, val, nb, p.n_res, p.pw, p.pe, p.wp, ONE, p.cofs, p.alt)
-    if n1 < 0:
-        tab[p.n_res:n_end], val[p.n_res:n_end], nb[p.n_res:n_end] = keep
-        return n_end
-    val[p.flag] = 1
-    return int(n1)
 
 
 @njit(cache=True, nogil=True)
@@ -611,8 +451,6 @@ def _put_predictors(tab, val, nb, n, head, leaves, nleaf):
     for i in range(nleaf):
         n = put(tab, val, nb, n, T_PRED, leaves[i, 4], 0)
     return n
-
-
 
 
 @njit(cache=True, nogil=True)
@@ -651,89 +489,10 @@ def quantise(z, scale, lossless):
     return t, valid
 
 
-def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> tuple[np.ndarray, np.ndarray]:
-    """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool; ``opts`` the
-    encoder's options (:data:`shared.compress._lpred.OPT_ALL` for a decodable stream; fewer for
-    ablation). Returns (packed tables uint8, rANS words uint16).
-
-    Plain Python over the kernels (each releases the GIL, so bands still code in parallel
-    threads): as a kernel of its own it cost numba 2.2 s to compile, its module linking and
-    optimising again every kernel it calls, for a handful of calls a band."""
-    H, W = t.shape
-    margins = SPLIT_LOSSLESS if lossless else SPLIT_BOUNDED[:1]
-    share = 0.0 if lossless else SPLIT_BOUNDED[1]
-    best = np.inf
-    tab = val = nb = None
-    n = 0
-    # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
-    cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
-    signs = None
-    for margin in margins:
-        while True:
-            tab_i = np.empty(cap, np.int8)
-            val_i = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
-            nb_i = np.empty(cap, np.int8)
-            n_i, signs_i = _encode_events(t, valid, bool(lossless), np.int64(opts), float(margin), float(share),
-                                          tab_i, val_i, nb_i)
-            if n_i >= 0:
-                break
-            cap *= 4
-        # each margin's stream without sign contexts, less what they would save: the residuals
-        # are coded again with them for the margin kept alone
-        bits = _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) - max(signs_i.gain, 0.0) if len(margins) > 1 else 0.0
-        if bits < best:
-            best = bits
-            tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, signs_i
-    if not lossless and (opts & lp.OPT_INTERP):
-        # hierarchical interpolation (smooth detailed depth within a bound): both ways, the
-        # smaller kept
-        if len(margins) == 1:
-            best = _stream_bits(tab, val, nb, np.int64(n)) - max(signs.gain, 0.0)
-        while True:
-            tab_i = np.empty(cap, np.int8)
-            val_i = np.empty(cap, np.int16)
-            nb_i = np.empty(cap, np.int8)
-            n_i = _interp_band(t, valid, tab_i, val_i, nb_i)
-            if n_i >= 0:
-                break
-            cap *= 4
-        if _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) < best:
-            tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, None
-    if signs is not None and signs.gain > 0:
-        n = _with_signs(signs, tab, val, nb, n)
-    return _pack(tab, val, nb, n)
-
-
-def _pack(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
-    """A band's events 0..n-1 as (packed tables uint8, rANS words uint16)."""
-    codes, freq = quantise_tables(normalise(count_symbols(tab, val, np.int64(n), np.int64(NTABLES))))
-    words = encode_events(tab, val, nb, np.int64(n), freq)
-    return pack_codes(codes), words
-
-
-def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndarray, nb: np.ndarray) -> int:
-    """Every event of one band in interpolation order (bounded mode): the mask, the mode, the
-    residual tables' offset and merging, the residuals. Returns the count, or -1 when the event
-    buffers are too small."""
-    n = encode_mask(valid, tab, val, nb, ZERO, np.int64(T_EDGE))
-    no_leaves = np.zeros((0, 5), np.int64)
-    n = _put_predictors(tab, val, nb, np.int64(n), np.array([MODE_INTERP], np.int64), no_leaves, ZERO)
-    n_res = np.int64(n + 2)
-    if n < 0 or n_res > tab.shape[0]:
-        return -1
-    n_end = interp_events(t, valid, tab, val, nb, n_res, TR)
-    if n_end < 0:
-        return -1
-    _, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
-    lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
-    _put_predictors(tab, val, nb, np.int64(n), np.array([cofs, cshift], np.int64), no_leaves, ZERO)
-    return int(n_end)
-
-
 @njit(cache=True, nogil=True)
 def _stream_bits(tab, val, nb, n):
     """The coded size in bits of events 0..n-1: their tables' code lengths, raw bits and stored tables."""
-    counts = count_symbols(tab, val, n, NTABLES)
+    counts = count_symbols(tab, val, n, np.int64(NTABLES))  # int64: one signature with encode_band's
     codes, freq = quantise_tables(normalise(counts))
     bits = 8.0 * pack_codes(codes).size
     for i in range(n):
@@ -782,68 +541,11 @@ def _cell_integral(valid):
 
 
 @njit(cache=True, nogil=True)
-def decode_band(tables, words, H, W, lossless, scale, out):
-    """Decode one band into ``out`` (H, W) float32 (NaN where invalid). ``scale`` is the
-    quantum (lossless) or the fine unit (bounded). Returns 0, or -1 for a corrupt stream."""
-    freq, used = unpack_codes(tables, NTABLES)
-    if used < 0 or used != tables.shape[0]:
-        return -1
-    nw = words.shape[0]
-    if nw < 4:
-        return -1
-    sym, fb = decode_tables(freq)
-    xa, xb, pos = dec_init(words)
-    valid = np.zeros((H, W), np.bool_)
-    ok, xa, xb, pos = decode_mask(xa, xb, pos, words, nw, sym, fb, valid, T_EDGE)
-    if not ok:
-        return -1
-    mode, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    if mode == MODE_INTERP and not lossless:
-        cofs, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-        cshift, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-        if cofs > lp.MAX_COFS or cshift > 2 or pos > nw:
-            return -1
-        xa, xb, pos = interp_decode(xa, xb, pos, words, nw, sym, fb, valid, np.int64(cofs), np.int64(cshift), scale,
-                                    np.int64(T_RES), out)
-        return 0 if pos == nw and xa == RANS_L and xb == RANS_L else -1
-    if mode != MODE_RASTER:
-        return -1
-    nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
-    leaves = np.zeros((nleaf_max, 5), np.int64)
-    lcoef = np.zeros((nleaf_max, 6), np.int64)
-    nleaf, xa, xb, pos = _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef)
-    if nleaf < 0 or pos > nw:
-        return -1
-    bias, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    cofs, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    cshift, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    wp, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    aw, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    an, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    sc, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-    # the weighted predictor runs in lossless bands only (the encoder's choice)
-    if (bias > 1 or cofs > lp.MAX_COFS or cshift > 2 or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX
-            or an > 2 * lp.FB_MAX or sc > 1):
-        return -1
-    for i in range(nleaf):
-        k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-        if k >= (lp.NK if wp else lp.K_WP):
-            return -1
-        leaves[i, 4] = k
-    if pos > nw:
-        return -1
-    cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
-    xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, np.int64(bias),
-                                      np.int64(aw - lp.FB_MAX), np.int64(an - lp.FB_MAX), np.int64(cofs), np.int64(cshift), np.int64(wp), np.int64(sc), scale,
-                                      np.int64(T_RES), out)
-    # A sound stream ends exactly at its last word, both states back where the encoder began.
-    if pos != nw or xa != RANS_L or xb != RANS_L:
-        return -1
-    return 0
-
-
-@njit(cache=True, nogil=True)
-def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef):
+def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef, head):
+    """A band's quadtree, its mask ``valid`` decoded: the leaves into ``leaves`` (n, 5) (x0, y0,
+    B, model, predictor) and ``lcoef`` (n, 6) int64, then the seven flags and weights into ``head``
+    (7,) int64 (as :func:`_put_predictors` put them). Returns (leaves, xa, xb, pos), -1 leaves
+    for a corrupt stream."""
     H, W = valid.shape
     ii = _cell_integral(valid)
     nleaf = 0
@@ -893,31 +595,39 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, leaves, lcoef):
                     return -1, xa, xb, pos
                 _predict_coefs(pm, pc, px, py, pB, x0, y0, B, pred)
                 c = lcoef[nleaf]
-                u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C0, L_COEF)
-                c[0] = pred[0] + unzigzag(u)
-                if m >= 1:
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C12, L_COEF)
-                    c[1] = pred[1] + unzigzag(u)
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C12, L_COEF)
-                    c[2] = pred[2] + unzigzag(u)
-                if m >= 2:
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C345, L_COEF)
-                    c[3] = pred[3] + unzigzag(u)
-                if m == 3:
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C345, L_COEF)
-                    c[4] = pred[4] + unzigzag(u)
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_C345, L_COEF)
-                    c[5] = pred[5] + unzigzag(u)
+                # the K_OF[m] coefficients: one inlined value decoder, not six (numba copies its IR per site)
+                for i in range(K_OF[m]):
+                    tc = T_C0 if i == 0 else (T_C12 if i < 3 else T_C345)
+                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, tc, L_COEF)
+                    c[i] = pred[i] + unzigzag(u)
                 leaves[nleaf, 0] = x0
                 leaves[nleaf, 1] = y0
                 leaves[nleaf, 2] = B
                 leaves[nleaf, 3] = m
                 nleaf += 1
                 pm = m
-                pc[:] = c
+                for i in range(6):
+                    pc[i] = c[i]
                 px = x0
                 py = y0
                 pB = B
+    if pos > nw:
+        return -1, xa, xb, pos
+    for i in range(head.shape[0]):
+        v, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+        head[i] = v
+    bias, cofs, cshift, wp, aw, an, sc = head[0], head[1], head[2], head[3], head[4], head[5], head[6]
+    # the weighted predictor runs in lossless bands only (the encoder's choice)
+    if (bias > 1 or cofs > lp.MAX_COFS or cshift > 2 or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX
+            or an > 2 * lp.FB_MAX or sc > 1):
+        return -1, xa, xb, pos
+    for i in range(nleaf):
+        k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+        if k >= (lp.NK if wp else lp.K_WP):
+            return -1, xa, xb, pos
+        leaves[i, 4] = k
+    if pos > nw:
+        return -1, xa, xb, pos
     return nleaf, xa, xb, pos
 
 

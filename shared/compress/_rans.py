@@ -321,7 +321,7 @@ def state_p(s):
 @njit(cache=True, nogil=True)
 def state_next(s, bit):
     """A model's state ``s`` adapted to ``bit`` (integers only: encoder and decoder agree)."""
-    return adapt_state(s, bit, MODEL_LIMIT)
+    return adapt_state(s, bit, np.int64(MODEL_LIMIT))  # int64, not a literal: one copy with the SSE cells'
 
 
 @njit(cache=True, nogil=True)

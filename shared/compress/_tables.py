@@ -67,7 +67,7 @@ def pack_codes(codes):
     used one (0: unused), then each code's zigzagged difference from the previous one."""
     nt, ns = codes.shape
     buf = np.zeros(nt * (ns + 1) * 4 + 16, np.uint8)
-    nbit = 0
+    nbit = np.int64(0)  # not the literal 0: the gamma coder is compiled for int64 alone
     for t in range(nt):
         last = -1
         for s in range(ns):
@@ -109,7 +109,7 @@ def unpack_codes(buf, ntables):
     bytes read), or (freq, -1) when malformed (a code out of range, a used table's last symbol
     absent, nonzero padding)."""
     w = np.zeros((ntables, NSYM), np.int64)
-    nbit = 0
+    nbit = np.int64(0)  # not the literal 0: the gamma coder is compiled for int64 alone
     for t in range(ntables):
         cnt, nbit = _get_gamma(buf, nbit)
         if cnt < 0 or cnt > NSYM:

@@ -78,10 +78,11 @@ def wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub):
     sub[1] = b - (((tw + tn + tne) * 16) >> 5)
     sub[2] = a - (((tw + tn + tnw) * 10) >> 5)
     sub[3] = b - (((tnw + tn + tne) * 7) >> 5)
-    w0 = _weight(_err_sum(err_a, err_b, 0, i), 13)  # JPEG-XL's default largest weights
-    w1 = _weight(_err_sum(err_a, err_b, 1, i), 12)
-    w2 = _weight(_err_sum(err_a, err_b, 2, i), 12)
-    w3 = _weight(_err_sum(err_a, err_b, 3, i), 12)
+    # int64 values, not literals: the helpers are compiled once, not once a literal value
+    w0 = _weight(_err_sum(err_a, err_b, np.int64(0), i), np.int64(13))  # JPEG-XL's default largest weights
+    w1 = _weight(_err_sum(err_a, err_b, np.int64(1), i), np.int64(12))
+    w2 = _weight(_err_sum(err_a, err_b, np.int64(2), i), np.int64(12))
+    w3 = _weight(_err_sum(err_a, err_b, np.int64(3), i), np.int64(12))
     sh = _floor_log2(w0 + w1 + w2 + w3) - 4
     w0 >>= sh
     w1 >>= sh

@@ -13,7 +13,7 @@ A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (
 The validity mask (the non-NaN samples) is always coded exactly. The image is cut into
 bands of :data:`BAND_ROWS` rows, each an independent chunk of the container
 (:mod:`shared.formats.container`, kind ``range``), coded and decoded on a thread pool by
-``nogil`` kernels (:mod:`shared.compress._quadtree`, :mod:`shared.compress._lpred`,
+``nogil`` kernels (:mod:`shared.compress._band` over :mod:`shared.compress._quadtree`, :mod:`shared.compress._lpred`,
 :mod:`shared.compress._wp`, :mod:`shared.compress._interp`), so memory stays proportional to a few bands and both cores work.
 Files of the earlier codecs (:data:`OLD_CODECS`) are refused by name (re-encode them from the
 ``range.npz``).
@@ -43,6 +43,7 @@ import numpy as np
 
 from shared.compress import _lpred as lp
 from shared.compress import _quadtree as qt
+from shared.compress._band import decode_band, encode_band
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
 from shared.core.threads import cpu_budget
@@ -149,7 +150,7 @@ def check_range(z: np.ndarray, where: str = "z") -> np.ndarray:
 
 def _encode_band(zb: np.ndarray, plan: _Plan) -> bytes:
     t, valid = qt.quantise(zb, plan.scale, plan.lossless)
-    tables, words = qt.encode_band(t, valid, plan.lossless, plan.opts)
+    tables, words = encode_band(t, valid, plan.lossless, plan.opts)
     return _U32.pack(len(tables)) + tables.tobytes() + words.astype("<u2").tobytes()
 
 
@@ -248,7 +249,7 @@ def read_range(source: str | os.PathLike[str] | bytes) -> RangeImage:
             raise InputError(where, f"corrupt chunk {i} (bad table length)")
         tables = np.frombuffer(payload, np.uint8, nt, 4)
         words = np.frombuffer(payload, "<u2", (len(payload) - 4 - nt) // 2, 4 + nt).astype(np.uint16)
-        if qt.decode_band(tables, words, b - a, w, lossless, scale, z[a:b]) != 0:
+        if decode_band(tables, words, b - a, w, lossless, scale, z[a:b]) != 0:
             raise InputError(where, f"corrupt chunk {i} (the coded stream does not decode)")
 
     with ThreadPoolExecutor(_threads()) as pool:

@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from shared.compress import _octree, _rans
+from shared.compress import _octree, _octree_ctx, _rans
 from shared.compress.cloud import chunk_points
 from shared.formats.ply import iter_ply_records
 from shared.scan.pipeline import scan
@@ -29,15 +29,25 @@ from shared.sim.simulate import simulate_named
 SHIFTS = (3, 0, 0, 0, 9, 0, 0, 0, 0, 0, 0)
 
 
+def _drop_import(src: str, module: str) -> str:
+    """``src`` without its (parenthesised) ``from module import ...`` statement."""
+    i0 = src.index(f"from {module} import (")
+    return src[:i0] + src[src.index(")\n", i0) + 2 :]
+
+
 def _kernels() -> dict:
     """The kernels' source run with every binary event's models packed into its ``nb`` entry
     (int64: kind + 8 * (A + B << 20 + C << 40)) and the initial states passed in."""
     rs = Path(_rans.__file__).read_text().replace("cache=True", "cache=False")
     rns: dict = {"__name__": "train_rans"}
     exec(compile(rs, "train_rans", "exec"), rns)
-    s = Path(_octree.__file__).read_text().replace("cache=True", "cache=False")
-    i0 = s.index("from shared.compress._rans import")
-    s = s[:i0] + s[s.index(")\n", i0) + 2 :]
+    # the map and contexts (_octree_ctx), then the chunk coder, in one namespace: the latter's
+    # imports of the rANS coder and of the former left out
+    ctx = _drop_import(Path(_octree_ctx.__file__).read_text(), "shared.compress._rans")
+    s = Path(_octree.__file__).read_text()
+    for mod in ("shared.compress._octree_ctx", "shared.compress._rans"):
+        s = _drop_import(s, mod)
+    s = (ctx + "\n" + s.replace("from __future__ import annotations\n", "", 1)).replace("cache=True", "cache=False")
     for a, b in (
         ("def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):",
          "def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb, prior):"),

@@ -324,6 +324,7 @@ def test_weighted_predictor_is_chosen_where_it_pays_and_round_trips() -> None:
     camera finer than the projector sees fine relief) and a few holes, the band takes the
     weighted predictor (its stream is smaller than the one coded without it) and decodes
     exactly."""
+    from shared.compress import _band as band
     from shared.compress import _lpred as lp
     from shared.compress import _quadtree as qt
 
@@ -336,11 +337,11 @@ def test_weighted_predictor_is_chosen_where_it_pays_and_round_trips() -> None:
     z[rng.random(z.shape) < 0.002] = np.nan
     z = z.astype(np.float32)
     t, valid = qt.quantise(z, 0.02, True)
-    tables, words = qt.encode_band(t, valid, True, lp.OPT_ALL)
-    tables0, words0 = qt.encode_band(t, valid, True, lp.OPT_ALL & ~lp.OPT_WP)
+    tables, words = band.encode_band(t, valid, True, lp.OPT_ALL)
+    tables0, words0 = band.encode_band(t, valid, True, lp.OPT_ALL & ~lp.OPT_WP)
     assert tables.size + 2 * words.size < tables0.size + 2 * words0.size
     out = np.empty(z.shape, np.float32)
-    assert qt.decode_band(tables, words, z.shape[0], z.shape[1], True, 0.02, out) == 0
+    assert band.decode_band(tables, words, z.shape[0], z.shape[1], True, 0.02, out) == 0
     mask = ~np.isnan(z)
     np.testing.assert_array_equal(np.isnan(out), ~mask)
     np.testing.assert_array_equal(out[mask], expected_lossless(z, 0.02)[mask])

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from shared.compress import _band as band
 from shared.compress import _lpred as lp
 from shared.compress import _quadtree as qt
 from shared.compress import expected_lossless
@@ -34,7 +35,7 @@ def band_bits(tables: np.ndarray, words: np.ndarray) -> int:
 
 def decoded(tables: np.ndarray, words: np.ndarray, shape: tuple[int, int], lossless: bool, scale: float) -> np.ndarray:
     out = np.empty(shape, np.float32)
-    assert qt.decode_band(tables, words, shape[0], shape[1], lossless, scale, out) == 0
+    assert band.decode_band(tables, words, shape[0], shape[1], lossless, scale, out) == 0
     return out
 
 
@@ -49,8 +50,8 @@ def test_interpolation_is_taken_on_smooth_oversampled_depth_within_the_bound() -
     z = relief()
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
-    with_interp = qt.encode_band(t, valid, False, lp.OPT_ALL)
-    without = qt.encode_band(t, valid, False, lp.OPT_ALL & ~lp.OPT_INTERP)
+    with_interp = band.encode_band(t, valid, False, lp.OPT_ALL)
+    without = band.encode_band(t, valid, False, lp.OPT_ALL & ~lp.OPT_INTERP)
     # interpolation predicts each sample from both sides: smaller here by a clear margin
     assert band_bits(*with_interp) < 0.95 * band_bits(*without), (band_bits(*with_interp), band_bits(*without))
     check_bound(z, decoded(*with_interp, z.shape, False, plan.scale), 0.1)
@@ -64,8 +65,8 @@ def test_noise_keeps_the_raster_order() -> None:
     z = (800.0 + rng.normal(0.0, 0.5, (128, 200))).astype(np.float32)
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
-    a = qt.encode_band(t, valid, False, lp.OPT_ALL)
-    b = qt.encode_band(t, valid, False, lp.OPT_ALL & ~lp.OPT_INTERP)
+    a = band.encode_band(t, valid, False, lp.OPT_ALL)
+    b = band.encode_band(t, valid, False, lp.OPT_ALL & ~lp.OPT_INTERP)
     assert band_bits(*a) == band_bits(*b)
     check_bound(z, decoded(*a, z.shape, False, plan.scale), 0.1)
 
@@ -99,9 +100,9 @@ def test_interpolation_streams_decode_within_the_bound_on_hostile_masks(name: st
     t, valid = qt.quantise(z, plan.scale, False)
     cap = 2 * z.size + 4096
     tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
-    n = qt._interp_band(t, valid, tab, val, nb)
+    n = band._interp_band(t, valid, tab, val, nb)
     assert n >= 0
-    check_bound(z, decoded(*qt._pack(tab, val, nb, n), z.shape, False, plan.scale), e)
+    check_bound(z, decoded(*band._pack(tab, val, nb, n), z.shape, False, plan.scale), e)
 
 
 def test_an_interpolation_stream_in_a_lossless_band_is_refused() -> None:
@@ -109,10 +110,10 @@ def test_an_interpolation_stream_in_a_lossless_band_is_refused() -> None:
     t, valid = qt.quantise(z, 0.02, True)
     cap = 2 * z.size + 4096
     tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
-    n = qt._interp_band(t, valid, tab, val, nb)
-    tables, words = qt._pack(tab, val, nb, n)
+    n = band._interp_band(t, valid, tab, val, nb)
+    tables, words = band._pack(tab, val, nb, n)
     out = np.empty(z.shape, np.float32)
-    assert qt.decode_band(tables, words, 64, 64, True, 0.02, out) == -1
+    assert band.decode_band(tables, words, 64, 64, True, 0.02, out) == -1
 
 
 @pytest.mark.parametrize("lossless", [True, False])
@@ -123,8 +124,8 @@ def test_sign_contexts_pay_on_oversampled_depth_and_round_trip(lossless: bool) -
     scale = 0.02 if lossless else _plan(z, None, 0.1).scale
     t, valid = qt.quantise(z, scale, lossless)
     keep = lp.OPT_ALL & ~lp.OPT_INTERP  # the raster order, with and without sign contexts
-    a = qt.encode_band(t, valid, lossless, keep)
-    b = qt.encode_band(t, valid, lossless, keep & ~lp.OPT_SIGN)
+    a = band.encode_band(t, valid, lossless, keep)
+    b = band.encode_band(t, valid, lossless, keep & ~lp.OPT_SIGN)
     assert band_bits(*a) < band_bits(*b), (band_bits(*a), band_bits(*b))
     out = decoded(*a, z.shape, lossless, scale)
     if lossless:

@@ -1,0 +1,335 @@
+"""A range band's encoder and decoder (private; the public API is :mod:`shared.compress.range`):
+plain Python over the kernels of :mod:`shared.compress._quadtree` (the mask and the quadtree),
+:mod:`shared.compress._lpred` (raster-order prediction and contexts) and
+:mod:`shared.compress._interp` (the interpolation order), each kernel compiled once on its own
+and releasing the GIL, so bands still code in parallel threads.
+
+Per band the encoder codes the raster order with each tree margin of
+:data:`shared.compress._quadtree.SPLIT_LOSSLESS` (lossless) and keeps the smaller stream, tries
+the weighted predictor (effort 2) and bias cancellation (bounded) both ways, codes the residuals
+of the kept margin again with sign contexts where the first pass's counts say they pay, and in
+bounded mode codes the interpolation order too, keeping the smaller stream.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from shared.compress import _lpred as lp
+from shared.compress._interp import interp_decode, interp_events
+from shared.compress._mask import decode_mask, encode_mask
+from shared.compress._quadtree import (
+    MINB,
+    MODE_INTERP,
+    MODE_RASTER,
+    NTABLES,
+    SPLIT_BOUNDED,
+    SPLIT_LOSSLESS,
+    T_EDGE,
+    T_PRED,
+    T_RES,
+    _decode_tree,
+    _encode_tree,
+    _leaf_cells,
+    _put_predictors,
+    _stream_bits,
+)
+from shared.compress._rans import (
+    NSYM,
+    RANS_L,
+    count_symbols,
+    dec_init,
+    decode_tables,
+    encode_events,
+    get_symbol,
+    normalise,
+)
+from shared.compress._tables import pack_codes, quantise_tables, unpack_codes
+
+#: Least share of a band's residual bits the weighted predictor must save to be used: it more
+#: than halves the band's decoding speed (lossless relief 2:1 about 64 -> 29 MP per CPU second)
+#: for 0.8-1.4 % on the simulated relief but 0.1-0.3 % on the bunny, fandisk and spot and 0.07 %
+#: on white noise.
+WP_MIN_GAIN = 0.005
+
+#: int64 arguments of the kernels called from Python (one signature each, as from a kernel)
+ZERO = np.int64(0)
+ONE = np.int64(1)
+TR = np.int64(T_RES)
+
+
+def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, margin: float, share: float,
+                   tab: np.ndarray, val: np.ndarray, nb: np.ndarray) -> tuple[int, _SignPass | None]:
+    """Every event of one band, the residuals without sign contexts; returns the count (or -1
+    when the event buffers are too small) and what coding them with sign contexts needs.
+
+    Plain Python over the kernels (the tree's, the predictors', the residuals'), each compiled
+    once on its own: as one kernel it spent 4.7 s of numba's time linking and optimising them
+    all again."""
+    H, W = t.shape
+    lossless = bool(lossless)
+    opts = np.int64(opts)
+    nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
+    leaves = np.zeros((nleaf_max, 5), np.int64)  # x0, y0, B, model, residual predictor
+    lcoef = np.empty((nleaf_max, 6), np.int64)
+    n, nleaf = _encode_tree(t, valid, lossless, opts, float(margin), float(share), tab, val, nb, leaves, lcoef)
+    if n < 0:
+        return -1, None
+    n = np.int64(n)
+    nleaf = np.int64(nleaf)
+    # 3. each leaf's residual predictor, then the residuals in raster order
+    cells = _leaf_cells(np.int64(H), np.int64(W), leaves, nleaf)
+    none = np.zeros((1, W), np.int64)  # the weighted predictor's arrays where it does not run
+    pw = pe = none
+    # the residuals' symbol counts with sign contexts, by level and pattern (lp.sign_bits), of
+    # the way kept (alt) and of the way tried beside it (alt_b)
+    count = (opts & lp.OPT_SIGN) != 0
+    alt = np.zeros((lp.NLEVEL * lp.NSUB, NSYM) if count else (1, 1), np.int32)
+    alt_b = np.zeros_like(alt)
+    lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO)
+    # error feedback (lossless mode: in bounded mode the reconstruction's rounding noise in the
+    # neighbours' errors made it cost more than it saved): the band's least-squares weights of
+    # the W and N neighbours' errors
+    aw, an = 0, 0
+    if lossless and (opts & lp.OPT_FEEDBACK):
+        aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef, none)
+    aw = np.int64(aw)
+    an = np.int64(an)
+    # the flags of bias cancellation and the weighted predictor, the weights and each leaf's
+    # predictor, then the residuals
+    n_res = np.int64(n + 7 + nleaf)
+    if n < 0 or n_res + 1 > tab.shape[0]:
+        return -1, None
+    bias = 0
+    wp = 0
+    if not lossless and (opts & lp.OPT_BIAS):
+        # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on
+        # noise: both ways, the smaller kept
+        n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ONE, aw, an, TR,
+                                 tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt_b)
+        if n1 < 0:
+            return -1, None
+        with_bias = lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0]
+        keep_tab = tab[n_res:n1].copy()
+        keep_val = val[n_res:n1].copy()
+        keep_nb = nb[n_res:n1].copy()
+        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
+                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt)
+        if n_end < 0 or with_bias < lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]:
+            bias = 1
+            tab[n_res:n1] = keep_tab
+            val[n_res:n1] = keep_val
+            nb[n_res:n1] = keep_nb
+            n_end = n1
+            alt, alt_b = alt_b, alt
+    else:
+        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
+                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt)
+        if n_end < 0:
+            return -1, None
+        if lossless and (opts & lp.OPT_WP):
+            # the weighted predictor (a choice of every leaf, its error in the context): both
+            # ways, kept where it saves WP_MIN_GAIN (it lost on the bunny at 4:1, where the
+            # plane fits)
+            without = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
+            keep_tab = tab[n_res:n_end].copy()
+            keep_val = val[n_res:n_end].copy()
+            keep_nb = nb[n_res:n_end].copy()
+            keep_k = leaves[:nleaf, 4].copy()
+            pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, ONE)
+            aw1, an1 = 0, 0
+            if opts & lp.OPT_FEEDBACK:
+                aw1, an1 = lp.feedback_weights(t, valid, cells, leaves, lcoef, pw)
+            aw1 = np.int64(aw1)
+            an1 = np.int64(an1)
+            n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw1, an1,
+                                     TR, tab, val, nb, n_res, pw, pe, ONE, ZERO, ZERO, alt_b)
+            if n1 < 0:
+                return -1, None
+            if lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0] < (1.0 - WP_MIN_GAIN) * without:
+                wp = 1
+                aw = aw1
+                an = an1
+                n_end = n1
+                alt, alt_b = alt_b, alt
+            else:
+                tab[n_res:n_end] = keep_tab
+                val[n_res:n_end] = keep_val
+                nb[n_res:n_end] = keep_nb
+                leaves[:nleaf, 4] = keep_k
+    # the residual tables: where along the activity levels, and fewer in a small band where the
+    # tables cost more than the contexts save
+    bits, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
+    lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
+    head = np.array([bias, cofs, cshift, wp, aw + lp.FB_MAX, an + lp.FB_MAX, 0], np.int64)
+    _put_predictors(tab, val, nb, n, head, leaves, nleaf)
+    gain = 0.0
+    if opts & lp.OPT_SIGN:
+        gain = bits - lp.sign_bits(alt, np.int64(cofs), tab, nb, n_res, np.int64(n_end))
+    signs = _SignPass(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, pw, pe, np.int64(wp),
+                      np.int64(cofs), alt, n + 6, n_res, gain)
+    return int(n_end), signs
+
+
+@dataclass
+class _SignPass:
+    """What the residuals of a band coded without sign contexts need to be coded again with
+    them (:func:`_with_signs`), and the bits that would save (estimated; <= 0: none)."""
+
+    t: np.ndarray
+    valid: np.ndarray
+    cells: np.ndarray
+    leaves: np.ndarray
+    lcoef: np.ndarray
+    lossless: bool
+    opts: np.int64
+    bias: np.int64
+    aw: np.int64
+    an: np.int64
+    pw: np.ndarray
+    pe: np.ndarray
+    wp: np.int64
+    cofs: np.int64
+    alt: np.ndarray
+    flag: int  # the event holding the band's sign-context flag
+    n_res: np.int64
+    gain: float
+
+
+def _with_signs(p: _SignPass, tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n_end: int) -> int:
+    """Code the band's residuals again with sign contexts (from event ``p.n_res``; the flag set);
+    returns the new count, or ``n_end`` with the events unchanged when the buffers are too small."""
+    keep = (tab[p.n_res:n_end].copy(), val[p.n_res:n_end].copy(), nb[p.n_res:n_end].copy())
+    n1 = lp.encode_residuals(p.t, p.valid, p.cells, p.leaves, p.lcoef, p.lossless, p.opts, p.bias, p.aw, p.an, TR,
+                             tab, val, nb, p.n_res, p.pw, p.pe, p.wp, ONE, p.cofs, p.alt)
+    if n1 < 0:
+        tab[p.n_res:n_end], val[p.n_res:n_end], nb[p.n_res:n_end] = keep
+        return n_end
+    val[p.flag] = 1
+    return int(n1)
+
+def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> tuple[np.ndarray, np.ndarray]:
+    """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool; ``opts`` the
+    encoder's options (:data:`shared.compress._lpred.OPT_ALL` for a decodable stream; fewer for
+    ablation). Returns (packed tables uint8, rANS words uint16).
+
+    Plain Python over the kernels (each releases the GIL, so bands still code in parallel
+    threads): as a kernel of its own it cost numba 2.2 s to compile, its module linking and
+    optimising again every kernel it calls, for a handful of calls a band."""
+    H, W = t.shape
+    margins = SPLIT_LOSSLESS if lossless else SPLIT_BOUNDED[:1]
+    share = 0.0 if lossless else SPLIT_BOUNDED[1]
+    best = np.inf
+    tab = val = nb = None
+    n = 0
+    # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
+    cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
+    signs = None
+    for margin in margins:
+        while True:
+            tab_i = np.empty(cap, np.int8)
+            val_i = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
+            nb_i = np.empty(cap, np.int8)
+            n_i, signs_i = _encode_events(t, valid, bool(lossless), np.int64(opts), float(margin), float(share),
+                                          tab_i, val_i, nb_i)
+            if n_i >= 0:
+                break
+            cap *= 4
+        # each margin's stream without sign contexts, less what they would save: the residuals
+        # are coded again with them for the margin kept alone
+        bits = _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) - max(signs_i.gain, 0.0) if len(margins) > 1 else 0.0
+        if bits < best:
+            best = bits
+            tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, signs_i
+    if not lossless and (opts & lp.OPT_INTERP):
+        # hierarchical interpolation (smooth detailed depth within a bound): both ways, the
+        # smaller kept
+        if len(margins) == 1:
+            best = _stream_bits(tab, val, nb, np.int64(n)) - max(signs.gain, 0.0)
+        while True:
+            tab_i = np.empty(cap, np.int8)
+            val_i = np.empty(cap, np.int16)
+            nb_i = np.empty(cap, np.int8)
+            n_i = _interp_band(t, valid, tab_i, val_i, nb_i)
+            if n_i >= 0:
+                break
+            cap *= 4
+        if _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) < best:
+            tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, None
+    if signs is not None and signs.gain > 0:
+        n = _with_signs(signs, tab, val, nb, n)
+    return _pack(tab, val, nb, n)
+
+
+def _pack(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """A band's events 0..n-1 as (packed tables uint8, rANS words uint16)."""
+    codes, freq = quantise_tables(normalise(count_symbols(tab, val, np.int64(n), np.int64(NTABLES))))
+    words = encode_events(tab, val, nb, np.int64(n), freq)
+    return pack_codes(codes), words
+
+
+def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndarray, nb: np.ndarray) -> int:
+    """Every event of one band in interpolation order (bounded mode): the mask, the mode, the
+    residual tables' offset and merging, the residuals. Returns the count, or -1 when the event
+    buffers are too small."""
+    n = encode_mask(valid, tab, val, nb, ZERO, np.int64(T_EDGE))
+    no_leaves = np.zeros((0, 5), np.int64)
+    n = _put_predictors(tab, val, nb, np.int64(n), np.array([MODE_INTERP], np.int64), no_leaves, ZERO)
+    n_res = np.int64(n + 2)
+    if n < 0 or n_res > tab.shape[0]:
+        return -1
+    n_end = interp_events(t, valid, tab, val, nb, n_res, TR)
+    if n_end < 0:
+        return -1
+    _, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
+    lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
+    _put_predictors(tab, val, nb, np.int64(n), np.array([cofs, cshift], np.int64), no_leaves, ZERO)
+    return int(n_end)
+
+def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless: bool, scale: float,
+                out: np.ndarray) -> int:
+    """Decode one band (``tables`` uint8, ``words`` uint16 from :func:`encode_band`) into ``out``
+    (H, W) float32 (NaN where invalid). ``scale`` is the quantum (lossless) or the fine unit
+    (bounded). Returns 0, or -1 for a corrupt stream. Plain Python over the kernels (each
+    releases the GIL): as a kernel it cost numba 2.7 s more to compile, relinking them all."""
+    freq, used = unpack_codes(tables, np.int64(NTABLES))  # int64: one signature
+    if used < 0 or used != tables.shape[0]:
+        return -1
+    nw = words.shape[0]
+    if nw < 4:
+        return -1
+    sym, fb = decode_tables(freq)
+    xa, xb, pos = dec_init(words)
+    valid = np.zeros((H, W), np.bool_)
+    ok, xa, xb, pos = decode_mask(xa, xb, pos, words, nw, sym, fb, valid, T_EDGE)
+    if not ok:
+        return -1
+    mode, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    if mode == MODE_INTERP and not lossless:
+        cofs, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+        cshift, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+        if cofs > lp.MAX_COFS or cshift > 2 or pos > nw:
+            return -1
+        xa, xb, pos = interp_decode(xa, xb, pos, words, nw, sym, fb, valid, np.int64(cofs), np.int64(cshift), float(scale),
+                                    np.int64(T_RES), out)
+        return 0 if pos == nw and xa == RANS_L and xb == RANS_L else -1
+    if mode != MODE_RASTER:
+        return -1
+    nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
+    leaves = np.zeros((nleaf_max, 5), np.int64)
+    lcoef = np.zeros((nleaf_max, 6), np.int64)
+    head = np.zeros(7, np.int64)
+    nleaf, xa, xb, pos = _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, bool(lossless), leaves, lcoef, head)
+    if nleaf < 0:
+        return -1
+    bias, cofs, cshift, wp, aw, an, sc = (np.int64(v) for v in head)
+    cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
+    xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, bool(lossless), bias,
+                                      aw - lp.FB_MAX, an - lp.FB_MAX, cofs, cshift, wp, sc, float(scale), TR, out)
+    # A sound stream ends exactly at its last word, both states back where the encoder began.
+    if pos != nw or xa != RANS_L or xb != RANS_L:
+        return -1
+    return 0
