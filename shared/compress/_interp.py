@@ -14,17 +14,22 @@ the plane through W, N, NW of the raster order. Depth jumps and noise favour the
 quadtree; the encoder codes both ways and keeps the smaller.
 
 Residuals are quantised as in the raster order's bounded mode (``r = (t - p + half) >> F_SHIFT``,
-reconstruction ``p + r * FINE``, within half a quantum of the target ``t``), coded in the band's
-residual tables by the activity ``|left - right|`` (or ``|above - below|``) plus twice the error
-of the sample before in its pass and the error of the sample a row of its pass above, in
-half-octaves (:func:`shared.compress._lpred.context_choice` slides and merges them).
+reconstruction ``p + r * FINE``, within half a quantum of the target ``t``). The error of the
+sample before in its pass (before its own feedback) is fed back into the prediction with a
+weight per band in sixteenths (the encoder's choice of none, the least-squares weight and a
+quarter, by bits): an oversampling camera's sub-pixel errors are correlated over neighbouring
+samples. Residuals are coded in the band's residual tables by the activity ``|left - right|``
+(or ``|above - below|``) plus twice the error of the sample before in its pass and the error of
+the sample a row of its pass above, in half-octaves
+(:func:`shared.compress._lpred.context_choice` slides and merges them).
 
-Measured (bits per valid sample within 0.1 mm, whole 2048x1536 bench images, against the
-raster order alone): the simulated relief at 1:1 0.600 -> 0.420, 2:1 0.573 -> 0.438, 4:1 0.603
--> 0.572, the bunny at 2:1 0.977 -> 0.871 (SZ3: 0.524, 0.512, 0.548, 0.863), the Cyberware
-dragon scan 2.47 -> 1.99; white noise keeps the raster order. Cubic interpolation (-1, 9, 9, -1)
-/ 16 where the samples beyond were valid cost 2-5 % more on each of these (it amplifies the
-reconstruction's noise), and was dropped.
+Measured (bits per valid sample within 0.1 mm, whole 2048x1536 bench images; raster order
+alone -> interpolation -> with the error feedback): the simulated relief at 1:1 0.600 -> 0.420
+-> 0.402, 2:1 0.573 -> 0.438 -> 0.405, 4:1 0.603 -> 0.572 -> 0.476, the bunny at 2:1 0.977 ->
+0.871 -> 0.830 (SZ3: 0.524, 0.512, 0.548, 0.861), the Cyberware dragon scan 2.47 -> 1.99; white
+noise keeps the raster order. Cubic interpolation (-1, 9, 9, -1) / 16 where the samples beyond
+were valid cost 2-5 % more on each of these (it amplifies the reconstruction's noise), and was
+dropped.
 """
 
 from __future__ import annotations
@@ -37,6 +42,10 @@ from shared.compress._rans import get_value, put_value, set_at, unzigzag, zigzag
 
 #: Spacing of the coarsest grid.
 S0 = 16
+#: Error feedback: the error of the sample before in its pass (before its own feedback) weighs
+#: in sixteenths, per band (the least-squares weight over the band, FB_MIN..FB_MAX).
+FB_MIN = -8
+FB_MAX = 15
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -88,11 +97,14 @@ def _coarse(rec, valid, y, x, last):
 
 
 @njit(cache=True, nogil=True)
-def interp_events(t, valid, tab, val, nb, n, t_res):
+def interp_events(t, valid, tab, val, nb, n, t_res, fbw, st):
     """Append the residual events of a band in interpolation order (bounded mode: ``t`` (H, W)
     int64 fine-unit targets) after event ``n``, each in table ``t_res`` plus its activity level
-    (:func:`shared.compress._lpred.context_choice` then makes them tables). Returns the count
-    (or -1 when the buffers are full)."""
+    (:func:`shared.compress._lpred.context_choice` then makes them tables), with error feedback
+    weight ``fbw`` (sixteenths); adds to ``st`` (2,) float64 the sums of the products of each
+    error (before feedback) and the one before in its pass, and of the squares of the latter
+    (the least-squares weight is ``st[0] / st[1]``). Returns the count (or -1 when the buffers
+    are full)."""
     H, W = t.shape
     rec = np.zeros((H, W), np.int64)
     err = np.zeros((H, W), np.int64)
@@ -116,6 +128,7 @@ def interp_events(t, valid, tab, val, nb, n, t_res):
             ry, rs, cx, cs, dy, dx, fy, fx = _pass(s, k)
             for y in range(ry, H, rs):
                 eprev = 0
+                sprev = 0
                 for x in range(cx, W, cs):
                     if not valid[y, x]:
                         continue
@@ -125,12 +138,18 @@ def interp_events(t, valid, tab, val, nb, n, t_res):
                         if not ok:
                             p = last
                     act += 2 * eprev + (err[y - s, x] if y >= s else 0)
+                    p0 = p
+                    p += (fbw * sprev) >> 4
                     r = (t[y, x] - p + half) >> F_SHIFT
                     v = p + (r << F_SHIFT)
+                    e0 = min(max(t[y, x] - p0, -E_LIM), E_LIM)
+                    st[0] += float(sprev) * float(e0)
+                    st[1] += float(sprev) * float(sprev)
                     n = put_value(tab, val, nb, n, t_res + _level_of(act), zigzag(r), L_RES)
                     rec[y, x] = v
                     last = v
                     eprev = min(abs(v - p), E_LIM)
+                    sprev = min(max(v - p0, -E_LIM), E_LIM)
                     err[y, x] = eprev
         s >>= 1
     return n
@@ -144,8 +163,8 @@ def _get(xa, xb, pos, words, nw, sym, fb, t_res, act, cofs, cshift):
 
 
 @njit(cache=True, nogil=True)
-def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, scale, t_res, out):
-    """Inverse of :func:`interp_events` into ``out`` (H, W) float32 (depth ``rec * scale``, NaN
+def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, fbw, scale, t_res, out):
+    """Inverse of :func:`interp_events` (feedback weight ``fbw``) into ``out`` (H, W) float32 (depth ``rec * scale``, NaN
     where invalid); returns (xa, xb, pos)."""
     H, W = valid.shape
     rec = np.zeros((H, W), np.int64)
@@ -174,6 +193,7 @@ def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, scale, t
             ry, rs, cx, cs, dy, dx, fy, fx = _pass(s, k)
             for y in range(ry, H, rs):
                 eprev = 0
+                sprev = 0
                 orow = out[y]
                 for x in range(cx, W, cs):
                     if not valid[y, x]:
@@ -184,12 +204,15 @@ def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, scale, t
                         if not ok:
                             p = last
                     act += 2 * eprev + (err[y - s, x] if y >= s else 0)
+                    p0 = p
+                    p += (fbw * sprev) >> 4
                     r, xa, xb, pos = _get(xa, xb, pos, words, nw, sym, fb, t_res, act, cofs, cshift)
                     v = p + (r << F_SHIFT)
                     rec[y, x] = v
                     set_at(orow, x, np.float32(v * scale))
                     last = v
                     eprev = min(abs(v - p), E_LIM)
+                    sprev = min(max(v - p0, -E_LIM), E_LIM)
                     err[y, x] = eprev
         s >>= 1
     return xa, xb, pos
