@@ -101,7 +101,7 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, st):
     """Append the residual events of a band in interpolation order (bounded mode: ``t`` (H, W)
     int64 fine-unit targets) after event ``n``, each in table ``t_res`` plus its activity level
     (:func:`shared.compress._lpred.context_choice` then makes them tables), with error feedback
-    weight ``fbw`` (sixteenths); adds to ``st`` (2,) float64 the sums of the products of each
+    weight ``fbw`` (sixteenths); without it (``fbw`` 0), adds to ``st`` (2,) float64 the sums of the products of each
     error (before feedback) and the one before in its pass, and of the squares of the latter
     (the least-squares weight is ``st[0] / st[1]``). Returns the count (or -1 when the buffers
     are full)."""
@@ -142,9 +142,10 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, st):
                     p += (fbw * sprev) >> 4
                     r = (t[y, x] - p + half) >> F_SHIFT
                     v = p + (r << F_SHIFT)
-                    e0 = min(max(t[y, x] - p0, -E_LIM), E_LIM)
-                    st[0] += float(sprev) * float(e0)
-                    st[1] += float(sprev) * float(sprev)
+                    if fbw == 0:  # the statistics of the least-squares weight (a first pass)
+                        e0 = min(max(t[y, x] - p0, -E_LIM), E_LIM)
+                        st[0] += float(sprev) * float(e0)
+                        st[1] += float(sprev) * float(sprev)
                     n = put_value(tab, val, nb, n, t_res + _level_of(act), zigzag(r), L_RES)
                     rec[y, x] = v
                     last = v

@@ -364,21 +364,19 @@ def _bias_context(a, b, c, d, lev):
 @njit(cache=True, nogil=True, inline="always")
 def _sign_context(p, rn, lossless):
     """A band's sign context of a sample predicted ``p`` (fine units) whose N neighbour's residual
-    was ``rn`` (quanta): (pattern < :data:`NSUB`, flip). In lossless mode ``p`` rounds to the
-    nearest quantum, so its offset f from it says which sign the residual leans to: with
-    ``flip`` (f < 0) the residual is coded negated, so every table sees the lean one way, and
-    |f| >= a quarter quantum is a pattern of its own; the N neighbour's residual sign (as
-    flipped) joins it. An oversampling camera's sub-pixel depth leaves residuals of the same
-    sign along a stripe, which the error feedback's linear weights do not take."""
-    flip = False
-    far = 0
-    if lossless:
-        f = ((p + (FINE >> 1)) & (FINE - 1)) - (FINE >> 1)
-        flip = f < 0
-        far = 3 if abs(f) >= (FINE >> 2) else 0
-    if flip:
-        rn = -rn
-    return far + (0 if rn < 0 else (1 if rn == 0 else 2)), flip
+    was ``rn`` (quanta): (pattern < :data:`NSUB`, flip -1 or 0; a residual r is coded as
+    ``(r ^ flip) - flip``). In lossless mode ``p`` rounds to the nearest quantum, so its offset f
+    from it says which sign the residual leans to: with ``flip`` (f < 0) the residual is coded
+    negated, so every table sees the lean one way, and |f| >= a quarter quantum is a pattern of
+    its own; the N neighbour's residual sign (as flipped) joins it. An oversampling camera's
+    sub-pixel depth leaves residuals of the same sign along a stripe, which the error feedback's
+    linear weights do not take. Branch-free: the signs are as likely one way as the other (with
+    branches the decoder ran 22 % slower than without sign contexts, with these 10 %)."""
+    f = ((p + (FINE >> 1)) & (FINE - 1)) - (FINE >> 1) if lossless else 0
+    flip = f >> 63
+    far = 3 * (((FINE >> 2) - 1 - abs(f)) >> 63)
+    sgn = np.int64(rn > 0) - np.int64(rn < 0)
+    return 1 - far + ((sgn ^ flip) - flip), flip
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -500,12 +498,12 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
             if sc:
                 pat, flip = _sign_context(p, qa[x + 1], lossless)
                 g = min(max(lev - cofs, 0), NCTX - 1) >> 2
-                n = put_value(tab, val, nb, n, t_res + g * NSUB + pat, zigzag(-r if flip else r), L_RES)
+                n = put_value(tab, val, nb, n, t_res + g * NSUB + pat, zigzag((r ^ flip) - flip), L_RES)
             else:
                 n = put_value(tab, val, nb, n, t_res + lev, zigzag(r), L_RES)  # a level: see context_choice
                 if count_alt:
                     pat, flip = _sign_context(p, qa[x + 1], lossless)
-                    u = np.int64(zigzag(-r if flip else r))
+                    u = np.int64(zigzag((r ^ flip) - flip))
                     s = u if u < (1 << L_RES) else (1 << L_RES) + np.int64(bitlen(np.uint64(u))) - L_RES - 1
                     alt[lev * NSUB + pat, s] += 1
             qb[x + 1] = r
@@ -602,7 +600,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
                 q = _bias_context(a, b, c, d, lev)
                 p += at(bcor, q)
             ctx = min(max(lev - cofs, 0), NCTX - 1)
-            flip = False
+            flip = 0
             if sc:
                 pat, flip = _sign_context(p, at(qa, x + 1), lossless)
                 tb = (ctx >> 2) * NSUB + pat
@@ -610,8 +608,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
                 tb = ctx >> cshift
             u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + tb, L_RES)
             r = unzigzag(u)
-            if flip:
-                r = -r
+            r = (r ^ flip) - flip
             set_at(qb, x + 1, r)
             if lossless:
                 rec = (((p + half) >> F_SHIFT) + r) << F_SHIFT
