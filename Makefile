@@ -50,8 +50,11 @@ services:
 	  command -v pg_ctlcluster >/dev/null && pg_ctlcluster --skip-systemctl-redirect $$(ls /etc/postgresql | head -1) main start || true; \
 	fi
 
-# The bunny scene needs the shared meshes (../shared/data); elsewhere the analytic spheres scene is used.
-DEMO_SCENE := $(if $(wildcard ../shared/data/meshes/stanford-bunny.obj),bunny,spheres)
+# The turntable scenes are meshes on a floor: the demo's bunny is read from the shared data
+# (../shared/data/meshes); without it the demo stops before simulating, saying so (the analytic
+# spheres scene has no turntable).
+DEMO_SCENE := bunny
+DEMO_MESH := ../shared/data/meshes/stanford-bunny.obj
 
 # The whole-object path, embedded (no server): a realistic simulated turntable set (plate,
 # turntable base, table and backdrop in view, no roi), merged, its textured Thumb and Low
@@ -61,6 +64,7 @@ DEMO_VIEWS := 8
 DEMO_SIZE := 640x480
 
 demo: setup
+	@test -f $(DEMO_MESH) || { echo "make demo: the turntable scene needs $(DEMO_MESH) (the shared data, see README), not found"; exit 2; }
 	@rm -rf demo && mkdir -p demo
 	$(BIN)/graylight simulate --scene $(DEMO_SCENE) --views $(DEMO_VIEWS) --turntable --size $(DEMO_SIZE) --projector 512x384 --out demo/set
 	$(BIN)/graylight merge demo/set --out demo/merge

@@ -636,6 +636,28 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
 
 
 @njit(cache=True, nogil=True)
+def _tables_bits(counts, nt):
+    """Estimated bits of coding the symbols counted in ``counts`` (>= nt, 512) int64, tables 0..nt-1,
+    with static tables: their code lengths and the stored tables (:mod:`shared.compress._tables`:
+    about 4 bits a symbol used, 2 a symbol absent, up to the last used)."""
+    bits = 0.0
+    for t in range(nt):
+        tot = 0
+        last = -1
+        for s in range(512):
+            tot += counts[t, s]
+            if counts[t, s] > 0:
+                last = s
+        for s in range(last + 1):
+            c = counts[t, s]
+            if c > 0:
+                bits += c * math.log2(tot / c) + 4.0
+            else:
+                bits += 2.0
+    return bits
+
+
+@njit(cache=True, nogil=True)
 def context_choice(tab, val, nb, n0, n1, t0):
     """The residual tables of events n0..n1-1 (coded by :func:`encode_residuals` with their
     activity level as table ``t0 + level``): the offset ``cofs`` (0..:data:`MAX_COFS`) and the
@@ -668,20 +690,7 @@ def context_choice(tab, val, nb, n0, n1, t0):
                 t = min(max(lev - cofs, 0), NCTX - 1) >> shift
                 for s in range(512):
                     merged[t, s] += counts[lev, s]
-            bits = raw
-            for t in range(NCTX >> shift):
-                tot = 0
-                last = -1
-                for s in range(512):
-                    tot += merged[t, s]
-                    if merged[t, s] > 0:
-                        last = s
-                for s in range(last + 1):
-                    c = merged[t, s]
-                    if c > 0:
-                        bits += c * math.log2(tot / c) + 4.0
-                    else:
-                        bits += 2.0
+            bits = raw + _tables_bits(merged, NCTX >> shift)
             if bits < best:
                 best = bits
                 best_o = cofs
@@ -705,20 +714,7 @@ def sign_bits(alt, cofs, tab, nb, n0, n1):
         for k in range(NSUB):
             for s in range(alt.shape[1]):
                 counts[g * NSUB + k, s] += alt[lev * NSUB + k, s]
-    for t in range(NRES):
-        tot = 0
-        last = -1
-        for s in range(512):
-            tot += counts[t, s]
-            if counts[t, s] > 0:
-                last = s
-        for s in range(last + 1):
-            c = counts[t, s]
-            if c > 0:
-                bits += c * math.log2(tot / c) + 4.0
-            else:
-                bits += 2.0
-    return bits
+    return bits + _tables_bits(counts, NRES)
 
 
 @njit(cache=True, nogil=True)
