@@ -78,21 +78,6 @@ def _pass(s, k):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _predict(rec, valid, err, y, x, s, dy, dx, fy, fx, last, eprev, sprev, fbw):
-    """A pass's prediction of sample (y, x) (:func:`_pass`'s offsets): (before feedback, with it,
-    activity). ``last``: the sample reconstructed before; ``eprev``, ``sprev``: the size and the
-    signed error (before feedback) of the one before in the pass."""
-    H, W = valid.shape
-    p, act, ok = _two_sided(rec, valid, y - dy, x - dx, y + dy, x + dx, H, W)
-    if not ok:
-        p, act, ok = _two_sided(rec, valid, y - fy, x - fx, H, W, H, W)
-        if not ok:
-            p = last
-    act += 2 * eprev + (err[y - s, x] if y >= s else 0)
-    return p, p + ((fbw * sprev) >> 4), act
-
-
-@njit(cache=True, nogil=True, inline="always")
 def _coarse(rec, valid, y, x, last):
     """Prediction of a grid sample (y, x) of spacing S0 from its grid neighbours W, N, NW."""
     okw = x >= S0 and valid[y, x - S0]
@@ -147,7 +132,14 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, st):
                 for x in range(cx, W, cs):
                     if not valid[y, x]:
                         continue
-                    p0, p, act = _predict(rec, valid, err, y, x, s, dy, dx, fy, fx, last, eprev, sprev, fbw)
+                    p, act, ok = _two_sided(rec, valid, y - dy, x - dx, y + dy, x + dx, H, W)
+                    if not ok:
+                        p, act, ok = _two_sided(rec, valid, y - fy, x - fx, H, W, H, W)
+                        if not ok:
+                            p = last
+                    act += 2 * eprev + (err[y - s, x] if y >= s else 0)
+                    p0 = p
+                    p += (fbw * sprev) >> 4
                     r = (t[y, x] - p + half) >> F_SHIFT
                     v = p + (r << F_SHIFT)
                     if fbw == 0:  # the statistics of the least-squares weight (a first pass)
@@ -207,7 +199,14 @@ def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, fbw, sca
                 for x in range(cx, W, cs):
                     if not valid[y, x]:
                         continue
-                    p0, p, act = _predict(rec, valid, err, y, x, s, dy, dx, fy, fx, last, eprev, sprev, fbw)
+                    p, act, ok = _two_sided(rec, valid, y - dy, x - dx, y + dy, x + dx, H, W)
+                    if not ok:
+                        p, act, ok = _two_sided(rec, valid, y - fy, x - fx, H, W, H, W)
+                        if not ok:
+                            p = last
+                    act += 2 * eprev + (err[y - s, x] if y >= s else 0)
+                    p0 = p
+                    p += (fbw * sprev) >> 4
                     r, xa, xb, pos = _get(xa, xb, pos, words, nw, sym, fb, t_res, act, cofs, cshift)
                     v = p + (r << F_SHIFT)
                     rec[y, x] = v
