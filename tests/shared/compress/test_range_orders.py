@@ -134,3 +134,18 @@ def test_sign_contexts_pay_on_oversampled_depth_and_round_trip(lossless: bool) -
         np.testing.assert_array_equal(out[mask], expected_lossless(z, 0.02)[mask])
     else:
         check_bound(z, out, 0.1)
+
+
+def test_interpolation_is_given_up_early_against_a_much_smaller_raster_stream() -> None:
+    # the encoder passes the raster order's bits: far fewer than the interpolation's first
+    # pass takes, the order is given up (-2) before its feedback weights are tried
+    z = relief(64, 96)
+    plan = _plan(z, None, 0.1)
+    t, valid = qt.quantise(z, plan.scale, False)
+    cap = 2 * z.size + 4096
+    tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+    full = band._interp_band(t, valid, tab, val, nb)
+    assert full >= 0
+    bits = float(band._stream_bits(tab, val, nb, np.int64(full)))
+    assert band._interp_band(t, valid, tab, val, nb, bits / 2) == -2
+    assert band._interp_band(t, valid, tab, val, nb, bits) >= 0
