@@ -25,7 +25,7 @@ the sample a row of its pass above, in half-octaves
 
 Measured (bits per valid sample within 0.1 mm, whole 2048x1536 bench images; raster order
 alone -> interpolation -> with the error feedback): the simulated relief at 1:1 0.600 -> 0.420
--> 0.402, 2:1 0.573 -> 0.438 -> 0.405, 4:1 0.603 -> 0.572 -> 0.476, the bunny at 2:1 0.977 ->
+-> 0.402, 2:1 0.573 -> 0.438 -> 0.404, 4:1 0.603 -> 0.572 -> 0.476, the bunny at 2:1 0.977 ->
 0.871 -> 0.830 (SZ3: 0.524, 0.512, 0.548, 0.861), the Cyberware dragon scan 2.47 -> 1.99; white
 noise keeps the raster order. Cubic interpolation (-1, 9, 9, -1) / 16 where the samples beyond
 were valid cost 2-5 % more on each of these (it amplifies the reconstruction's noise), and was
