@@ -13,7 +13,9 @@ bounded mode codes the interpolation order too, keeping the smaller stream.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -58,6 +60,17 @@ WP_MIN_GAIN = 0.005
 ZERO = np.int64(0)
 ONE = np.int64(1)
 TR = np.int64(T_RES)
+
+
+def _save(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, a: int, b: int) -> tuple[np.ndarray, ...]:
+    """A copy of events a..b-1 (to put back with :func:`_restore` when another way codes larger)."""
+    return tab[a:b].copy(), val[a:b].copy(), nb[a:b].copy()
+
+
+def _restore(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, a: int, saved: tuple[np.ndarray, ...]) -> None:
+    """Put back events saved from event ``a`` on by :func:`_save`."""
+    b = a + saved[0].shape[0]
+    tab[a:b], val[a:b], nb[a:b] = saved
 
 
 def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, margin: float, share: float,
@@ -112,16 +125,12 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
         if n1 < 0:
             return -1, None
         with_bias = lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0]
-        keep_tab = tab[n_res:n1].copy()
-        keep_val = val[n_res:n1].copy()
-        keep_nb = nb[n_res:n1].copy()
+        keep = _save(tab, val, nb, n_res, n1)
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
                                     TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt)
         if n_end < 0 or with_bias < lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]:
             bias = 1
-            tab[n_res:n1] = keep_tab
-            val[n_res:n1] = keep_val
-            nb[n_res:n1] = keep_nb
+            _restore(tab, val, nb, n_res, keep)
             n_end = n1
             alt, alt_b = alt_b, alt
     else:
@@ -134,9 +143,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             # ways, kept where it saves WP_MIN_GAIN (it lost on the bunny at 4:1, where the
             # plane fits)
             without = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
-            keep_tab = tab[n_res:n_end].copy()
-            keep_val = val[n_res:n_end].copy()
-            keep_nb = nb[n_res:n_end].copy()
+            keep = _save(tab, val, nb, n_res, n_end)
             keep_k = leaves[:nleaf, 4].copy()
             pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
             lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, ONE)
@@ -156,9 +163,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
                 n_end = n1
                 alt, alt_b = alt_b, alt
             else:
-                tab[n_res:n_end] = keep_tab
-                val[n_res:n_end] = keep_val
-                nb[n_res:n_end] = keep_nb
+                _restore(tab, val, nb, n_res, keep)
                 leaves[:nleaf, 4] = keep_k
     # the residual tables: where along the activity levels, and fewer in a small band where the
     # tables cost more than the contexts save
@@ -202,14 +207,28 @@ class _SignPass:
 def _with_signs(p: _SignPass, tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n_end: int) -> int:
     """Code the band's residuals again with sign contexts (from event ``p.n_res``; the flag set);
     returns the new count, or ``n_end`` with the events unchanged when the buffers are too small."""
-    keep = (tab[p.n_res:n_end].copy(), val[p.n_res:n_end].copy(), nb[p.n_res:n_end].copy())
+    keep = _save(tab, val, nb, p.n_res, n_end)
     n1 = lp.encode_residuals(p.t, p.valid, p.cells, p.leaves, p.lcoef, p.lossless, p.opts, p.bias, p.aw, p.an, TR,
                              tab, val, nb, p.n_res, p.pw, p.pe, p.wp, ONE, p.cofs, p.alt)
     if n1 < 0:
-        tab[p.n_res:n_end], val[p.n_res:n_end], nb[p.n_res:n_end] = keep
+        _restore(tab, val, nb, p.n_res, keep)
         return n_end
     val[p.flag] = 1
     return int(n1)
+
+
+def _coded(cap: int, code: Callable[[np.ndarray, np.ndarray, np.ndarray], tuple[Any, ...]]
+           ) -> tuple[int, tuple[np.ndarray, ...], tuple[Any, ...]]:
+    """``code(tab, val, nb)`` into event buffers of ``cap`` events, four times larger until the
+    count its answer starts with is not -1 (full buffers). Returns (the capacity used, the
+    buffers, its answer)."""
+    while True:
+        bufs = (np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8))  # val: a symbol or raw bits
+        out = code(*bufs)
+        if out[0] != -1:
+            return cap, bufs, out
+        cap *= 4
+
 
 def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> tuple[np.ndarray, np.ndarray]:
     """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool; ``opts`` the
@@ -228,35 +247,22 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
     # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
     cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
     signs = None
+    interp = not lossless and bool(opts & lp.OPT_INTERP)
+    compare = len(margins) > 1 or interp  # streams' bits wanted
     for margin in margins:
-        while True:
-            tab_i = np.empty(cap, np.int8)
-            val_i = np.empty(cap, np.int16)  # a symbol (< NSYM) or up to RAW_PIECE raw bits
-            nb_i = np.empty(cap, np.int8)
-            n_i, signs_i = _encode_events(t, valid, bool(lossless), np.int64(opts), float(margin), float(share),
-                                          tab_i, val_i, nb_i)
-            if n_i >= 0:
-                break
-            cap *= 4
+        cap, (tab_i, val_i, nb_i), (n_i, signs_i) = _coded(
+            cap, lambda tb, vl, nbt, m=margin: _encode_events(t, valid, bool(lossless), np.int64(opts), float(m),
+                                                             float(share), tb, vl, nbt))
         # each margin's stream without sign contexts, less what they would save: the residuals
         # are coded again with them for the margin kept alone
-        bits = _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) - max(signs_i.gain, 0.0) if len(margins) > 1 else 0.0
+        bits = _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) - max(signs_i.gain, 0.0) if compare else 0.0
         if bits < best:
             best = bits
             tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, signs_i
-    if not lossless and (opts & lp.OPT_INTERP):
+    if interp:
         # hierarchical interpolation (smooth detailed depth within a bound): both ways, the
         # smaller kept
-        if len(margins) == 1:
-            best = _stream_bits(tab, val, nb, np.int64(n)) - max(signs.gain, 0.0)
-        while True:
-            tab_i = np.empty(cap, np.int8)
-            val_i = np.empty(cap, np.int16)
-            nb_i = np.empty(cap, np.int8)
-            n_i = _interp_band(t, valid, tab_i, val_i, nb_i, best)
-            if n_i != -1:
-                break
-            cap *= 4
+        cap, (tab_i, val_i, nb_i), (n_i,) = _coded(cap, lambda tb, vl, nbt: (_interp_band(t, valid, tb, vl, nbt, best),))
         if n_i >= 0 and _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) < best:
             tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, None
     if signs is not None and signs.gain > 0:
@@ -307,7 +313,7 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
     keep = None
     for w in sorted({ls, 4} - {0}):
         if keep is None:  # the events of the best so far, before the buffer is overwritten
-            keep = (tab[n_res:n_end].copy(), val[n_res:n_end].copy(), nb[n_res:n_end].copy(), n_end)
+            keep = _save(tab, val, nb, n_res, n_end)
         n_w = interp_events(t, valid, tab, val, nb, n_res, TR, np.int64(w), st)
         if n_w < 0:
             return -1
@@ -316,10 +322,11 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
             bits, cofs, cshift, fbw, n_end = bits_w, cofs_w, cshift_w, w, n_w
             keep = None
         elif keep is not None:
-            tab[n_res:keep[3]], val[n_res:keep[3]], nb[n_res:keep[3]] = keep[:3]
+            _restore(tab, val, nb, n_res, keep)
     lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
     _put_predictors(tab, val, nb, np.int64(n), np.array([cofs, cshift, fbw - FB_MIN], np.int64), no_leaves, ZERO)
     return int(n_end)
+
 
 def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless: bool, scale: float,
                 out: np.ndarray) -> int:

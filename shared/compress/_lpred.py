@@ -437,7 +437,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
     each event's table is ``t_res`` plus its activity level (:func:`context_choice` then
     :func:`apply_contexts` make them tables); with them (``sc`` 1) it is its final table, the
     levels slid by ``cofs`` (:func:`_sign_context`); without them, ``alt`` (NLEVEL * NSUB, NSYM)
-    int32, zero on entry (or a (1, 1) placeholder), receives the symbol counts the residuals would have with them,
+    int32, zero on entry (a (1, 1) array where the caller does not count), receives the symbol counts the residuals would have with them,
     by level and pattern (:func:`sign_bits`: the encoder runs the second way only where it pays).
     Returns the count (or -1 when the buffers are full)."""
     H, W = t.shape
