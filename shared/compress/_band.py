@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from shared.compress import _lpred as lp
-from shared.compress._interp import FB_MAX, FB_MIN, interp_decode, interp_events
+from shared.compress._interp import FB_CAND, FB_MAX, HB, HG, NCAND, NLV, interp_decode, interp_events
 from shared.compress._mask import decode_mask, encode_mask
 from shared.compress._quadtree import (
     MINB,
@@ -60,6 +60,8 @@ WP_MIN_GAIN = 0.005
 ZERO = np.int64(0)
 ONE = np.int64(1)
 TR = np.int64(T_RES)
+#: No candidate counts (:func:`shared.compress._interp.interp_events`).
+NO_HIST = np.zeros((1, 1, 1, 1, 1), np.int64)
 
 
 def _save(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, a: int, b: int) -> tuple[np.ndarray, ...]:
@@ -262,7 +264,7 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
     if interp:
         # hierarchical interpolation (smooth detailed depth within a bound): both ways, the
         # smaller kept
-        cap, (tab_i, val_i, nb_i), (n_i,) = _coded(cap, lambda tb, vl, nbt: (_interp_band(t, valid, tb, vl, nbt, best),))
+        cap, (tab_i, val_i, nb_i), (n_i,) = _coded(cap, lambda tb, vl, nbt: (_interp_band(t, valid, tb, vl, nbt, best, opts),))
         if n_i >= 0 and _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) < best:
             tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, None
     if signs is not None and signs.gain > 0:
@@ -277,54 +279,92 @@ def _pack(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n: int) -> tuple[np.
     return pack_codes(codes), words
 
 
-#: The interpolation order is given up, its feedback untried, where its residuals without
-#: feedback take this many times the raster order's whole stream (the feedback saved at most
-#: 17 % on the bench's images: the relief at 4:1).
+#: The interpolation order is given up, its feedback weights untried, where its first pass
+#: takes this many times the raster order's whole stream (the weights chosen after it saved at
+#: most N % on the bench's images).
 INTERP_GIVE_UP = 1.2
+#: The first pass's feedback weights (pass A, pass B at every spacing): the weights most bench
+#: bands chose (an oversampling camera's sub-pixel errors run along its rows, so the error of
+#: the sample before in a row predicts the next one; pass A's sample before is two apart).
+FB_FIRST = (0, 9)
+
+
+def feedback_choice(hist: np.ndarray) -> np.ndarray:
+    """The feedback weights (NLV, 2) int64 whose candidate symbol counts ``hist`` (from
+    :func:`shared.compress._interp.interp_events`) code in the fewest bits, by level and pass:
+    each activity group's bins in a table of their own, as the band's contexts do, plus the
+    bits inside each octave bin."""
+    h = hist.astype(np.float64)
+    tot = h.sum(axis=-1, keepdims=True)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ent = -np.where(h > 0, h * np.log2(h / np.where(tot > 0, tot, 1.0)), 0.0)
+    bits = (ent + h * _OCTAVE_BITS).sum(axis=(-1, -2))
+    return FB_CAND[np.argmin(bits, axis=-1)].astype(np.int64)  # ties: the smallest weight
+
+
+#: Bits inside each bin of the candidates' counts (:data:`shared.compress._interp.HB`).
+_OCTAVE_BITS = np.array([0.0] * 8 + [3.0 + j for j in range(HB - 8)])
 
 
 def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndarray, nb: np.ndarray,
-                 rival: float = np.inf) -> int:
+                 rival: float = np.inf, opts: int = lp.OPT_ALL, force: int | None = None) -> int:
     """Every event of one band in interpolation order (bounded mode): the mask, the mode, the
-    residual tables' offset and merging and the error feedback's weight, the residuals. Returns
-    the count, -1 when the event buffers are too small, or -2 when the residuals coded without
-    feedback take more than :data:`INTERP_GIVE_UP` times ``rival`` bits (the raster order's
-    stream: the feedback is not tried then)."""
+    residual tables' offset and merging, whether they are sign contexts, the error feedback's
+    weights, the residuals. ``opts``: without :data:`shared.compress._lpred.OPT_FEEDBACK` no
+    feedback, without :data:`shared.compress._lpred.OPT_SIGN` level tables only (ablation);
+    ``force`` (tests): the second pass's way kept whatever its size (1 sign contexts, 0 level
+    tables). Returns the count, -1 when the event buffers are too small, or -2 when the first
+    pass takes more than :data:`INTERP_GIVE_UP` times ``rival`` bits (the raster order's
+    stream)."""
     n = encode_mask(valid, tab, val, nb, ZERO, np.int64(T_EDGE))
     no_leaves = np.zeros((0, 5), np.int64)
+    head = np.zeros(3 + 2 * NLV, np.int64)
     n = _put_predictors(tab, val, nb, np.int64(n), np.array([MODE_INTERP], np.int64), no_leaves, ZERO)
-    n_res = np.int64(n + 3)
+    n_res = np.int64(n + head.shape[0])
     if n < 0 or n_res > tab.shape[0]:
         return -1
-    # error feedback: the weight of the error before, none, the least-squares one (from the
-    # first pass, without it) or a quarter, whichever codes smallest (least squares on the
-    # prediction's error is not least bits: on the bunny at 2:1 within 0.1 mm it cost 1.3 % more
-    # than the quarter, on the relief at 4:1 it saved 9 % more). The error above in the pass as
-    # a second weight saved 0-0.6 % and was dropped.
-    st = np.zeros(2)
-    n_end = interp_events(t, valid, tab, val, nb, n_res, TR, ZERO, st)
+    # the header's events in place (zeros until the choices are made) before the stream's bits
+    # are counted
+    _put_predictors(tab, val, nb, np.int64(n), head, no_leaves, ZERO)
+    # error feedback: one weight per spacing and pass, chosen from the first pass's counts of
+    # what each candidate would have coded (least squares on the first pass's errors chose
+    # weights 0-4 where 8-14 code smallest: in bounded mode most errors fed back are 0, the
+    # residual rounded away)
+    fbw = np.zeros((NLV, 2), np.int64)
+    feedback = bool(opts & lp.OPT_FEEDBACK)
+    if feedback:
+        fbw[:, 0], fbw[:, 1] = FB_FIRST
+    hist = np.zeros((NLV, 2, NCAND, HG, HB), np.int64) if feedback else NO_HIST
+    n_end = interp_events(t, valid, tab, val, nb, n_res, TR, fbw, ZERO, ZERO, hist)
     if n_end < 0:
         return -1
     bits, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
-    if bits > INTERP_GIVE_UP * rival:
+    if bits > INTERP_GIVE_UP * rival and force is None:
         return -2
-    ls = 0 if st[1] <= 0 else min(max(int(round(16.0 * st[0] / st[1])), FB_MIN), FB_MAX)
-    fbw = 0
-    keep = None
-    for w in sorted({ls, 4} - {0}):
-        if keep is None:  # the events of the best so far, before the buffer is overwritten
-            keep = _save(tab, val, nb, n_res, n_end)
-        n_w = interp_events(t, valid, tab, val, nb, n_res, TR, np.int64(w), st)
+    chosen = feedback_choice(hist) if feedback else fbw
+    # the second pass: the weights chosen, in sign contexts (the sign of the residual before in
+    # the pass-row, of the two it is interpolated from, and its pass); kept where the whole
+    # stream is smaller (its 45 tables cost more than estimated where the residuals are wide:
+    # the real captures), else the chosen weights in level tables, where they differ
+    lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
+    bits = _stream_bits(tab, val, nb, np.int64(n_end))
+    ways = [w for w in (1, 0) if (opts & lp.OPT_SIGN if w else not np.array_equal(chosen, fbw))]
+    keep = _save(tab, val, nb, n_res, n_end) if ways or force is not None else None
+    sgn = 0
+    for way in ways if force is None else [force]:
+        n_w = interp_events(t, valid, tab, val, nb, n_res, TR, chosen, np.int64(way), np.int64(cofs), NO_HIST)
         if n_w < 0:
             return -1
-        bits_w, cofs_w, cshift_w = lp.context_choice(tab, val, nb, n_res, np.int64(n_w), TR)
-        if bits_w < bits:
-            bits, cofs, cshift, fbw, n_end = bits_w, cofs_w, cshift_w, w, n_w
-            keep = None
-        elif keep is not None:
-            _restore(tab, val, nb, n_res, keep)
-    lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
-    _put_predictors(tab, val, nb, np.int64(n), np.array([cofs, cshift, fbw - FB_MIN], np.int64), no_leaves, ZERO)
+        cofs_w, cshift_w = cofs, 0
+        if way == 0:
+            cofs_w, cshift_w = lp.context_choice(tab, val, nb, n_res, np.int64(n_w), TR)[1:]
+            lp.apply_contexts(tab, n_res, np.int64(n_w), TR, np.int64(cofs_w), np.int64(cshift_w))
+        if force is not None or _stream_bits(tab, val, nb, np.int64(n_w)) < bits:
+            sgn, fbw, n_end, cofs, cshift = way, chosen, n_w, cofs_w, cshift_w
+            break
+        _restore(tab, val, nb, n_res, keep)
+    head[:3], head[3:] = (cofs, cshift, sgn), fbw.ravel()
+    _put_predictors(tab, val, nb, np.int64(n), head, no_leaves, ZERO)
     return int(n_end)
 
 
@@ -348,14 +388,14 @@ def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless:
         return -1
     mode, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
     if mode == MODE_INTERP and not lossless:
-        cofs, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-        cshift, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-        fbw, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-        if cofs > lp.MAX_COFS or cshift > 2 or fbw > FB_MAX - FB_MIN or pos > nw:
+        head = np.zeros(3 + 2 * NLV, np.int64)
+        for i in range(head.shape[0]):
+            head[i], xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+        cofs, cshift, sgn = (np.int64(v) for v in head[:3])
+        if cofs > lp.MAX_COFS or cshift > 2 or sgn > 1 or head[3:].max() > FB_MAX or pos > nw:
             return -1
-        xa, xb, pos = interp_decode(xa, xb, pos, words, nw, sym, fb, valid, np.int64(cofs), np.int64(cshift),
-                                    np.int64(fbw + FB_MIN), float(scale),
-                                    np.int64(T_RES), out)
+        xa, xb, pos = interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, sgn,
+                                    head[3:].reshape(NLV, 2), float(scale), TR, out)
         return 0 if pos == nw and xa == RANS_L and xb == RANS_L else -1
     if mode != MODE_RASTER:
         return -1

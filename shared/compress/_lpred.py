@@ -59,8 +59,15 @@ L_RES = 8
 #: offset and the N neighbour's residual sign.
 NGRP = 4
 NSUB = 6
-#: Residual tables of a band (either way).
-NRES = max(NCTX, NGRP * NSUB)
+#: Sign contexts of the interpolation order (:func:`shared.compress._interp._table`):
+#: :data:`NI_GRP` groups of activity levels x :data:`NI_PAT` patterns of the signs of the residual
+#: before in the pass-row and of the two neighbours it is interpolated from x :data:`NI_CLS` classes of
+#: pass.
+NI_GRP = 3
+NI_PAT = 5
+NI_CLS = 3
+#: Residual tables of a band (any way).
+NRES = max(NCTX, NGRP * NSUB, NI_GRP * NI_PAT * NI_CLS)
 #: Bias contexts: 27 patterns of gradient signs x 4 activity groups.
 NBIAS = 27 * 4
 BIAS_RESET = 64
@@ -713,6 +720,21 @@ def sign_bits(alt, cofs, tab, nb, n0, n1):
             for s in range(alt.shape[1]):
                 counts[g * NSUB + k, s] += alt[lev * NSUB + k, s]
     return bits + _tables_bits(counts, NRES)
+
+
+@njit(cache=True, nogil=True)
+def final_bits(tab, val, nb, n0, n1, t0):
+    """Estimated bits of events n0..n1-1 whose residuals are in their final tables
+    ``t0..t0 + NRES - 1`` (sign contexts), as :func:`context_choice` counts them."""
+    counts = np.zeros((NRES, 512), np.int64)
+    raw = 0.0
+    for i in range(n0, n1):
+        t = tab[i] - t0
+        if 0 <= t < NRES:
+            counts[t, val[i]] += 1
+        elif tab[i] < 0:
+            raw += nb[i]
+    return raw + _tables_bits(counts, NRES)
 
 
 @njit(cache=True, nogil=True)

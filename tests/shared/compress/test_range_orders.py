@@ -1,7 +1,9 @@
-"""The range codec's per-band choices of ``quadtree-lp-4``: hierarchical interpolation (bounded
-mode) and sign contexts (both modes): each is taken where it codes smaller, its streams decode
+"""The range codec's per-band choices of ``quadtree-lp-5``: hierarchical interpolation (bounded
+mode) with its feedback weights per spacing and pass and its sign contexts, and the raster
+order's sign contexts (both modes): each is taken where it codes smaller, its streams decode
 exactly (lossless) or within the bound (every sample), masks exact, on smooth oversampled depth
-and on hostile masks and shapes; an interpolation stream is refused in a lossless band."""
+and on hostile masks and shapes; an interpolation stream is refused in a lossless band, and
+so are its damaged headers."""
 
 from __future__ import annotations
 
@@ -94,15 +96,90 @@ def _masks() -> list[tuple[str, np.ndarray]]:
 
 @pytest.mark.parametrize("name, z", _masks(), ids=[n for n, _ in _masks()])
 @pytest.mark.parametrize("e", [0.1, 2.0])
-def test_interpolation_streams_decode_within_the_bound_on_hostile_masks(name: str, z: np.ndarray, e: float) -> None:
-    # the interpolation order's stream itself (whatever the encoder would choose)
+@pytest.mark.parametrize("way", [1, 0])
+def test_interpolation_streams_decode_within_the_bound_on_hostile_masks(name: str, z: np.ndarray, e: float,
+                                                                       way: int) -> None:
+    # the interpolation order's stream itself (whatever the encoder would choose), in sign
+    # contexts (1) and in level tables (0)
     plan = _plan(np.nan_to_num(z, nan=0.0) if np.isnan(z).all() else z, None, e)
     t, valid = qt.quantise(z, plan.scale, False)
     cap = 2 * z.size + 4096
     tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
-    n = band._interp_band(t, valid, tab, val, nb)
+    n = band._interp_band(t, valid, tab, val, nb, force=way)
     assert n >= 0
     check_bound(z, decoded(*band._pack(tab, val, nb, n), z.shape, False, plan.scale), e)
+
+
+def _interp_stream(z: np.ndarray, opts: int = lp.OPT_ALL, force: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    plan = _plan(z, None, 0.1)
+    t, valid = qt.quantise(z, plan.scale, False)
+    cap = 2 * z.size + 4096
+    tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+    n = band._interp_band(t, valid, tab, val, nb, opts=opts, force=force)
+    assert n >= 0
+    tables, words = band._pack(tab, val, nb, n)
+    check_bound(z, decoded(tables, words, z.shape, False, plan.scale), 0.1)
+    return tables, words
+
+
+def test_interpolation_feedback_pays_on_errors_held_along_rows() -> None:
+    # an oversampling camera's sub-pixel errors held over 3 columns of a row: the error of the
+    # sample before in a pass-row predicts the next; the weights chosen per spacing and pass
+    # code smaller than none
+    z = relief(384, 320, hold=(1, 3))
+    with_fb = _interp_stream(z)
+    without = _interp_stream(z, lp.OPT_ALL & ~lp.OPT_FEEDBACK)
+    assert band_bits(*with_fb) < 0.95 * band_bits(*without), (band_bits(*with_fb), band_bits(*without))
+
+
+def test_interpolation_sign_contexts_pay_on_errors_held_along_rows() -> None:
+    z = relief(384, 320, hold=(1, 3))
+    with_signs = _interp_stream(z)
+    without = _interp_stream(z, lp.OPT_ALL & ~lp.OPT_SIGN)
+    assert band_bits(*with_signs) < 0.98 * band_bits(*without), (band_bits(*with_signs), band_bits(*without))
+
+
+def test_feedback_choice_takes_the_candidate_of_fewest_bits() -> None:
+    from shared.compress._interp import FB_CAND, HB, HG, NCAND, NLV
+
+    rng = np.random.default_rng(3)
+    hist = np.zeros((NLV, 2, NCAND, HG, HB), np.int64)
+    best = rng.integers(0, NCAND, (NLV, 2))
+    for lv in range(NLV):
+        for k in range(2):
+            for c in range(NCAND):
+                # the same symbols spread wider the farther a candidate is from the best one
+                spread = 1 + 2 * abs(c - best[lv, k])
+                sym = np.minimum(np.abs(rng.normal(0, spread, 4000)).astype(np.int64), HB - 1)
+                np.add.at(hist[lv, k, c, lv % HG], sym, 1)
+    np.testing.assert_array_equal(band.feedback_choice(hist), FB_CAND[best])
+    # large residuals weigh by their size: 100 residuals of about 11 bits cost more than 1000
+    # zeros and 1000 ones
+    # (in entropy alone the first candidate's 2100 symbols would cost 2579 bits, the others'
+    # 3328)
+    wide = np.zeros((NLV, 2, NCAND, HG, HB), np.int64)
+    wide[:, :, 0, 0, :2] = 1000
+    wide[:, :, 0, 0, HB - 1] = 100
+    wide[:, :, 1:, 0, :3] = 700
+    assert (band.feedback_choice(wide) == FB_CAND[1]).all()
+
+
+@pytest.mark.parametrize("at", range(12))
+def test_a_damaged_interpolation_header_is_refused_or_decodes_within_its_shape(at: int) -> None:
+    # each symbol of the band's header after its mode (offset, merging, sign flag, the eight
+    # weights) set out of range: the band is refused, never read outside its arrays
+    z = relief(64, 64)
+    plan = _plan(z, None, 0.1)
+    t, valid = qt.quantise(z, plan.scale, False)
+    cap = 2 * z.size + 4096
+    tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+    n = band._interp_band(t, valid, tab, val, nb)
+    head = np.flatnonzero(tab[:n] == qt.T_PRED)  # the mode, then the header
+    assert head.shape[0] == 12 and val[head[0]] == qt.MODE_INTERP
+    val[head[at]] = 200
+    out = np.empty(z.shape, np.float32)
+    tables, words = band._pack(tab, val, nb, n)
+    assert band.decode_band(tables, words, 64, 64, False, plan.scale, out) == -1
 
 
 def test_an_interpolation_stream_in_a_lossless_band_is_refused() -> None:
