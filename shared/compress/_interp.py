@@ -37,11 +37,27 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
-from shared.compress._lpred import E_LIM, F_SHIFT, FINE, L_RES, LEVEL_LUT, NCTX, NI_CLS, NI_PAT, _level_of
-from shared.compress._rans import at, get_value, put_value, set_at, unzigzag, zigzag
+from shared.compress._lpred import (
+    E_LIM,
+    F_SHIFT,
+    FINE,
+    L_RES,
+    LEVEL_LUT,
+    NCTX,
+    NI_CLS,
+    NI_GRP,
+    NI_PAT,
+    NLEVEL,
+    NRES,
+    _level_of,
+    _tables_bits,
+)
+from shared.compress._rans import NSYM, at, bitlen, get_value, put_value, set_at, unzigzag, zigzag
 
 #: Spacing of the coarsest grid.
 S0 = 16
+#: Clamp of the stored errors and residuals (int16).
+I16 = 32767
 #: Spacings S0, S0 / 2, ..., 2: level ``log2(s) - 1`` (3..0).
 NLV = 4
 #: Error feedback: the reconstructed error of the sample before in its pass weighs in
@@ -120,27 +136,67 @@ def _table(t_res, act, sgn, cofs, rprev, rnb, cls):
     fandisk at 2:1, -5.1 % on the bunny at 2:1 against the level tables; with the sign of
     ``rprev`` alone in 24 tables -3.7 and -2.8 %. Branch-free: the signs are coin flips."""
     lev = _level_of(act)
-    g = (min(max(lev - cofs, 0), NCTX - 1) * 3) >> 4
+    pat, flip = _pattern(rprev, rnb)
+    tb = t_res + (_group(lev, cofs) * NI_PAT + pat) * NI_CLS + cls
+    return sgn * tb + (1 - sgn) * (t_res + lev), flip * sgn
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _group(lev, cofs):
+    """The sign contexts' group (0..NI_GRP - 1) of activity level ``lev`` from offset ``cofs``."""
+    return (min(max(lev - cofs, 0), NCTX - 1) * NI_GRP) >> 4
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _pattern(rprev, rnb):
+    """The sign pattern (0..NI_PAT - 1) and flip (-1 or 0) of :func:`_table`."""
     sp = np.int64(rprev > 0) - np.int64(rprev < 0)
     sn = np.int64(rnb > 0) - np.int64(rnb < 0)
     nz = sp & 1  # sp != 0
     ref = sp + (1 - nz) * sn
-    pat = nz * (1 + sp * sn) + (1 - nz) * (4 - (sn & 1))
-    tb = t_res + (g * NI_PAT + pat) * NI_CLS + cls
-    return sgn * tb + (1 - sgn) * (t_res + lev), (ref >> 63) * sgn
+    return nz * (1 + sp * sn) + (1 - nz) * (4 - (sn & 1)), ref >> 63
 
 
 @njit(cache=True, nogil=True, inline="always")
 def _neighbour_residuals(rr, ym, xm, yp, xp, H, W):
     """The sum of the residuals at (ym, xm) and (yp, xp) (0 outside the band; ``rr`` is 0 where
     no residual was coded)."""
-    a = rr[ym, xm] if ym >= 0 and xm >= 0 else 0
-    b = rr[yp, xp] if yp < H and xp < W else 0
+    a = np.int64(rr[ym, xm]) if ym >= 0 and xm >= 0 else 0
+    b = np.int64(rr[yp, xp]) if yp < H and xp < W else 0
     return a + b
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _count_alt(alt, act, rprev, rnb, cls, r):
+    """Count residual ``r``'s symbol in sign contexts (:func:`interp_events`' ``alt``)."""
+    pat, flip = _pattern(rprev, rnb)
+    u = np.int64(zigzag((r ^ flip) - flip))
+    s = u if u < (1 << L_RES) else (1 << L_RES) + np.int64(bitlen(np.uint64(u))) - L_RES - 1
+    alt[(_level_of(act) * NI_PAT + pat) * NI_CLS + cls, s] += 1
+
+
 @njit(cache=True, nogil=True)
-def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist):
+def sign_estimate(alt, cofs, tab, nb, n0, n1):
+    """Estimated bits of a band's interpolation residuals (events n0..n1-1, coded in level
+    tables) had they been coded in sign contexts from offset ``cofs``: from the counts ``alt``
+    of :func:`interp_events`, as :func:`shared.compress._lpred.context_choice` counts bits, the
+    escapes' raw bits taken as they are."""
+    counts = np.zeros((NRES, 512), np.int64)
+    bits = 0.0
+    for i in range(n0, n1):
+        if tab[i] < 0:
+            bits += nb[i]
+    for lev in range(NLEVEL):
+        g = _group(lev, cofs)
+        for k in range(NI_PAT * NI_CLS):
+            row = lev * NI_PAT * NI_CLS + k
+            for s in range(NSYM):
+                counts[g * NI_PAT * NI_CLS + k, s] += alt[row, s]
+    return bits + _tables_bits(counts, NRES)
+
+
+@njit(cache=True, nogil=True)
+def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt):
     """Append the residual events of a band in interpolation order (bounded mode: ``t`` (H, W)
     int64 fine-unit targets) after event ``n``, each in table ``t_res`` plus its activity level
     (:func:`shared.compress._lpred.context_choice` then makes them tables), with the error
@@ -149,14 +205,20 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist):
     (1, 1, 1, 1, 1), adds to it (NLV, 2, NCAND, HG, HB) int64 the symbols each weight of
     :data:`FB_CAND` would have given, every candidate following its own feedback along the
     pass's row beside the weight used (the neighbours and the activity those of the weight
-    used): the encoder's estimate of each weight's bits without coding the band again. Returns
-    the count (or -1 when the buffers are full)."""
+    used): the encoder's estimate of each weight's bits without coding the band again; and to
+    ``alt`` (NLEVEL * NI_PAT * NI_CLS, NSYM) int32 the symbols the residuals would have in sign
+    contexts, by level, pattern and class (:func:`sign_estimate`). Returns the count (or -1 when
+    the buffers are full)."""
     H, W = t.shape
     rec = np.zeros((H, W), np.int64)
-    err = np.zeros((H, W), np.int64)
-    rr = np.zeros((H, W), np.int64)  # the residuals coded (the sign contexts)
+    # the errors and residuals of the samples coded, int16 (clamped: a quarter of the memory
+    # traffic; an error clamped at 32767 still puts its activity at the top level, and the
+    # decoder clamps alike)
+    err = np.zeros((H, W), np.int16)
+    rr = np.zeros((H, W), np.int16)
     half = FINE >> 1
     last = 0
+    count = hist.shape[0] > 1
     for y in range(0, H, S0):
         eprev = 0
         rprev = 0
@@ -168,12 +230,13 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist):
             v = p + (r << F_SHIFT)
             tb, flip = _table(t_res, act + 2 * eprev, sgn, cofs, rprev, 0, 2)
             n = put_value(tab, val, nb, n, tb, zigzag((r ^ flip) - flip), L_RES)
+            if count:
+                _count_alt(alt, act + 2 * eprev, rprev, 0, 2, r)
             rec[y, x] = v
             last = v
             eprev = min(abs(v - p), E_LIM)
             rprev = r
-            rr[y, x] = r
-    count = hist.shape[0] > 1
+            rr[y, x] = min(max(r, -I16), I16)
     sc = np.zeros(NCAND, np.int64)  # each candidate weight's own feedback along the row
     s = S0
     lv = NLV - 1
@@ -196,7 +259,7 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist):
                         p, act, ok = _two_sided(rec, valid, y - fy, x - fx, H, W, H, W)
                         if not ok:
                             p = last
-                    act += 2 * eprev + (err[y - s, x] if y >= s else 0)
+                    act += 2 * eprev + (np.int64(err[y - s, x]) if y >= s else 0)
                     p0 = p
                     p += (w * sprev) >> 4
                     r = (t[y, x] - p + half) >> F_SHIFT
@@ -213,13 +276,15 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist):
                     rnb = _neighbour_residuals(rr, y - dy, x - dx, y + dy, x + dx, H, W)
                     tb, flip = _table(t_res, act, sgn, cofs, rprev, rnb, cls)
                     n = put_value(tab, val, nb, n, tb, zigzag((r ^ flip) - flip), L_RES)
+                    if count:
+                        _count_alt(alt, act, rprev, rnb, cls, r)
                     rec[y, x] = v
                     last = v
                     eprev = min(abs(v - p), E_LIM)
                     sprev = min(max(v - p0, -E_LIM), E_LIM)
-                    err[y, x] = eprev
+                    err[y, x] = min(eprev, I16)
                     rprev = r
-                    rr[y, x] = r
+                    rr[y, x] = min(max(r, -I16), I16)
         s >>= 1
         lv -= 1
     return n
@@ -242,8 +307,8 @@ def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, sgn, fbw
     (H, W) float32 (depth ``rec * scale``, NaN where invalid); returns (xa, xb, pos)."""
     H, W = valid.shape
     rec = np.zeros((H, W), np.int64)
-    err = np.zeros((H, W), np.int64)
-    rr = np.zeros((H, W), np.int64)
+    err = np.zeros((H, W), np.int16)
+    rr = np.zeros((H, W), np.int16)
     last = 0
     nan = np.float32(np.nan)
     for y in range(H):
@@ -264,7 +329,7 @@ def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, sgn, fbw
             last = v
             eprev = min(abs(v - p), E_LIM)
             rprev = r
-            rr[y, x] = r
+            rr[y, x] = min(max(r, -I16), I16)
     # The prediction below is written out as in interp_events, not shared through an inlined
     # helper: with the helper this decoder ran 1.5 times slower (measured, relief 2:1 band).
     s = S0
@@ -287,7 +352,7 @@ def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, sgn, fbw
                         p, act, ok = _two_sided(rec, valid, y - fy, x - fx, H, W, H, W)
                         if not ok:
                             p = last
-                    act += 2 * eprev + (err[y - s, x] if y >= s else 0)
+                    act += 2 * eprev + (np.int64(err[y - s, x]) if y >= s else 0)
                     p0 = p
                     p += (w * sprev) >> 4
                     rnb = _neighbour_residuals(rr, y - dy, x - dx, y + dy, x + dx, H, W)
@@ -299,9 +364,9 @@ def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, sgn, fbw
                     last = v
                     eprev = min(abs(v - p), E_LIM)
                     sprev = min(max(v - p0, -E_LIM), E_LIM)
-                    err[y, x] = eprev
+                    err[y, x] = min(eprev, I16)
                     rprev = r
-                    rr[y, x] = r
+                    rr[y, x] = min(max(r, -I16), I16)
         s >>= 1
         lv -= 1
     return xa, xb, pos
