@@ -723,21 +723,6 @@ def sign_bits(alt, cofs, tab, nb, n0, n1):
 
 
 @njit(cache=True, nogil=True)
-def final_bits(tab, val, nb, n0, n1, t0):
-    """Estimated bits of events n0..n1-1 whose residuals are in their final tables
-    ``t0..t0 + NRES - 1`` (sign contexts), as :func:`context_choice` counts them."""
-    counts = np.zeros((NRES, 512), np.int64)
-    raw = 0.0
-    for i in range(n0, n1):
-        t = tab[i] - t0
-        if 0 <= t < NRES:
-            counts[t, val[i]] += 1
-        elif tab[i] < 0:
-            raw += nb[i]
-    return raw + _tables_bits(counts, NRES)
-
-
-@njit(cache=True, nogil=True)
 def apply_contexts(tab, n0, n1, t0, cofs, cshift):
     """Turn the levels of the residual events n0..n1-1 into their tables (:func:`context_choice`)."""
     for i in range(n0, n1):
