@@ -8,7 +8,9 @@ Per band the encoder codes the raster order with each tree margin of
 :data:`shared.compress._quadtree.SPLIT_LOSSLESS` (lossless) and keeps the smaller stream, tries
 the weighted predictor (effort 2) and bias cancellation (bounded) both ways, codes the residuals
 of the kept margin again with sign contexts where the first pass's counts say they pay, and in
-bounded mode codes the interpolation order too, keeping the smaller stream.
+bounded mode codes the interpolation order too (a first pass, then, unless its estimate says
+the raster order's stream is smaller, a second with the feedback weights and the tables the
+first pass's counts choose), keeping the smaller stream.
 """
 
 from __future__ import annotations

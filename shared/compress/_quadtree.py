@@ -1,12 +1,13 @@
 """Quadtree range-image band codec kernels (private; the public API is :mod:`shared.compress.range`,
 the band's encoder and decoder over these kernels :mod:`shared.compress._band`).
 
-A band of rows is coded as one rANS stream (codec ``quadtree-lp-4``) of three parts:
+A band of rows is coded as one rANS stream (codec ``quadtree-lp-5``) of three parts:
 
 1. the validity mask, exactly: per row where its alternating invalid/valid runs end, against
    the row above (:mod:`shared.compress._mask`), then the band's order: :data:`MODE_RASTER` (the
    rest of this list) or, in bounded mode, :data:`MODE_INTERP` (the residual tables' offset and
-   merging, then the residuals in hierarchical interpolation order, :mod:`shared.compress._interp`);
+   merging, the flag of sign contexts, the error feedback's eight weights, then the residuals
+   in hierarchical interpolation order, :mod:`shared.compress._interp`);
 2. the quadtree: every 64x64 block holding a valid sample either splits into four (down
    to 4x4) or is a leaf with a surface model -- constant, plane, bilinear or quadratic in
    depth -- or with local prediction, whichever the estimated code length favours (Gaussian
