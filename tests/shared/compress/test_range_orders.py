@@ -230,3 +230,24 @@ def test_interpolation_is_given_up_early_against_a_much_smaller_raster_stream() 
     bits = float(band._stream_bits(tab, val, nb, np.int64(full)))
     assert band._interp_band(t, valid, tab, val, nb, bits / 2) == -2
     assert band._interp_band(t, valid, tab, val, nb, bits) >= 0
+
+
+def test_interpolation_is_not_tried_where_surface_models_predict_the_band() -> None:
+    # white noise about a plane: the raster order's leaves predict from their fitted models
+    # alone over most of the band, and the interpolation order is not tried there; smooth
+    # detailed depth takes local predictors
+    def share(z: np.ndarray) -> float:
+        plan = _plan(z, None, 0.1)
+        t, valid = qt.quantise(z, plan.scale, False)
+        cap = 2 * z.size + 4096
+        tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+        n, signs = band._encode_events(t, valid, False, lp.OPT_ALL, float(qt.SPLIT_BOUNDED[0]),
+                                       float(qt.SPLIT_BOUNDED[1]), tab, val, nb)
+        assert n > 0
+        return band._model_share(signs.leaves)
+
+    rng = np.random.default_rng(5)
+    yy, xx = np.mgrid[0:256, 0:320]
+    noise = (800.0 + 0.02 * xx + 0.01 * yy + rng.normal(0.0, 0.2, (256, 320))).astype(np.float32)
+    assert share(noise) >= band.INTERP_MODEL_MAX
+    assert share(relief(hold=(1, 3))) < 0.5
