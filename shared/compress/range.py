@@ -20,10 +20,10 @@ Files of the earlier codecs (:data:`OLD_CODECS`) are refused by name (re-encode 
 
 Measured (``tests/bench/bench_compress.py``, bits per valid sample, lossless at 0.02 mm / within
 0.1 mm, effort 1): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768
-projector 2.085 / 0.404 (``quadtree-lp-3`` 2.165 / 0.573, without sign contexts and
-interpolation; JPEG-XL effort 7 2.16, JPEG-LS 2.44, JPEG-LS NEAR 1.29, SZ3 0.51); the Cyberware
-dragon scan 4.95 / 1.995 (effort 2: 4.85 lossless; JPEG-XL 4.55, JPEG-LS NEAR 3.00); a synthetic
-image with 0.2 mm white noise 5.51 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
+projector 2.085 / 0.379 (``quadtree-lp-4`` 2.085 / 0.404; JPEG-XL effort 7 2.16, JPEG-LS 2.44,
+JPEG-LS NEAR 1.29, SZ3 0.51); the bunny at 2:1 2.952 / 0.742 (JPEG-XL 2.93, SZ3 0.86); the
+Cyberware dragon scan 4.95 / 1.94 (effort 2: 4.85 lossless; JPEG-XL 4.55, JPEG-LS NEAR 3.00); a
+synthetic image with 0.2 mm white noise 5.51 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
 """
 
 from __future__ import annotations
