@@ -60,11 +60,10 @@ from shared.compress._lpred import (
     NI_GRP,
     NI_PAT,
     NLEVEL,
-    NRES,
     _level_of,
-    _tables_bits,
+    pattern_bits,
 )
-from shared.compress._rans import NSYM, at, bitlen, get_value, put_value, set_at, unzigzag, zigzag
+from shared.compress._rans import at, bitlen, get_value, put_value, set_at, unzigzag, zigzag
 
 #: Spacing of the coarsest grid.
 S0 = 16
@@ -187,24 +186,14 @@ def _count_alt(alt, act, rprev, rnb, cls, r):
     alt[(_level_of(act) * NI_PAT + pat) * NI_CLS + cls, s] += 1
 
 
-@njit(cache=True, nogil=True)
-def sign_estimate(alt, cofs, tab, nb, n0, n1):
+def sign_estimate(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n0: int, n1: int) -> float:
     """Estimated bits of a band's interpolation residuals (events n0..n1-1, coded in level
     tables) had they been coded in sign contexts from offset ``cofs``: from the counts ``alt``
-    of :func:`interp_events`, as :func:`shared.compress._lpred.context_choice` counts bits, the
-    escapes' raw bits taken as they are."""
-    counts = np.zeros((NRES, 512), np.int64)
-    bits = 0.0
-    for i in range(n0, n1):
-        if tab[i] < 0:
-            bits += nb[i]
-    for lev in range(NLEVEL):
-        g = _group(lev, cofs)
-        for k in range(NI_PAT * NI_CLS):
-            row = lev * NI_PAT * NI_CLS + k
-            for s in range(NSYM):
-                counts[g * NI_PAT * NI_CLS + k, s] += alt[row, s]
-    return bits + _tables_bits(counts, NRES)
+    of :func:`interp_events` (:func:`shared.compress._lpred.pattern_bits`)."""
+    # the groups of :func:`_group`
+    groups = (np.minimum(np.maximum(np.arange(NLEVEL, dtype=np.int64) - cofs, 0), NCTX - 1) * NI_GRP) >> 4
+    first = groups * (NI_PAT * NI_CLS)
+    return pattern_bits(alt, first, tab, nb, np.int64(n0), np.int64(n1))
 
 
 @njit(cache=True, nogil=True)

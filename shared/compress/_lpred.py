@@ -704,22 +704,30 @@ def context_choice(tab, val, nb, n0, n1, t0):
 
 
 @njit(cache=True, nogil=True)
-def sign_bits(alt, cofs, tab, nb, n0, n1):
+def pattern_bits(alt, first, tab, nb, n0, n1):
     """Estimated bits of a band's residuals (events n0..n1-1, coded without sign contexts) had
-    they been coded with them, the levels slid by ``cofs``: from the counts ``alt``
-    (:func:`encode_residuals`), as :func:`context_choice` counts bits, the escapes' raw bits
-    taken as they are (a residual's sign changes them by at most one bit)."""
+    they been coded in sign contexts: from the counts ``alt`` (NLEVEL * m, NSYM) of their
+    symbols so coded by activity level and pattern (m patterns), each level's patterns in the
+    tables from ``first`` (NLEVEL,) int64 on; as :func:`context_choice` counts bits, the
+    escapes' raw bits taken as they are (a residual's sign changes them by at most one bit)."""
+    m = alt.shape[0] // NLEVEL
     counts = np.zeros((NRES, 512), np.int64)
     bits = 0.0
     for i in range(n0, n1):
         if tab[i] < 0:
             bits += nb[i]
     for lev in range(NLEVEL):
-        g = min(max(lev - cofs, 0), NCTX - 1) >> 2
-        for k in range(NSUB):
+        for k in range(m):
             for s in range(alt.shape[1]):
-                counts[g * NSUB + k, s] += alt[lev * NSUB + k, s]
+                counts[first[lev] + k, s] += alt[lev * m + k, s]
     return bits + _tables_bits(counts, NRES)
+
+
+def sign_bits(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n0: int, n1: int) -> float:
+    """:func:`pattern_bits` of the raster order's sign contexts (:func:`_sign_context`; ``alt``
+    from :func:`encode_residuals`), the levels slid by ``cofs``."""
+    first = (np.minimum(np.maximum(np.arange(NLEVEL) - cofs, 0), NCTX - 1) >> 2) * NSUB
+    return pattern_bits(alt, first.astype(np.int64), tab, nb, np.int64(n0), np.int64(n1))
 
 
 @njit(cache=True, nogil=True)

@@ -31,6 +31,12 @@ def relief(h: int = 256, w: int = 320, seed: int = 0, hold: tuple[int, int] = (2
     return z.astype(np.float32)
 
 
+def buffers(size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Event buffers (tables, values, raw bit counts) for a band of ``size`` samples."""
+    cap = 2 * size + 4096
+    return np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+
+
 def band_bits(tables: np.ndarray, words: np.ndarray) -> int:
     return int(tables.size * 8 + words.size * 16)
 
@@ -103,8 +109,7 @@ def test_interpolation_streams_decode_within_the_bound_on_hostile_masks(name: st
     # contexts (1) and in level tables (0)
     plan = _plan(np.nan_to_num(z, nan=0.0) if np.isnan(z).all() else z, None, e)
     t, valid = qt.quantise(z, plan.scale, False)
-    cap = 2 * z.size + 4096
-    tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+    tab, val, nb = buffers(z.size)
     n = band._interp_band(t, valid, tab, val, nb, force=way)
     assert n >= 0
     check_bound(z, decoded(*band._pack(tab, val, nb, n), z.shape, False, plan.scale), e)
@@ -113,8 +118,7 @@ def test_interpolation_streams_decode_within_the_bound_on_hostile_masks(name: st
 def _interp_stream(z: np.ndarray, opts: int = lp.OPT_ALL, force: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
-    cap = 2 * z.size + 4096
-    tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+    tab, val, nb = buffers(z.size)
     n = band._interp_band(t, valid, tab, val, nb, opts=opts, force=force)
     assert n >= 0
     tables, words = band._pack(tab, val, nb, n)
@@ -175,8 +179,7 @@ def test_a_damaged_interpolation_header_is_refused(at: int) -> None:
     z = relief(64, 64)
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
-    cap = 2 * z.size + 4096
-    tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+    tab, val, nb = buffers(z.size)
     n = band._interp_band(t, valid, tab, val, nb)
     head = np.flatnonzero(tab[:n] == qt.T_PRED)  # the mode, then the header
     assert head.shape[0] == 12 and val[head[0]] == qt.MODE_INTERP
@@ -189,8 +192,7 @@ def test_a_damaged_interpolation_header_is_refused(at: int) -> None:
 def test_an_interpolation_stream_in_a_lossless_band_is_refused() -> None:
     z = relief(64, 64)
     t, valid = qt.quantise(z, 0.02, True)
-    cap = 2 * z.size + 4096
-    tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+    tab, val, nb = buffers(z.size)
     n = band._interp_band(t, valid, tab, val, nb)
     tables, words = band._pack(tab, val, nb, n)
     out = np.empty(z.shape, np.float32)
@@ -223,8 +225,7 @@ def test_interpolation_is_given_up_early_against_a_much_smaller_raster_stream() 
     z = relief(64, 96)
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
-    cap = 2 * z.size + 4096
-    tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+    tab, val, nb = buffers(z.size)
     full = band._interp_band(t, valid, tab, val, nb)
     assert full >= 0
     bits = float(band._stream_bits(tab, val, nb, np.int64(full)))
@@ -239,8 +240,7 @@ def test_interpolation_is_not_tried_where_surface_models_predict_the_band() -> N
     def share(z: np.ndarray) -> float:
         plan = _plan(z, None, 0.1)
         t, valid = qt.quantise(z, plan.scale, False)
-        cap = 2 * z.size + 4096
-        tab, val, nb = np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
+        tab, val, nb = buffers(z.size)
         n, signs = band._encode_events(t, valid, False, lp.OPT_ALL, float(qt.SPLIT_BOUNDED[0]),
                                        float(qt.SPLIT_BOUNDED[1]), tab, val, nb)
         assert n > 0
