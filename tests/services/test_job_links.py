@@ -28,7 +28,9 @@ from shared.service.rerenders import RerenderStore
 from tests.support import jobsvc, viewer_browser
 from tests.support.scansets import cached_scanset
 
-pytestmark = pytest.mark.slow
+# One group: under --dist loadgroup the module runs on one xdist worker, so the service run of
+# ``finished`` (about 100 s of CPU, most of it the default derivatives) is made once, not once a worker.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("job_links")]
 
 #: Small previews: the tests are about the service, not the video.
 PARAMS = {"preview": {"size": [96, 64], "seconds": 1, "fps": 4}}
