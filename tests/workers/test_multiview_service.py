@@ -24,7 +24,8 @@ from shared.service.jobstore import JobStore
 from tests.support.jobsvc import ServiceEnv, capture_zip, start_beat, start_worker, wait_for
 from tests.support.scansets import cached_scanset
 
-pytestmark = pytest.mark.slow
+# One group: the module's scan set is made on one xdist worker, not once a worker.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("multiview_service")]
 
 # Small derivatives (one Thumb with 256 px maps): the stage runs, in seconds.
 PARAMS = '{"render": false, "derivatives": {"levels": [{"name": "thumb", "texture_px": 256}]}}'

@@ -40,7 +40,9 @@ from shared.sim.scenes import LABEL_OBJECT, LABEL_PLATE, LABEL_SUPPORT
 from shared.sim.simulate import load_truth
 from tests.support.scansets import cached_scanset, merged_label_shares
 
-pytestmark = pytest.mark.slow
+# One group: the module's scan set and its loaded views (decoded and triangulated) are made on one
+# xdist worker, not once a worker.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("merge_simulated")]
 
 SET = {"scene": "bunny", "views": 8, "mode": "turntable", "size": (640, 480), "projector": (512, 384)}
 
