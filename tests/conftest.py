@@ -7,6 +7,10 @@
   workers share one cache (a file lock makes the first worker render and the others wait), so each
   capture is rendered once per run. Treat the folder as read-only: other tests share it.
 - ``bunny_capture``: the ``bunny`` scene at 2048x1536, seed 0.
+- ``scanset_factory(**kw) -> Path``: a simulated scan set (:func:`tests.support.scansets.cached_scanset`,
+  ``kw`` its arguments) rendered once per test session and shared by the xdist workers like the
+  captures above (the same set was rendered again by each module and each worker that used it).
+  Read-only too: a test that changes a set copies it first.
 """
 
 from __future__ import annotations
@@ -22,14 +26,20 @@ from typing import Any
 import pytest
 
 
+def _run_cache(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
+    """The folder ``name`` shared by every xdist worker of this run (created on first use)."""
+    base = tmp_path_factory.getbasetemp()
+    # xdist gives each worker its own basetemp under one shared run folder: cache there.
+    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / name
+    root.mkdir(parents=True, exist_ok=True)
+    return root
+
+
 @pytest.fixture(scope="session")
 def sim_capture_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., Path]:
     from shared.sim.simulate import ImagingParams, simulate_named
 
-    base = tmp_path_factory.getbasetemp()
-    # xdist gives each worker its own basetemp under one shared run folder: cache there.
-    root = (base.parent if os.environ.get("PYTEST_XDIST_WORKER") else base) / "graylight-sim-cache"
-    root.mkdir(parents=True, exist_ok=True)
+    root = _run_cache(tmp_path_factory, "graylight-sim-cache")
 
     def make(scene: str, size: tuple[int, int] = (2048, 1536), seed: int = 0, **kw: Any) -> Path:
         projector = tuple(kw.pop("projector", (1024, 768)))
@@ -55,3 +65,17 @@ def sim_capture_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[..
 def bunny_capture(sim_capture_factory: Callable[..., Path]) -> Path:
     """The ``bunny`` scene at 2048x1536 (seed 0): a capture folder with ``truth.npz``."""
     return sim_capture_factory("bunny", size=(2048, 1536), seed=0)
+
+
+@pytest.fixture(scope="session")
+def scanset_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., Path]:
+    """``cached_scanset`` in a folder every xdist worker of the run shares: its file lock makes the
+    first worker render a set and the others wait for it."""
+    from tests.support.scansets import cached_scanset
+
+    root = _run_cache(tmp_path_factory, "graylight-scanset-cache")
+
+    def make(**kw: Any) -> Path:
+        return cached_scanset(root, **kw)
+
+    return make

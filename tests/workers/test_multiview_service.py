@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -22,7 +23,6 @@ from shared.service.artifacts import ArtifactStore
 from shared.service.jobs import MESH_LOD_FILES
 from shared.service.jobstore import JobStore
 from tests.support.jobsvc import ServiceEnv, capture_zip, start_beat, start_worker, wait_for
-from tests.support.scansets import cached_scanset
 
 # One group: the module's scan set is made on one xdist worker, not once a worker.
 pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("multiview_service")]
@@ -33,10 +33,10 @@ VIEWS = 8
 
 
 @pytest.fixture(scope="module")
-def scanset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def scanset(tmp_path_factory: pytest.TempPathFactory, scanset_factory: Callable[..., Path]) -> Path:
     # 8 views: at 90 deg steps (4 views) the object alone, without the plate, overlaps too little.
     root = tmp_path_factory.mktemp("mv-jobs")
-    simulated = cached_scanset(root, views=VIEWS, size=(320, 240), projector=(256, 192))
+    simulated = scanset_factory(views=VIEWS, size=(320, 240), projector=(256, 192))
     work = root / "no-roi"
     shutil.copytree(simulated, work)
     doc = json.loads((work / "scanset.json").read_text())

@@ -16,6 +16,7 @@ import dataclasses
 import json
 import re
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -48,8 +49,8 @@ SET = {"scene": "bunny", "views": 8, "mode": "turntable", "size": (640, 480), "p
 
 
 @pytest.fixture(scope="module")
-def scanset_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return cached_scanset(tmp_path_factory.mktemp("merge-sim"), **SET)
+def scanset_dir(scanset_factory: Callable[..., Path]) -> Path:
+    return scanset_factory(**SET)
 
 
 @pytest.fixture(scope="module")

@@ -3,17 +3,17 @@ once per session through the CLI (so each carries its paradata)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from services.cli.main import main
-from tests.support.scansets import cached_scanset
 
 
 @pytest.fixture(scope="session")
-def small_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return cached_scanset(tmp_path_factory.mktemp("publish-set"), views=8, size=(320, 240), projector=(256, 192))
+def small_set(scanset_factory: Callable[..., Path]) -> Path:
+    return scanset_factory(views=8, size=(320, 240), projector=(256, 192))
 
 
 @pytest.fixture(scope="session")
