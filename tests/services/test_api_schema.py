@@ -130,8 +130,7 @@ CHECKS = [
 @pytest.fixture(scope="module", autouse=True)
 def _cleanup() -> Iterator[None]:
     yield
-    for p in reversed(_ENV.procs):
-        p.stop()
+    jobsvc.stop_all(_ENV.procs)
     jobsvc.cleanup_redis(_ENV.env["GRAYLIGHT_QUEUE_PREFIX"], _ENV.env["GRAYLIGHT_BROKER_URL"])
     shutil.rmtree(_ROOT, ignore_errors=True)
 
