@@ -75,6 +75,22 @@ def wait_final(client: TestClient, auth: dict[str, str], ids: list[str], timeout
     return final
 
 
+def wait_batch_final(client: TestClient, auth: dict[str, str], batch: dict, timeout: float, proc=None) -> dict[str, dict]:
+    """:func:`wait_final` for the jobs of a batch: waits on the batch's counts by state (one request
+    a poll; polling the jobs one by one cost the test process about 10 s of CPU beside the workers
+    with fifty jobs), then reads every job's final record."""
+    final_states = ("succeeded", "failed", "cancelled")
+
+    def done() -> bool:
+        counts = client.get(f"/v1/batches/{batch['id']}", headers=auth).json()["counts"]
+        return sum(counts.get(s, 0) for s in final_states) == len(batch["jobs"])
+
+    wait_for(done, timeout, f"{len(batch['jobs'])} jobs of batch {batch['id']} final", proc, interval=0.2)
+    final = {j: client.get(f"/v1/jobs/{j}", headers=auth).json() for j in batch["jobs"]}
+    assert all(d["state"] in final_states for d in final.values()), final
+    return final
+
+
 def stage_successes(store: JobStore, job_id: str, stage: str) -> int:
     return sum(1 for e in store.events(job_id) if e[0] == stage and e[2] == "succeeded")
 
@@ -223,7 +239,7 @@ def test_fifty_jobs_with_broken_captures(svc_env: ServiceEnv, tmp_path: Path) ->
     assert r.status_code == 201, r.text
     batch = r.json()
     assert batch["rejected"] == [] and len(batch["jobs"]) == 50
-    final = wait_final(client, auth, batch["jobs"], 240, worker)
+    final = wait_batch_final(client, auth, batch, 240, worker)
     by_name = {d["name"]: d for d in final.values()}
     for i in range(47):
         assert by_name[f"good{i:02d}.zip"]["state"] == "succeeded", by_name[f"good{i:02d}.zip"]
