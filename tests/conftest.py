@@ -11,6 +11,9 @@
   ``kw`` its arguments) rendered once per test session and shared by the xdist workers like the
   captures above (the same set was rendered again by each module and each worker that used it).
   Read-only too: a test that changes a set copies it first.
+- ``merge_factory(scanset) -> Path``: ``graylight merge SCANSET --out OUT`` run once per test session
+  for each scan set folder (one of ``scanset_factory``'s), shared by the xdist workers; returns OUT
+  (with its paradata). Read-only.
 """
 
 from __future__ import annotations
@@ -19,6 +22,7 @@ import fcntl
 import hashlib
 import json
 import os
+import shutil
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -77,5 +81,31 @@ def scanset_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[..., P
 
     def make(**kw: Any) -> Path:
         return cached_scanset(root, **kw)
+
+    return make
+
+
+@pytest.fixture(scope="session")
+def merge_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[[Path], Path]:
+    """The command line's merge of a scan set, made once a run: the publish tests and the
+    multi-view job's comparison each ran the same merge of the same set (5-7 s of CPU each)."""
+    from services.cli.main import main
+
+    root = _run_cache(tmp_path_factory, "graylight-merge-cache")
+
+    def make(scanset: Path) -> Path:
+        key = hashlib.sha1(str(scanset.resolve()).encode()).hexdigest()[:10]
+        out, done = root / key / "merge", root / f"{key}.done"
+        with open(root / f"{key}.lock", "w") as lock:
+            fcntl.flock(lock, fcntl.LOCK_EX)  # the first worker merges, the other waits
+            try:
+                if not done.is_file():
+                    shutil.rmtree(out.parent, ignore_errors=True)  # a merge cut short earlier
+                    out.parent.mkdir()
+                    assert main(["merge", str(scanset), "--out", str(out)]) == 0
+                    done.touch()
+            finally:
+                fcntl.flock(lock, fcntl.LOCK_UN)
+        return out
 
     return make
