@@ -35,7 +35,11 @@ from tests.support.jobsvc import (
     wait_for,
 )
 
-pytestmark = pytest.mark.slow
+# One group, so that --dist loadgroup hands the module to one xdist worker early (groups go before
+# single tests): its tests mostly wait on service processes, which the other worker's computing
+# then fills; as single tests they came last, side by side, the CPUs half idle (both workers
+# waiting) for the suite's last 40-60 s.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("service")]
 
 #: Render stages at a tiny size so they take a fraction of a second.
 FAST = '{"preview": {"size": [96, 72], "seconds": 0.5, "fps": 4}}'
