@@ -110,8 +110,7 @@ def test_running_jobs_limit_holds_under_a_race(database: str | None, capture: Pa
         states = sorted(store.get_job(i).state for i in ids)
         assert states == ["cancelled"] * (RACERS - 1) + ["queued"], states
     finally:
-        for p in reversed(senv.procs):
-            p.stop()
+        jobsvc.stop_all(senv.procs)
         jobsvc.cleanup_redis(senv.env["GRAYLIGHT_QUEUE_PREFIX"], senv.env["GRAYLIGHT_BROKER_URL"])
 
 

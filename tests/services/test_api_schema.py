@@ -50,6 +50,8 @@ _CONFIG = SchemathesisConfig.from_str(
     "phases.coverage.enabled = false\n")
 schema = schemathesis.openapi.from_dict(create_app(_ENV.settings).openapi(), config=_CONFIG)
 AUTH = {"Authorization": f"Bearer {_KEY}"}
+# One group: the live API of ``server`` starts on one xdist worker, not once a worker.
+pytestmark = pytest.mark.xdist_group("api_schema")
 
 #: Request fields whose form the document states fully: a 422 naming one of them is a contract failure.
 _STATED = {"kind", "name", "batch", "params", "captures", "upload_id", "body", "filename", "query", "header", "path"}
@@ -128,8 +130,7 @@ CHECKS = [
 @pytest.fixture(scope="module", autouse=True)
 def _cleanup() -> Iterator[None]:
     yield
-    for p in reversed(_ENV.procs):
-        p.stop()
+    jobsvc.stop_all(_ENV.procs)
     jobsvc.cleanup_redis(_ENV.env["GRAYLIGHT_QUEUE_PREFIX"], _ENV.env["GRAYLIGHT_BROKER_URL"])
     shutil.rmtree(_ROOT, ignore_errors=True)
 

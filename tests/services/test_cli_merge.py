@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -13,12 +14,11 @@ import trimesh
 
 from services.cli.main import main
 from shared.service.jobs import MESH_LOD_FILES
-from tests.support.scansets import cached_scanset
 
 
 @pytest.fixture(scope="module")
-def small_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return cached_scanset(tmp_path_factory.mktemp("cli-merge"), views=8, size=(320, 240), projector=(256, 192))
+def small_set(scanset_factory: Callable[..., Path]) -> Path:
+    return scanset_factory(views=8, size=(320, 240), projector=(256, 192))
 
 
 def test_merge_writes_every_output(small_set: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

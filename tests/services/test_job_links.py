@@ -13,7 +13,7 @@ import io
 import json
 import subprocess
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -26,9 +26,10 @@ from shared.service.jobstore import JobStore
 from shared.service.queue import RERENDER_TASK, publisher
 from shared.service.rerenders import RerenderStore
 from tests.support import jobsvc, viewer_browser
-from tests.support.scansets import cached_scanset
 
-pytestmark = pytest.mark.slow
+# One group: under --dist loadgroup the module runs on one xdist worker, so the service run of
+# ``finished`` (about 100 s of CPU, most of it the default derivatives) is made once, not once a worker.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("job_links")]
 
 #: Small previews: the tests are about the service, not the video.
 PARAMS = {"preview": {"size": [96, 64], "seconds": 1, "fps": 4}}
@@ -71,12 +72,12 @@ def _final(f: Finished, job: str, timeout: float) -> dict[str, Any]:
 
 
 @pytest.fixture(scope="module")
-def finished(tmp_path_factory: pytest.TempPathFactory) -> Iterator[Finished]:
+def finished(tmp_path_factory: pytest.TempPathFactory, scanset_factory: Callable[..., Path]) -> Iterator[Finished]:
     root = tmp_path_factory.mktemp("links")
     with jobsvc.service_env(root) as senv, ThreadPoolExecutor(1) as pool:
         # The captures are simulated while the service's processes start.
         simulated = pool.submit(lambda: (jobsvc.simulate_small(root / "vase"),
-                                         cached_scanset(root / "sets", views=8, size=(320, 240), projector=(256, 192))))
+                                         scanset_factory(views=8, size=(320, 240), projector=(256, 192))))
         _proc, url = jobsvc.start_api(senv)
         worker = jobsvc.start_worker(senv, "cpu,render", concurrency=2)
         capture, scanset = simulated.result()

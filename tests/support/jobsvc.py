@@ -103,6 +103,25 @@ class Proc:
             self.kill9()
 
 
+def stop_all(procs: list[Proc], timeout: float = 15) -> None:
+    """Stop ``procs`` together, each as :meth:`Proc.stop` does: SIGTERM to every main process
+    first, then wait for each (its group SIGKILLed past ``timeout``). A Celery worker's warm
+    shutdown takes about 2 s (its pool child, then its consumer's threads); one process after
+    the other, a test's teardown waited for the sum."""
+    live = [p for p in procs if p.popen.poll() is None]
+    for p in live:
+        try:
+            os.kill(p.popen.pid, signal.SIGTERM)
+        except ProcessLookupError:
+            pass
+    deadline = time.monotonic() + timeout
+    for p in live:
+        try:
+            p.popen.wait(timeout=max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            p.kill9()
+
+
 def _spawn(senv: ServiceEnv, args: list[str], name: str) -> Proc:
     log = senv.root / f"{name}-{len(senv.procs)}.log"
     fh = open(log, "wb")
@@ -212,8 +231,7 @@ def service_env(tmp_path: Path, **extra: str) -> Iterator[ServiceEnv]:
     try:
         yield senv
     finally:
-        for p in reversed(senv.procs):
-            p.stop()
+        stop_all(senv.procs)
         cleanup_redis(senv.env["GRAYLIGHT_QUEUE_PREFIX"], senv.env["GRAYLIGHT_BROKER_URL"])
 
 

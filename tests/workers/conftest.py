@@ -34,15 +34,11 @@ def redis_server(tmp_path: Path) -> Iterator[Any]:
         yield ctl
 
 
-@pytest.fixture(scope="session")
-def pg_url() -> Iterator[str]:
-    """A PostgreSQL database for this session (dropped after)."""
-    with jobsvc.pg_database() as url:
-        yield url
-
-
 @pytest.fixture
-def pg_env(tmp_path: Path, pg_url: str) -> Iterator[jobsvc.ServiceEnv]:
-    """A job-service environment whose job store is the real PostgreSQL."""
-    with jobsvc.service_env(tmp_path, GRAYLIGHT_DATABASE_URL=pg_url) as senv:
+def pg_env(tmp_path: Path) -> Iterator[jobsvc.ServiceEnv]:
+    """A job-service environment whose job store is the real PostgreSQL: a database of the test's
+    own (dropped after), as its SQLite file is. One database for the session let a test's rows count
+    in another's: the capture size test_service's API records for the small capture counted in
+    test_keep_range's stored bytes when it ran after it on the same xdist worker."""
+    with jobsvc.pg_database() as url, jobsvc.service_env(tmp_path, GRAYLIGHT_DATABASE_URL=url) as senv:
         yield senv

@@ -32,7 +32,8 @@ from shared.formats.ply import write_ply
 from shared.service.jobstore import JobStore
 from tests.support import jobsvc
 
-pytestmark = pytest.mark.slow
+# One group: the module's service (a worker process) starts on one xdist worker, not once a worker.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("confinement")]
 
 NO_RENDER = '{"render": false, "export": false}'
 #: Internal words no failed stage's message may carry.

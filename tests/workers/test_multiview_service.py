@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import shutil
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -22,20 +23,22 @@ from shared.service.artifacts import ArtifactStore
 from shared.service.jobs import MESH_LOD_FILES
 from shared.service.jobstore import JobStore
 from tests.support.jobsvc import ServiceEnv, capture_zip, start_beat, start_worker, wait_for
-from tests.support.scansets import cached_scanset
 
-pytestmark = pytest.mark.slow
+# One group: the module's scan set is made on one xdist worker, not once a worker.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("multiview_service")]
 
 # Small derivatives (one Thumb with 256 px maps): the stage runs, in seconds.
 PARAMS = '{"render": false, "derivatives": {"levels": [{"name": "thumb", "texture_px": 256}]}}'
 VIEWS = 8
+#: The scan set (scanset_factory's arguments).
+SET = {"views": VIEWS, "size": (320, 240), "projector": (256, 192)}
 
 
 @pytest.fixture(scope="module")
-def scanset(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def scanset(tmp_path_factory: pytest.TempPathFactory, scanset_factory: Callable[..., Path]) -> Path:
     # 8 views: at 90 deg steps (4 views) the object alone, without the plate, overlaps too little.
     root = tmp_path_factory.mktemp("mv-jobs")
-    simulated = cached_scanset(root, views=VIEWS, size=(320, 240), projector=(256, 192))
+    simulated = scanset_factory(**SET)
     work = root / "no-roi"
     shutil.copytree(simulated, work)
     doc = json.loads((work / "scanset.json").read_text())
@@ -72,7 +75,8 @@ def _runners(store: JobStore, jid: str, prefix: str) -> set[str]:
     return {e[3] for e in store.events(jid) if e[0] and e[0].startswith(prefix) and e[2] == "running" and e[3]}
 
 
-def test_multiview_job_over_two_workers(pg_env: ServiceEnv, scanset: Path, tmp_path: Path) -> None:
+def test_multiview_job_over_two_workers(pg_env: ServiceEnv, scanset: Path, tmp_path: Path,
+                                        scanset_factory: Callable[..., Path], merge_factory: Callable[[Path], Path]) -> None:
     w1 = start_worker(pg_env, "cpu", concurrency=1)
     start_worker(pg_env, "cpu", concurrency=1)
     client, auth = _client(pg_env)
@@ -95,11 +99,11 @@ def test_multiview_job_over_two_workers(pg_env: ServiceEnv, scanset: Path, tmp_p
     reg = r.json()
     assert [v["registered"] for v in reg["views"]] == [True] * VIEWS and reg["loop_closure"]
     assert reg["quality"]["passed"] and reg["quality"]["removed"]["object"]["source"] == "found"
-    # The CLI on the same set registers the same poses.
-    from services.cli.main import main
-
-    assert main(["merge", str(scanset), "--out", str(tmp_path / "cli")]) == 0
-    cli = json.loads((tmp_path / "cli" / "registration.json").read_text())
+    # The CLI on the same set registers the same poses: graylight merge of the set as simulated (made
+    # once a run, merge_factory), which is the job's set: the job's copy only had any roi removed.
+    simulated = scanset_factory(**SET)
+    assert "roi" not in json.loads((simulated / "scanset.json").read_text())
+    cli = json.loads((merge_factory(simulated) / "registration.json").read_text())
     for a, b in zip(reg["views"], cli["views"], strict=True):
         np.testing.assert_allclose(a["R"], b["R"], atol=1e-4)
         np.testing.assert_allclose(a["T"], b["T"], atol=0.05)

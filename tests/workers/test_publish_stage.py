@@ -7,6 +7,7 @@ from __future__ import annotations
 import hashlib
 import json
 import zipfile
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -17,7 +18,6 @@ from shared.service.jobs import PUBLISH_FILES, graph_for, stage_spec
 from shared.service.jobstore import JobStore, NewJob
 from tests.support.inprocess import drive, run_scan_job
 from tests.support.jobsvc import capture_zip, make_env
-from tests.support.scansets import cached_scanset
 from tests.support.voyager import svx_validator
 
 
@@ -80,11 +80,11 @@ MV_PARAMS = {"render": False, "export": False, **HOSTILE,
 
 
 @pytest.fixture(scope="module")
-def mv_job(tmp_path_factory: pytest.TempPathFactory):
+def mv_job(tmp_path_factory: pytest.TempPathFactory, scanset_factory: Callable[..., Path]):
     """A multiview job run to its end once for the module, with two derivative levels and a hostile
     title: (settings, artifact store, job, key, its publish folder)."""
     root = tmp_path_factory.mktemp("mv-job")
-    scanset = cached_scanset(tmp_path_factory.mktemp("mv-publish"), views=8, size=(320, 240), projector=(256, 192))
+    scanset = scanset_factory(views=8, size=(320, 240), projector=(256, 192))
     settings = make_env(root / "svc").settings
     _store, arts, job, key = _run_job(settings, scanset, root / "set.zip", "multiview", MV_PARAMS)
     assert job.state == "succeeded", [(s.name, s.error) for s in job.stages if s.error]

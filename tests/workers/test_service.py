@@ -35,7 +35,11 @@ from tests.support.jobsvc import (
     wait_for,
 )
 
-pytestmark = pytest.mark.slow
+# One group, so that --dist loadgroup hands the module to one xdist worker early (groups go before
+# single tests): its tests mostly wait on service processes, which the other worker's computing
+# then fills; as single tests they came last, side by side, the CPUs half idle (both workers
+# waiting) for the suite's last 40-60 s.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("service")]
 
 #: Render stages at a tiny size so they take a fraction of a second.
 FAST = '{"preview": {"size": [96, 72], "seconds": 0.5, "fps": 4}}'
@@ -72,6 +76,22 @@ def wait_final(client: TestClient, auth: dict[str, str], ids: list[str], timeout
         wait_for(done, timeout, f"{len(ids)} jobs final", proc, interval=0.2)
     except AssertionError as exc:  # say how far it got (the message above is made before waiting)
         raise AssertionError(f"{len(final)} of {len(ids)} jobs final: {exc}") from None
+    return final
+
+
+def wait_batch_final(client: TestClient, auth: dict[str, str], batch: dict, timeout: float, proc=None) -> dict[str, dict]:
+    """:func:`wait_final` for the jobs of a batch: waits on the batch's counts by state (one request
+    a poll; polling the jobs one by one cost the test process about 10 s of CPU beside the workers
+    with fifty jobs), then reads every job's final record."""
+    final_states = ("succeeded", "failed", "cancelled")
+
+    def done() -> bool:
+        counts = client.get(f"/v1/batches/{batch['id']}", headers=auth).json()["counts"]
+        return sum(counts.get(s, 0) for s in final_states) == len(batch["jobs"])
+
+    wait_for(done, timeout, f"{len(batch['jobs'])} jobs of batch {batch['id']} final", proc, interval=0.2)
+    final = {j: client.get(f"/v1/jobs/{j}", headers=auth).json() for j in batch["jobs"]}
+    assert all(d["state"] in final_states for d in final.values()), final
     return final
 
 
@@ -223,7 +243,7 @@ def test_fifty_jobs_with_broken_captures(svc_env: ServiceEnv, tmp_path: Path) ->
     assert r.status_code == 201, r.text
     batch = r.json()
     assert batch["rejected"] == [] and len(batch["jobs"]) == 50
-    final = wait_final(client, auth, batch["jobs"], 240, worker)
+    final = wait_batch_final(client, auth, batch, 240, worker)
     by_name = {d["name"]: d for d in final.values()}
     for i in range(47):
         assert by_name[f"good{i:02d}.zip"]["state"] == "succeeded", by_name[f"good{i:02d}.zip"]

@@ -19,6 +19,10 @@ from shared.sim.scanset import load_scanset_truth, turntable_scenes
 from tests.support.derive_scene import seam_figures
 from tests.support.scansets import cached_scanset
 
+# One group: the module's set, true registration and atlas (``truth_set``) are made on one xdist
+# worker, not once a worker.
+pytestmark = pytest.mark.xdist_group("seams")
+
 SCENE, VIEWS, S = "spot", 8, 384
 _LUMA = np.array([0.2126, 0.7152, 0.0722])
 

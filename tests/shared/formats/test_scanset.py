@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +21,8 @@ TINY = {"size": (64, 48), "projector": (64, 48), "views": 3, "roi": True}
 
 
 @pytest.fixture(scope="module")
-def tiny(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return cached_scanset(tmp_path_factory.mktemp("tiny-scansets"), **TINY)
+def tiny(scanset_factory: Callable[..., Path]) -> Path:
+    return scanset_factory(**TINY)
 
 
 @pytest.fixture

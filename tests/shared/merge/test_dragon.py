@@ -44,7 +44,8 @@ from shared.merge.registration import pose_error, register_views
 from shared.merge.views import load_views
 from tests.support.scansets import dragon_scanset, plane_residuals, stanford_poses
 
-pytestmark = pytest.mark.slow
+# One group: the module's dragon views are loaded on one xdist worker, not once a worker.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("dragon")]
 
 
 @pytest.fixture(scope="module")

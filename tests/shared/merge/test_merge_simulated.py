@@ -16,6 +16,7 @@ import dataclasses
 import json
 import re
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -40,14 +41,16 @@ from shared.sim.scenes import LABEL_OBJECT, LABEL_PLATE, LABEL_SUPPORT
 from shared.sim.simulate import load_truth
 from tests.support.scansets import cached_scanset, merged_label_shares
 
-pytestmark = pytest.mark.slow
+# One group: the module's scan set and its loaded views (decoded and triangulated) are made on one
+# xdist worker, not once a worker.
+pytestmark = [pytest.mark.slow, pytest.mark.xdist_group("merge_simulated")]
 
 SET = {"scene": "bunny", "views": 8, "mode": "turntable", "size": (640, 480), "projector": (512, 384)}
 
 
 @pytest.fixture(scope="module")
-def scanset_dir(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return cached_scanset(tmp_path_factory.mktemp("merge-sim"), **SET)
+def scanset_dir(scanset_factory: Callable[..., Path]) -> Path:
+    return scanset_factory(**SET)
 
 
 @pytest.fixture(scope="module")
@@ -83,9 +86,17 @@ def _check_poses_of(poses, truth, obj, max_deg: float, max_mm: float) -> None:
     assert max(e[0] for e in errs) <= max_deg and max(e[1] for e in errs) <= max_mm
 
 
-def test_turntable_angles_register_within_tolerance(loaded) -> None:
+@pytest.fixture(scope="module")
+def isolated_given_angles(loaded):
+    """The object isolated from the views of the set as it is (its turntable angles given), made once
+    for the tests that read it."""
+    ss, views, *_ = loaded
+    return isolate_object(views, ss)
+
+
+def test_turntable_angles_register_within_tolerance(loaded, isolated_given_angles) -> None:
     ss, views, truth, obj = loaded
-    reg = register_views(isolate_object(views, ss).registration, turntable_deg=ss.turntable_deg)
+    reg = register_views(isolated_given_angles.registration, turntable_deg=ss.turntable_deg)
     _check_poses(reg, truth, obj, 0.05, 0.15)
     axis_err = np.degrees(np.arccos(min(1.0, abs(float(np.dot(reg.axis.direction, truth.axis_direction))))))
     print(f"turntable axis {axis_err:.4f} deg from the truth; loop closure {reg.loop_closure}")
@@ -97,9 +108,9 @@ def test_turntable_angles_register_within_tolerance(loaded) -> None:
                                atol=0.05)
 
 
-def test_no_hints_register_within_tolerance(loaded) -> None:
+def test_no_hints_register_within_tolerance(loaded, isolated) -> None:
     ss, views, truth, obj = loaded
-    reg = register_views(isolate_object(views, dataclasses.replace(ss, turntable_deg=None)).registration)
+    reg = register_views(isolated.registration)  # isolated without the turntable angles
     assert reg.method.startswith("global FPFH+RANSAC")
     _check_poses(reg, truth, obj, 0.05, 0.15)
 
@@ -121,7 +132,7 @@ def _dist_to(mesh: trimesh.Trimesh, pts: np.ndarray, n: int = 20000, seed: int =
     return scene.compute_distance(o3d.core.Tensor(pick.astype(np.float32))).numpy().astype(np.float64)
 
 
-def test_merge_covers_fuses_and_meshes(loaded, labels, tmp_path: Path) -> None:
+def test_merge_covers_fuses_and_meshes(loaded, labels, isolated_given_angles, tmp_path: Path) -> None:
     ss, views, truth, obj = loaded
     out = tmp_path / "out"
     report = merge_views(views, dataclasses.replace(ss, turntable_deg=None), out)  # no roi, no hints
@@ -136,7 +147,7 @@ def test_merge_covers_fuses_and_meshes(loaded, labels, tmp_path: Path) -> None:
     # The right model: every view where it belongs, and almost nothing but the object in the cloud.
     _check_poses_of(poses, truth, obj, 0.05, 0.15)
     # What is object and what is static, by the simulator's per-pixel labels.
-    shares = merged_label_shares(merged, isolate_object(views, ss).fusion, poses, labels)
+    shares = merged_label_shares(merged, isolated_given_angles.fusion, poses, labels)
     off_object = shares["plate"] + shares["support"] + shares["base"] + shares["backdrop"]
     quality = report["quality"]
     print(f"merged points by label: {({k: round(100 * v, 3) for k, v in shares.items()})} %; removed "
@@ -164,7 +175,7 @@ def test_merge_covers_fuses_and_meshes(loaded, labels, tmp_path: Path) -> None:
     surface = _true_surface(ss)
     rms_merged = float(np.sqrt(np.mean(_dist_to(surface, merged) ** 2)))
     singles = []
-    for v, P in zip(isolate_object(views, ss).registration, truth.poses, strict=True):
+    for v, P in zip(isolated_given_angles.registration, truth.poses, strict=True):
         c = v
         singles.append(float(np.sqrt(np.mean(_dist_to(surface, c.xyz @ P[:3, :3].T + P[:3, 3]) ** 2))))
     print(f"RMS point-to-surface: merged {rms_merged:.3f} mm, single views {[round(s, 3) for s in singles]}")

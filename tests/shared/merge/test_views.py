@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -15,13 +16,12 @@ from shared.formats.scanset import load_scanset, scanset_doc, write_scanset
 from shared.merge.views import crop_to_roi, estimate_normals, load_view, view_from_scan_outputs
 from shared.scan.pipeline import decode_stage, triangulate_stage
 from shared.sim.simulate import load_truth
-from tests.support.scansets import cached_scanset
 
 
 @pytest.fixture(scope="module")
-def small(tmp_path_factory: pytest.TempPathFactory) -> Path:
+def small(scanset_factory: Callable[..., Path]) -> Path:
     # roi: the crop is tested here (a simulated set has none by default, as a real capture).
-    return cached_scanset(tmp_path_factory.mktemp("view-sets"), size=(160, 120), projector=(128, 96), views=2, roi=True)
+    return scanset_factory(size=(160, 120), projector=(128, 96), views=2, roi=True)
 
 
 def test_captured_view_matches_truth_and_stage_outputs(small: Path, tmp_path: Path) -> None:

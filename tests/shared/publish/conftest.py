@@ -1,19 +1,19 @@
-"""A small simulated turntable set (4 views of the bunny, 320x240), its merge and view 0's scan, made
+"""A small simulated turntable set (8 views of the bunny, 320x240), its merge and view 0's scan, made
 once per session through the CLI (so each carries its paradata)."""
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
 from services.cli.main import main
-from tests.support.scansets import cached_scanset
 
 
 @pytest.fixture(scope="session")
-def small_set(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    return cached_scanset(tmp_path_factory.mktemp("publish-set"), views=8, size=(320, 240), projector=(256, 192))
+def small_set(scanset_factory: Callable[..., Path]) -> Path:
+    return scanset_factory(views=8, size=(320, 240), projector=(256, 192))
 
 
 @pytest.fixture(scope="session")
@@ -24,7 +24,5 @@ def scanned(small_set: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def merged(small_set: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("merge") / "merge"
-    assert main(["merge", str(small_set), "--out", str(out)]) == 0
-    return out
+def merged(small_set: Path, merge_factory: Callable[[Path], Path]) -> Path:
+    return merge_factory(small_set)  # the same merge as the multi-view job's comparison

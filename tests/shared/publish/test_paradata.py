@@ -13,6 +13,10 @@ from pyld import jsonld
 
 from services.cli.main import main
 
+# One group with test_publish.py: the session fixtures of conftest.py (the set, its scan and its merge)
+# are made on one xdist worker, not once a worker.
+pytestmark = pytest.mark.xdist_group("publish")
+
 PROV = "http://www.w3.org/ns/prov#"
 
 

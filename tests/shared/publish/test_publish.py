@@ -18,6 +18,10 @@ from scipy.spatial.transform import Rotation
 from services.cli.main import main
 from tests.support.voyager import svx_validator
 
+# One group with test_paradata.py: the session fixtures of conftest.py (the set, its scan and its merge)
+# are made on one xdist worker, not once a worker.
+pytestmark = pytest.mark.xdist_group("publish")
+
 HOSTILE = '<script>alert(1)</script> "Bunny" / ../x'
 
 
