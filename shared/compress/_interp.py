@@ -63,7 +63,7 @@ from shared.compress._lpred import (
     _level_of,
     pattern_bits,
 )
-from shared.compress._rans import at, bitlen, get_value, put_value, set_at, unzigzag, zigzag
+from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
 
 #: Spacing of the coarsest grid.
 S0 = 16
@@ -75,7 +75,7 @@ NLV = 4
 #: sixteenths, one weight per spacing and pass (a band's choice among FB_CAND).
 FB_MAX = 15
 FB_CAND = np.array([0, 3, 6, 9, 12, 15], np.int64)
-NCAND = 6
+NCAND = FB_CAND.shape[0]
 #: The candidates' symbol counts (:func:`interp_events`) by activity group (level // 4) and
 #: zigzagged residual u: bins 0..7 the values, bin 8 + j (j < 8) the values of about j + 3
 #: bits beside their leading one (octaves; the last all larger ones), so that a noisy band's
@@ -181,9 +181,7 @@ def _neighbour_residuals(rr, ym, xm, yp, xp, H, W):
 def _count_alt(alt, act, rprev, rnb, cls, r):
     """Count residual ``r``'s symbol in sign contexts (:func:`interp_events`' ``alt``)."""
     pat, flip = _pattern(rprev, rnb)
-    u = np.int64(zigzag((r ^ flip) - flip))
-    s = u if u < (1 << L_RES) else (1 << L_RES) + np.int64(bitlen(np.uint64(u))) - L_RES - 1
-    alt[(_level_of(act) * NI_PAT + pat) * NI_CLS + cls, s] += 1
+    alt[(_level_of(act) * NI_PAT + pat) * NI_CLS + cls, symbol_of(np.int64(zigzag((r ^ flip) - flip)), L_RES)] += 1
 
 
 def sign_estimate(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n0: int, n1: int) -> float:
@@ -271,7 +269,7 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt):
                             pc = p0 + ((FB_CAND[c] * sc[c]) >> 4)
                             rc = (t[y, x] - pc + half) >> F_SHIFT
                             sc[c] = min(max(pc + (rc << F_SHIFT) - p0, -E_LIM), E_LIM)
-                            u = 2 * rc if rc >= 0 else -2 * rc - 1
+                            u = np.int64(zigzag(rc))
                             hb = u if u < 8 else 8 + min((np.int64(at(LEVEL_LUT, min(u, 4095))) - 6) >> 1, 7)
                             hist[lv, k, c, g, hb] += 1
                     rnb = _neighbour_residuals(rr, y - dy, x - dx, y + dy, x + dx, H, W)

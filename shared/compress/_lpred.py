@@ -38,7 +38,7 @@ import math
 import numpy as np
 from numba import njit
 
-from shared.compress._rans import at, bitlen, get_value, put_value, set_at, unzigzag, zigzag
+from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
 from shared.compress._wp import wp_hole, wp_predict, wp_update
 
 MINB = 4
@@ -444,8 +444,9 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
     each event's table is ``t_res`` plus its activity level (:func:`context_choice` then
     :func:`apply_contexts` make them tables); with them (``sc`` 1) it is its final table, the
     levels slid by ``cofs`` (:func:`_sign_context`); without them, ``alt`` (NLEVEL * NSUB, NSYM)
-    int32, zero on entry (a (1, 1) array where the caller does not count), receives the symbol counts the residuals would have with them,
-    by level and pattern (:func:`sign_bits`: the encoder runs the second way only where it pays).
+    int32, zero on entry (a (1, 1) array where the caller does not count), receives the symbol
+    counts the residuals would have with them, by level and pattern (:func:`sign_bits`: the
+    encoder runs the second way only where it pays).
     Returns the count (or -1 when the buffers are full)."""
     H, W = t.shape
     pf = np.zeros(W, np.int64)
@@ -508,9 +509,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
                 n = put_value(tab, val, nb, n, t_res + lev, zigzag(r), L_RES)  # a level: see context_choice
                 if count_alt:
                     pat, flip = _sign_context(p, qa[x + 1], lossless)
-                    u = np.int64(zigzag((r ^ flip) - flip))
-                    s = u if u < (1 << L_RES) else (1 << L_RES) + np.int64(bitlen(np.uint64(u))) - L_RES - 1
-                    alt[lev * NSUB + pat, s] += 1
+                    alt[lev * NSUB + pat, symbol_of(np.int64(zigzag((r ^ flip) - flip)), L_RES)] += 1
             qb[x + 1] = r
             rb[x + 1] = rec
             eb[x + 1] = min(abs(rec - p), E_LIM)

@@ -104,6 +104,14 @@ def _put_escape(tab, val, nb, n, t, u, log2d, d):
 
 
 @njit(cache=True, nogil=True, inline="always")
+def symbol_of(u, log2d):
+    """The symbol :func:`put_value` codes unsigned value ``u`` (int64 >= 0) with (its raw bits
+    aside): the value below ``2**log2d``, else the escape of its bit length."""
+    d = np.int64(1) << log2d
+    return u if u < d else d + np.int64(bitlen(np.uint64(u))) - log2d - 1
+
+
+@njit(cache=True, nogil=True, inline="always")
 def zigzag(r: np.int64) -> np.uint64:
     return np.uint64(r << 1) if r >= 0 else np.uint64((-r << 1) - 1)
 
