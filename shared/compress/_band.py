@@ -294,8 +294,9 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
     if interp and _model_share(signs.leaves) < INTERP_MODEL_MAX:
         # hierarchical interpolation (smooth detailed depth within a bound): both ways, the
         # smaller kept
-        cap, (tab_i, val_i, nb_i), (n_i,) = _coded(cap, lambda tb, vl, nbt: (_interp_band(t, valid, tb, vl, nbt, best, opts),))
-        if n_i >= 0 and _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) < best:
+        cap, (tab_i, val_i, nb_i), (n_i, bits_i) = _coded(
+            cap, lambda tb, vl, nbt: _interp_band(t, valid, tb, vl, nbt, best, opts))
+        if n_i >= 0 and bits_i < best:
             tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, None
     if signs is not None and signs.gain > 0:
         n = _with_signs(signs, tab, val, nb, n)
@@ -347,25 +348,28 @@ _OCTAVE_BITS = np.array([0.0] * 8 + [3.0 + j for j in range(HB - 8)])
 
 
 def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndarray, nb: np.ndarray,
-                 rival: float = np.inf, opts: int = lp.OPT_ALL, force: int | None = None) -> int:
+                 rival: float = np.inf, opts: int = lp.OPT_ALL, force: int | None = None) -> tuple[int, float]:
     """Every event of one band in interpolation order (bounded mode): the mask, the mode, the
     residual tables' offset and merging, whether they are sign contexts, the error feedback's
     weights, the residuals. ``opts``: without :data:`shared.compress._lpred.OPT_FEEDBACK` no
     feedback, without :data:`shared.compress._lpred.OPT_SIGN` level tables only (ablation);
     ``force`` (tests): the second pass's way kept whatever its size (1 sign contexts, 0 level
-    tables). Returns the count, -1 when the event buffers are too small, or -2 when the first
-    pass's estimate of the stream is more than :data:`INTERP_GIVE_UP` times ``rival`` bits (the
-    raster order's stream)."""
+    tables). Returns (the count, the stream's bits as :func:`_stream_bits` counts them); the count
+    -1 when the event buffers are too small, or -2 when the first pass's estimate of the stream is
+    more than :data:`INTERP_GIVE_UP` times ``rival`` bits (the raster order's stream)."""
     n = encode_mask(valid, tab, val, nb, ZERO, np.int64(T_EDGE))
     no_leaves = np.zeros((0, 5), np.int64)
     head = np.zeros(3 + 2 * NLV, np.int64)
     n = _put_predictors(tab, val, nb, np.int64(n), np.array([MODE_INTERP], np.int64), no_leaves, ZERO)
     n_res = np.int64(n + head.shape[0])
     if n < 0 or n_res > tab.shape[0]:
-        return -1
-    # the header's events in place (zeros until the choices are made) before the stream's bits
-    # are counted
-    _put_predictors(tab, val, nb, np.int64(n), head, no_leaves, ZERO)
+        return -1, np.inf
+
+    def put_head(cofs: int, cshift: int, sgn: int, fbw: np.ndarray) -> None:
+        """The header's events (in place before a stream's bits are counted)."""
+        head[:3], head[3:] = (cofs, cshift, sgn), fbw.ravel()
+        _put_predictors(tab, val, nb, np.int64(n), head, no_leaves, ZERO)
+
     # error feedback: one weight per spacing and pass, chosen from the first pass's counts of
     # what each candidate would have coded (least squares on the first pass's errors chose
     # weights 0-4 where 8-14 code smallest: in bounded mode most errors fed back are 0, the
@@ -379,7 +383,7 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
     alt = np.zeros((lp.NLEVEL * lp.NI_PAT * lp.NI_CLS, NSYM), np.int32)
     n_end = interp_events(t, valid, tab, val, nb, n_res, TR, fbw, ZERO, ZERO, hist, alt)
     if n_end < 0:
-        return -1
+        return -1, np.inf
     bits, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
     # the second pass's estimate: the weights chosen (their share of the first pass's bits
     # from the candidates' counts) in level or in sign tables, whichever the first pass's
@@ -388,34 +392,36 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
     sign_bits = sign_estimate(alt, np.int64(cofs), tab, nb, n_res, np.int64(n_end)) if signs else np.inf
     way = int(sign_bits < bits)
     if force is None and rival < np.inf:
-        # the mask's bits beside the residuals' estimate, against the raster order's stream
+        # the mask's and the mode's bits (events before the header) beside the residuals'
+        # estimate, against the raster order's stream
         estimate = _stream_bits(tab, val, nb, np.int64(n)) + min(bits, share * min(bits, sign_bits))
         if estimate > INTERP_GIVE_UP * rival:
-            return -2
+            return -2, np.inf
     lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
-    sgn = 0
+    put_head(cofs, cshift, 0, fbw)
+    stream = _stream_bits(tab, val, nb, np.int64(n_end))
     if force is not None or way or not np.array_equal(chosen, fbw):
         way = way if force is None else force
         # kept where the whole stream is smaller than the first pass's (the estimates leave out
         # how the tables quantise: 45 sign tables cost more than estimated where the residuals
         # are wide, the real captures)
-        bits = _stream_bits(tab, val, nb, np.int64(n_end))
         keep = _save(tab, val, nb, n_res, n_end)
         n_w = interp_events(t, valid, tab, val, nb, n_res, TR, chosen, np.int64(way), np.int64(cofs), NO_HIST,
                             NO_ALT)
         if n_w < 0:
-            return -1
+            return -1, np.inf
         cofs_w, cshift_w = cofs, 0
         if way == 0:
             cofs_w, cshift_w = lp.context_choice(tab, val, nb, n_res, np.int64(n_w), TR)[1:]
             lp.apply_contexts(tab, n_res, np.int64(n_w), TR, np.int64(cofs_w), np.int64(cshift_w))
-        if force is not None or _stream_bits(tab, val, nb, np.int64(n_w)) < bits:
-            sgn, fbw, n_end, cofs, cshift = way, chosen, n_w, cofs_w, cshift_w
+        put_head(cofs_w, cshift_w, way, chosen)
+        stream_w = _stream_bits(tab, val, nb, np.int64(n_w))
+        if force is not None or stream_w < stream:
+            n_end, stream = n_w, stream_w
         else:
             _restore(tab, val, nb, n_res, keep)
-    head[:3], head[3:] = (cofs, cshift, sgn), fbw.ravel()
-    _put_predictors(tab, val, nb, np.int64(n), head, no_leaves, ZERO)
-    return int(n_end)
+            put_head(cofs, cshift, 0, fbw)
+    return int(n_end), float(stream)
 
 
 def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless: bool, scale: float,

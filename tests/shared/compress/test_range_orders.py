@@ -110,7 +110,7 @@ def test_interpolation_streams_decode_within_the_bound_on_hostile_masks(name: st
     plan = _plan(np.nan_to_num(z, nan=0.0) if np.isnan(z).all() else z, None, e)
     t, valid = qt.quantise(z, plan.scale, False)
     tab, val, nb = buffers(z.size)
-    n = band._interp_band(t, valid, tab, val, nb, force=way)
+    n, _ = band._interp_band(t, valid, tab, val, nb, force=way)
     assert n >= 0
     check_bound(z, decoded(*band._pack(tab, val, nb, n), z.shape, False, plan.scale), e)
 
@@ -119,7 +119,7 @@ def _interp_stream(z: np.ndarray, opts: int = lp.OPT_ALL, force: int | None = No
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
     tab, val, nb = buffers(z.size)
-    n = band._interp_band(t, valid, tab, val, nb, opts=opts, force=force)
+    n, _ = band._interp_band(t, valid, tab, val, nb, opts=opts, force=force)
     assert n >= 0
     tables, words = band._pack(tab, val, nb, n)
     check_bound(z, decoded(tables, words, z.shape, False, plan.scale), 0.1)
@@ -180,7 +180,7 @@ def test_a_damaged_interpolation_header_is_refused(at: int) -> None:
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
     tab, val, nb = buffers(z.size)
-    n = band._interp_band(t, valid, tab, val, nb)
+    n, _ = band._interp_band(t, valid, tab, val, nb)
     head = np.flatnonzero(tab[:n] == qt.T_PRED)  # the mode, then the header
     assert head.shape[0] == 12 and val[head[0]] == qt.MODE_INTERP
     val[head[at]] = 200
@@ -193,7 +193,7 @@ def test_an_interpolation_stream_in_a_lossless_band_is_refused() -> None:
     z = relief(64, 64)
     t, valid = qt.quantise(z, 0.02, True)
     tab, val, nb = buffers(z.size)
-    n = band._interp_band(t, valid, tab, val, nb)
+    n, _ = band._interp_band(t, valid, tab, val, nb)
     tables, words = band._pack(tab, val, nb, n)
     out = np.empty(z.shape, np.float32)
     assert band.decode_band(tables, words, 64, 64, True, 0.02, out) == -1
@@ -226,11 +226,12 @@ def test_interpolation_is_given_up_early_against_a_much_smaller_raster_stream() 
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
     tab, val, nb = buffers(z.size)
-    full = band._interp_band(t, valid, tab, val, nb)
+    full, stream = band._interp_band(t, valid, tab, val, nb)
     assert full >= 0
     bits = float(band._stream_bits(tab, val, nb, np.int64(full)))
-    assert band._interp_band(t, valid, tab, val, nb, bits / 2) == -2
-    assert band._interp_band(t, valid, tab, val, nb, bits) >= 0
+    assert stream == bits  # the bits it answers are its stream's, header included
+    assert band._interp_band(t, valid, tab, val, nb, bits / 2)[0] == -2
+    assert band._interp_band(t, valid, tab, val, nb, bits)[0] >= 0
 
 
 def test_interpolation_is_not_tried_where_surface_models_predict_the_band() -> None:
