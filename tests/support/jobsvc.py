@@ -92,15 +92,7 @@ class Proc:
         self.popen.wait(timeout=10)
 
     def stop(self, timeout: float = 15) -> None:
-        if self.popen.poll() is not None:
-            return
-        try:
-            # Only the main process: a Celery worker then shuts down warmly (finishes its
-            # running task, hands prefetched messages back) and stops its own children.
-            os.kill(self.popen.pid, signal.SIGTERM)
-            self.popen.wait(timeout=timeout)
-        except (ProcessLookupError, subprocess.TimeoutExpired):
-            self.kill9()
+        stop_all([self], timeout)
 
 
 def stop_all(procs: list[Proc], timeout: float = 15) -> None:
@@ -111,6 +103,8 @@ def stop_all(procs: list[Proc], timeout: float = 15) -> None:
     live = [p for p in procs if p.popen.poll() is None]
     for p in live:
         try:
+            # Only the main process: a Celery worker then shuts down warmly (finishes its
+            # running task, hands prefetched messages back) and stops its own children.
             os.kill(p.popen.pid, signal.SIGTERM)
         except ProcessLookupError:
             pass
