@@ -33,6 +33,7 @@ from shared.compress._interp import (
     interp_events,
     sign_estimate,
 )
+from shared.compress._ls import NLS, ls_band, ls_weights
 from shared.compress._mask import decode_mask, encode_mask
 from shared.compress._quadtree import (
     MINB,
@@ -67,6 +68,20 @@ from shared.compress._tables import pack_codes, quantise_tables, unpack_codes
 #: for 0.8-1.4 % on the simulated relief but 0.1-0.3 % on the bunny, fandisk and spot and 0.07 %
 #: on white noise.
 WP_MIN_GAIN = 0.005
+#: The least-squares predictor is not fitted in a lossless band whose leaves covering this share
+#: of its area keep their surface model after the first choice (noise about a smooth surface,
+#: where no leaf took it: the synthetic noise).
+LS_MODEL_MAX = 0.8
+#: Least share of the leaves' summed absolute errors the least-squares predictor must save to be
+#: kept. Measured per band (lossless, stream with / without): the summed errors 0.9963 -> 0.9992,
+#: 0.983 -> 0.9953, 0.9999 -> 1.0004 (the bunny at 1:1), 0.85 -> 0.93 (the relief at 1:1);
+#: where it saves less, the stream hardly shrinks and its leaves decode about 40 % slower.
+LS_MIN_GAIN = 0.01
+#: About the bits of the least-squares weights in a band's header: the stream without them is
+#: kept unless the one with them is smaller by this much.
+LS_HEAD_BITS = 16.0 * NLS
+#: A least-squares weight (:mod:`shared.compress._ls`) is coded as two bytes of itself plus this.
+LS_BIAS = 1 << 15
 
 #: int64 arguments of the kernels called from Python (one signature each, as from a kernel)
 ZERO = np.int64(0)
@@ -89,9 +104,12 @@ def _restore(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, a: int, saved: tu
 
 
 def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, margin: float, share: float,
-                   tab: np.ndarray, val: np.ndarray, nb: np.ndarray) -> tuple[int, _SignPass | None]:
+                   tab: np.ndarray, val: np.ndarray, nb: np.ndarray,
+                   fits: list[Any] | None = None) -> tuple[int, _SignPass | None]:
     """Every event of one band, the residuals without sign contexts; returns the count (or -1
     when the event buffers are too small) and what coding them with sign contexts needs.
+    ``fits`` holds the band's least-squares weights once fitted (:func:`shared.compress._ls.ls_weights`,
+    the same for every tree margin) and their predictions, to share them between calls.
 
     Plain Python over the kernels (the tree's, the predictors', the residuals'), each compiled
     once on its own: as one kernel it spent 4.7 s of numba's time linking and optimising them
@@ -99,6 +117,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     H, W = t.shape
     lossless = bool(lossless)
     opts = np.int64(opts)
+    fits = [] if fits is None else fits
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
     leaves = np.zeros((nleaf_max, 5), np.int64)  # x0, y0, B, model, residual predictor
     lcoef = np.empty((nleaf_max, 6), np.int64)
@@ -116,18 +135,42 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     count = (opts & lp.OPT_SIGN) != 0
     alt = np.zeros((lp.NLEVEL * lp.NSUB, NSYM) if count else (1, 1), np.int32)
     alt_b = np.zeros_like(alt)
-    lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO)
+    cost = np.empty((nleaf, lp.NK), np.int64)  # the leaves' summed errors by predictor
+    lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, none, ZERO, none, ZERO, cost, ONE)
+    # the least-squares predictor (lossless mode), where the leaves do not keep their fitted
+    # surface (white noise): one more choice of every leaf, its weights in the header
+    pls, lsw = none, None
+    if lossless and (opts & lp.OPT_LS) and (opts & lp.OPT_PRED) and _model_share(leaves[:nleaf]) < LS_MODEL_MAX:
+        if not fits:  # the fit does not depend on the tree: once for every margin
+            fits.append(ls_weights(t, valid))
+        lsw = fits[0]
+        if lsw is not None:
+            # the predictions below the first two rows do not depend on the tree either
+            pls = ls_band(t, valid, cells, leaves, lcoef, lsw, fits[1] if len(fits) > 1 else None)
+            fits[1:] = [pls]
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, none, ZERO, pls, ONE, cost, ZERO)
+            # kept where the leaves' summed absolute errors fall by LS_MIN_GAIN (where they
+            # fall less, the stream does not shrink and the band decodes slower)
+            k = leaves[:nleaf, 4]
+            with_ls = float(cost[np.arange(nleaf), k].sum())
+            c0 = cost[:nleaf, : lp.K_WP]
+            without = float(c0.min(axis=1).sum())
+            if with_ls > (1.0 - LS_MIN_GAIN) * without:
+                lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, none, ZERO, none, ZERO, cost, ZERO)
+                pls, lsw = none, None
+    ls = ZERO if lsw is None else ONE
     # error feedback (lossless mode: in bounded mode the reconstruction's rounding noise in the
     # neighbours' errors made it cost more than it saved): the band's least-squares weights of
     # the W and N neighbours' errors
     aw, an = 0, 0
     if lossless and (opts & lp.OPT_FEEDBACK):
-        aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef, none)
+        aw, an = lp.feedback_weights(t, valid, cells, leaves, lcoef, none, pls)
     aw = np.int64(aw)
     an = np.int64(an)
     # the flags of bias cancellation and the weighted predictor, the weights and each leaf's
     # predictor, then the residuals
-    n_res = np.int64(n + 7 + nleaf)
+    head_n = 8 + (2 * NLS if ls else 0)
+    n_res = np.int64(n + head_n + nleaf)
     if n < 0 or n_res + 1 > tab.shape[0]:
         return -1, None
     bias = 0
@@ -136,13 +179,13 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
         # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on
         # noise: both ways, the smaller kept
         n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ONE, aw, an, TR,
-                                 tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt_b)
+                                 tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt_b, pls)
         if n1 < 0:
             return -1, None
         with_bias = lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0]
         keep = _save(tab, val, nb, n_res, n1)
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
-                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt)
+                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt, pls)
         if n_end < 0 or with_bias < lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]:
             bias = 1
             _restore(tab, val, nb, n_res, keep)
@@ -150,9 +193,32 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             alt, alt_b = alt_b, alt
     else:
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
-                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt)
+                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt, pls)
         if n_end < 0:
             return -1, None
+        if ls:
+            # the least-squares predictor both ways, the smaller kept: the leaves choose by
+            # their absolute errors, which is not the code length (on depth held constant over
+            # 2 x 2 pixels, the local predictors' errors are 0 at every other pixel, the fit's
+            # smaller but never 0: 5 % larger with it)
+            with_ls = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
+            keep = _save(tab, val, nb, n_res, n_end)
+            keep_k = leaves[:nleaf, 4].copy()
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, none, ZERO, none, ZERO, cost, ZERO)
+            aw0, an0 = lp.feedback_weights(t, valid, cells, leaves, lcoef, none, none) if opts & lp.OPT_FEEDBACK else (0, 0)
+            n_res0 = np.int64(n + 8 + nleaf)  # the header without the weights
+            n0 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, np.int64(aw0), np.int64(an0),
+                                     TR, tab, val, nb, n_res0, none, none, ZERO, ZERO, ZERO, alt_b, none)
+            if n0 < 0:
+                return -1, None
+            if lp.context_choice(tab, val, nb, n_res0, np.int64(n0), TR)[0] <= with_ls + LS_HEAD_BITS:
+                ls, pls, head_n = ZERO, none, 8
+                aw, an, n_res, n_end = np.int64(aw0), np.int64(an0), n_res0, n0
+                alt, alt_b = alt_b, alt
+            else:
+                leaves[:nleaf, 4] = keep_k
+                _restore(tab, val, nb, n_res, keep)
+            alt_b[:] = 0
         if lossless and (opts & lp.OPT_WP):
             # the weighted predictor (a choice of every leaf, its error in the context): both
             # ways, kept where it saves WP_MIN_GAIN (it lost on the bunny at 4:1, where the
@@ -161,14 +227,14 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             keep = _save(tab, val, nb, n_res, n_end)
             keep_k = leaves[:nleaf, 4].copy()
             pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
-            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, ONE)
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, pw, ONE, pls, ls, cost, ZERO)
             aw1, an1 = 0, 0
             if opts & lp.OPT_FEEDBACK:
-                aw1, an1 = lp.feedback_weights(t, valid, cells, leaves, lcoef, pw)
+                aw1, an1 = lp.feedback_weights(t, valid, cells, leaves, lcoef, pw, pls)
             aw1 = np.int64(aw1)
             an1 = np.int64(an1)
             n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw1, an1,
-                                     TR, tab, val, nb, n_res, pw, pe, ONE, ZERO, ZERO, alt_b)
+                                     TR, tab, val, nb, n_res, pw, pe, ONE, ZERO, ZERO, alt_b, pls)
             if n1 < 0:
                 return -1, None
             if lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0] < (1.0 - WP_MIN_GAIN) * without:
@@ -184,13 +250,17 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     # tables cost more than the contexts save
     bits, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
     lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
-    head = np.array([bias, cofs, cshift, wp, aw + lp.FB_MAX, an + lp.FB_MAX, 0], np.int64)
+    head = np.zeros(head_n, np.int64)
+    head[:8] = bias, cofs, cshift, wp, aw + lp.FB_MAX, an + lp.FB_MAX, 0, ls
+    if ls:
+        u = lsw + LS_BIAS  # each weight as two bytes
+        head[8::2], head[9::2] = u >> 8, u & 255
     _put_predictors(tab, val, nb, n, head, leaves, nleaf)
     gain = 0.0
     if opts & lp.OPT_SIGN:
         gain = bits - lp.sign_bits(alt, np.int64(cofs), tab, nb, n_res, np.int64(n_end))
     signs = _SignPass(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, pw, pe, np.int64(wp),
-                      np.int64(cofs), alt, n + 6, n_res, gain)
+                      np.int64(cofs), alt, n + 6, n_res, gain, pls)
     return int(n_end), signs
 
 
@@ -217,6 +287,7 @@ class _SignPass:
     flag: int  # the event holding the band's sign-context flag
     n_res: np.int64
     gain: float
+    pls: np.ndarray
 
 
 def _with_signs(p: _SignPass, tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n_end: int) -> int:
@@ -224,7 +295,7 @@ def _with_signs(p: _SignPass, tab: np.ndarray, val: np.ndarray, nb: np.ndarray, 
     returns the new count, or ``n_end`` with the events unchanged when the buffers are too small."""
     keep = _save(tab, val, nb, p.n_res, n_end)
     n1 = lp.encode_residuals(p.t, p.valid, p.cells, p.leaves, p.lcoef, p.lossless, p.opts, p.bias, p.aw, p.an, TR,
-                             tab, val, nb, p.n_res, p.pw, p.pe, p.wp, ONE, p.cofs, p.alt)
+                             tab, val, nb, p.n_res, p.pw, p.pe, p.wp, ONE, p.cofs, p.alt, p.pls)
     if n1 < 0:
         _restore(tab, val, nb, p.n_res, keep)
         return n_end
@@ -281,10 +352,11 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
     signs = None
     interp = not lossless and bool(opts & lp.OPT_INTERP)
     compare = len(margins) > 1 or interp  # streams' bits wanted
+    fits: list[Any] = []
     for margin in margins:
         cap, (tab_i, val_i, nb_i), (n_i, signs_i) = _coded(
             cap, lambda tb, vl, nbt, m=margin: _encode_events(t, valid, bool(lossless), np.int64(opts), float(m),
-                                                             float(share), tb, vl, nbt))
+                                                             float(share), tb, vl, nbt, fits))
         # each margin's stream without sign contexts, less what they would save: the residuals
         # are coded again with them for the margin kept alone
         bits = _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) - max(signs_i.gain, 0.0) if compare else 0.0
@@ -458,14 +530,15 @@ def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless:
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
     leaves = np.zeros((nleaf_max, 5), np.int64)
     lcoef = np.zeros((nleaf_max, 6), np.int64)
-    head = np.zeros(7, np.int64)
+    head = np.zeros(8 + 2 * NLS, np.int64)
     nleaf, xa, xb, pos = _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, bool(lossless), leaves, lcoef, head)
     if nleaf < 0:
         return -1
-    bias, cofs, cshift, wp, aw, an, sc = (np.int64(v) for v in head)
+    bias, cofs, cshift, wp, aw, an, sc, _ = (np.int64(v) for v in head[:8])
+    lsw = (head[8::2] << 8) + head[9::2] - LS_BIAS
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
     xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, bool(lossless), bias,
-                                      aw - lp.FB_MAX, an - lp.FB_MAX, cofs, cshift, wp, sc, float(scale), TR, out)
+                                      aw - lp.FB_MAX, an - lp.FB_MAX, cofs, cshift, wp, sc, float(scale), TR, out, lsw)
     # A sound stream ends exactly at its last word, both states back where the encoder began.
     if pos != nw or xa != RANS_L or xb != RANS_L:
         return -1

@@ -38,19 +38,17 @@ import math
 import numpy as np
 from numba import njit
 
+from shared.compress._ls import ls_predict
 from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
+from shared.compress._rows import F_SHIFT, FINE, MINB, fill_row, first_row, row_prediction
 from shared.compress._wp import wp_hole, wp_predict, wp_update
 
-MINB = 4
-F_SHIFT = 5
-FINE = 1 << F_SHIFT
-A_SHIFT = 3  # slope coefficients in 2**-A_SHIFT fine units per half pixel
-Q_SHIFT = 9  # curvature coefficients in 2**-Q_SHIFT fine units per half pixel squared
-
-#: Residual predictors a leaf may choose (see :func:`local_pred`; the last, :data:`K_WP`, is the
-#: weighted predictor of :mod:`shared.compress._wp`, only in a band that runs it).
-NK = 9
+#: Residual predictors a leaf may choose (see :func:`local_pred`; :data:`K_WP` is the weighted
+#: predictor of :mod:`shared.compress._wp` and :data:`K_LS` the least-squares predictor of
+#: :mod:`shared.compress._ls`, each only in a band that runs it).
+NK = 10
 K_WP = 8
+K_LS = 9
 #: Coding contexts of the residuals (activity levels).
 NCTX = 16
 L_RES = 8
@@ -83,7 +81,8 @@ OPT_FEEDBACK = 16  # the W and N neighbours' prediction errors fed back into the
 OPT_WP = 32  # the weighted predictor (lossless mode: per band, where it pays)
 OPT_SIGN = 64  # sign contexts (per band, where they pay)
 OPT_INTERP = 128  # hierarchical interpolation (bounded mode: per band, where it pays)
-OPT_ALL = 255
+OPT_LS = 256  # the least-squares predictor (lossless mode: per band, where leaves take it)
+OPT_ALL = 511
 
 #: Activity levels (half octaves) of the residuals: a band's NCTX tables take the levels from
 #: its offset (:func:`context_choice`) on, the ones below and above joining the ends.
@@ -131,76 +130,6 @@ def _sign3(g):
 
 
 @njit(cache=True, nogil=True)
-def row_prediction(y, W, cells, leaves, lcoef, row, krow):
-    """Every leaf's model prediction (fine units) along row y into ``row`` (W,) int64 and its
-    residual predictor into ``krow`` (W,) int64: the integers of the model's polynomial, with the
-    linear and quadratic sums stepped along the row (adds only). ``leaves`` (n, 5): x0, y0, B,
-    model, predictor; ``lcoef`` (n, 6)."""
-    cy = y // MINB
-    x = 0
-    while x < W:
-        i = cells[cy, x // MINB]
-        if i < 0:
-            x = (x // MINB + 1) * MINB
-            continue
-        x0 = leaves[i, 0]
-        y0 = leaves[i, 1]
-        B = leaves[i, 2]
-        m = leaves[i, 3]
-        k = leaves[i, 4]
-        c0, c1, c2, c3, c4, c5 = lcoef[i, 0], lcoef[i, 1], lcoef[i, 2], lcoef[i, 3], lcoef[i, 4], lcoef[i, 5]
-        if m < 2:
-            c3 = 0
-        if m < 3:
-            c4 = 0
-            c5 = 0
-        if m < 1:
-            c1 = 0
-            c2 = 0
-        X = 2 * (x - x0) - (B - 1)
-        Y = 2 * (y - y0) - (B - 1)
-        lin = c1 * X + c2 * Y
-        quad = c3 * X * Y + c4 * X * X + c5 * Y * Y
-        dq = c3 * 2 * Y + c4 * (4 * X + 4)
-        end = min(x0 + B, W)
-        for j in range(x, end):
-            row[j] = c0 + (lin >> A_SHIFT) + (quad >> Q_SHIFT)
-            krow[j] = k
-            lin += 2 * c1
-            quad += dq
-            dq += 8 * c4
-        x = end
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _fill_row(ra, rb, valid, y, W):
-    """Holes of the reconstructed row ``rb`` (padded, pixel x at x + 1) take the value before
-    them in the row (at the row's start, the one above in ``ra``); the pads repeat the ends."""
-    if not valid[y, 0]:
-        rb[1] = ra[1]
-    for x in range(1, W):
-        if not valid[y, x]:
-            rb[x + 1] = rb[x]
-    rb[0] = rb[1]
-    rb[W + 1] = rb[W]
-    rb[W + 2] = rb[W]
-
-
-@njit(cache=True, nogil=True, inline="always")
-def _first_row(ra, pf, valid, W):
-    """The virtual row above a band's first row: its own model predictions, holes filled."""
-    for x in range(W):
-        ra[x + 1] = pf[x]
-    ra[1] = pf[0]
-    for x in range(1, W):
-        if not valid[0, x]:
-            ra[x + 1] = ra[x]
-    ra[0] = ra[1]
-    ra[W + 1] = ra[W]
-    ra[W + 2] = ra[W]
-
-
-@njit(cache=True, nogil=True)
 def local_cost_integral(t, valid, lossless):
     """Integral image (H + 1, W + 1) int64 of every valid sample's absolute error (fine units,
     clamped) under LOCO-I's median predictor over the targets ``t``: the quadtree's estimate of
@@ -223,7 +152,7 @@ def local_cost_integral(t, valid, lossless):
         acc = 0
         for x in range(W):
             rb[x + 1] = ((t[y, x] + half) >> sh) << sh
-        _fill_row(ra, rb, valid, y, W)
+        fill_row(ra, rb, valid, y, W)
         for x in range(W):
             if valid[y, x]:
                 acc += min(abs(t[y, x] - local_pred(1, rb[x], ra[x + 1], ra[x], ra[x + 2], 0)), E_LIM)
@@ -246,49 +175,63 @@ def local_bits(S, y0, x0, B, n):
 
 
 @njit(cache=True, nogil=True)
-def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, wp):
+def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, pw, wp, pls, ls, cost, local):
     """Each leaf's predictor (``leaves[:, 4]``: 0 its model, else :func:`local_pred`'s): the one
     of least summed absolute error over the leaf, predicted from the targets ``t`` (exact in
     lossless mode, within half a quantum of the reconstruction in bounded mode). With ``wp``
-    the weighted predictor's predictions ``pw`` (H, W) int64 (:func:`wp_band`) are a choice too."""
+    the weighted predictor's predictions ``pw`` (H, W) int64 (:func:`wp_band`) are a choice too,
+    with ``ls`` the least-squares predictor's ``pls`` (H, W) int64
+    (:func:`shared.compress._ls.ls_band`). ``cost`` (>= nleaf, NK) int64 holds the leaves'
+    summed errors: with ``local`` they are counted for the local predictors, without they are
+    a previous call's (another predictor tried beside them)."""
     H, W = t.shape
     leaves[:nleaf, 4] = 0
     if not (opts & OPT_PRED):
         return
-    cost = np.zeros((nleaf, NK), np.int64)
-    pf = np.zeros(W, np.int64)
-    kr = np.zeros(W, np.int64)
-    ra = np.zeros(W + 3, np.int64)
-    rb = np.zeros(W + 3, np.int64)
-    sh = 0  # open loop: the targets themselves (measured better than rounding them in bounded mode)
-    half = 0
-    for y in range(H):
-        row_prediction(y, W, cells, leaves, lcoef, pf, kr)
-        if y == 0:
-            _first_row(ra, pf, valid, W)
-        for x in range(W):
-            rb[x + 1] = ((t[y, x] + half) >> sh) << sh
-        _fill_row(ra, rb, valid, y, W)
-        cy = y // MINB
-        for x in range(W):
-            if not valid[y, x]:
-                continue
-            v = t[y, x]
-            a = rb[x]
-            b = ra[x + 1]
-            c = ra[x]
-            d = ra[x + 2]
-            i = cells[cy, x // MINB]
-            for k in range(K_WP):
-                cost[i, k] += min(abs(v - local_pred(k, a, b, c, d, pf[x])), E_LIM)
-            if wp:
-                cost[i, K_WP] += min(abs(v - pw[y, x]), E_LIM)
-        ra, rb = rb, ra
-    nk = NK if wp else K_WP
+    cost[:nleaf, K_WP] = 0
+    cost[:nleaf, K_LS] = 0
+    if local:
+        cost[:nleaf, :K_WP] = 0
+        pf = np.zeros(W, np.int64)
+        kr = np.zeros(W, np.int64)
+        ra = np.zeros(W + 3, np.int64)
+        rb = np.zeros(W + 3, np.int64)
+        for y in range(H):
+            row_prediction(y, W, cells, leaves, lcoef, pf, kr)
+            if y == 0:
+                first_row(ra, pf, valid, W)
+            for x in range(W):
+                rb[x + 1] = t[y, x]
+            fill_row(ra, rb, valid, y, W)
+            cy = y // MINB
+            for x in range(W):
+                if not valid[y, x]:
+                    continue
+                v = t[y, x]
+                a = rb[x]
+                b = ra[x + 1]
+                c = ra[x]
+                d = ra[x + 2]
+                i = cells[cy, x // MINB]
+                for k in range(K_WP):
+                    cost[i, k] += min(abs(v - local_pred(k, a, b, c, d, pf[x])), E_LIM)
+            ra, rb = rb, ra
+    if wp or ls:
+        for y in range(H):
+            cy = y // MINB
+            for x in range(W):
+                if not valid[y, x]:
+                    continue
+                v = t[y, x]
+                i = cells[cy, x // MINB]
+                if wp:
+                    cost[i, K_WP] += min(abs(v - pw[y, x]), E_LIM)
+                if ls:
+                    cost[i, K_LS] += min(abs(v - pls[y, x]), E_LIM)
     for i in range(nleaf):
         best = 0
-        for k in range(1, nk):
-            if cost[i, k] < cost[i, best]:
+        for k in range(1, NK):
+            if (k != K_WP or wp) and (k != K_LS or ls) and cost[i, k] < cost[i, best]:
                 best = k
         leaves[i, 4] = best
 
@@ -299,12 +242,13 @@ FB_MAX = 16
 
 
 @njit(cache=True, nogil=True)
-def feedback_weights(t, valid, cells, leaves, lcoef, pw):
+def feedback_weights(t, valid, cells, leaves, lcoef, pw, pls):
     """The band's error-feedback weights (aw, an), in sixteenths: the least-squares fit of each
     sample's prediction error (its leaf's predictor over the targets) to its W and N
     neighbours' errors. The errors of an oversampling camera's sub-pixel depth are correlated
-    along the stripes; white noise gives weights near 0. ``pw`` (H, W) int64: the weighted predictor's
-    predictions where a leaf takes it (:func:`wp_band`)."""
+    along the stripes; white noise gives weights near 0. ``pw``, ``pls`` (H, W) int64: the weighted
+    and least-squares predictors' predictions where a leaf takes them (:func:`wp_band`,
+    :func:`shared.compress._ls.ls_band`)."""
     H, W = t.shape
     pf = np.zeros(W, np.int64)
     kr = np.zeros(W, np.int64)
@@ -317,16 +261,21 @@ def feedback_weights(t, valid, cells, leaves, lcoef, pw):
     for y in range(H):
         row_prediction(y, W, cells, leaves, lcoef, pf, kr)
         if y == 0:
-            _first_row(ra, pf, valid, W)
+            first_row(ra, pf, valid, W)
         for x in range(W):
             rb[x + 1] = t[y, x]
-        _fill_row(ra, rb, valid, y, W)
+        fill_row(ra, rb, valid, y, W)
         for x in range(W):
             if not valid[y, x]:
                 eb[x + 1] = 0.0
                 continue
             k = kr[x]
-            pl = pw[y, x] if k == K_WP else local_pred(k, rb[x], ra[x + 1], ra[x], ra[x + 2], pf[x])
+            if k == K_WP:
+                pl = pw[y, x]
+            elif k == K_LS:
+                pl = pls[y, x]
+            else:
+                pl = local_pred(k, rb[x], ra[x + 1], ra[x], ra[x + 2], pf[x])
             e = float(t[y, x] - pl)
             e = min(max(e, -lim), lim)
             eb[x + 1] = e
@@ -415,10 +364,10 @@ def wp_band(t, valid, cells, leaves, lcoef):
     for y in range(H):
         if y == 0:
             row_prediction(y, W, cells, leaves, lcoef, pf, kr)
-            _first_row(ra, pf, valid, W)
+            first_row(ra, pf, valid, W)
         for x in range(W):
             rb[x + 1] = t[y, x]
-        _fill_row(ra, rb, valid, y, W)
+        fill_row(ra, rb, valid, y, W)
         for x in range(W):
             if not valid[y, x]:
                 wp_hole(x, err_b, te_b)
@@ -436,11 +385,12 @@ def wp_band(t, valid, cells, leaves, lcoef):
 
 @njit(cache=True, nogil=True)
 def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, an, t_res, tab, val, nb, n, pw, pe, wp,
-                     sc, cofs, alt):
+                     sc, cofs, alt, pls):
     """Append the residual events of a band (raster order) after event ``n``, with bias
     cancellation when ``bias`` and error feedback ``aw``, ``an`` (:func:`feedback_weights`);
     with ``wp`` (lossless mode), ``pw`` and ``pe`` (H, W) are the weighted predictor's
-    predictions and errors (:func:`wp_band`), else unused. Without sign contexts (``sc`` 0)
+    predictions and errors (:func:`wp_band`), else unused; ``pls`` (H, W) the least-squares
+    predictor's predictions where a leaf takes it (lossless mode). Without sign contexts (``sc`` 0)
     each event's table is ``t_res`` plus its activity level (:func:`context_choice` then
     :func:`apply_contexts` make them tables); with them (``sc`` 1) it is its final table, the
     levels slid by ``cofs`` (:func:`_sign_context`); without them, ``alt`` (NLEVEL * NSUB, NSYM)
@@ -471,7 +421,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
         pw_row = pw[y] if wp else pw[0]
         pe_row = pe[y] if wp else pe[0]
         if y == 0:
-            _first_row(ra, pf, valid, W)
+            first_row(ra, pf, valid, W)
         if not valid[y, 0]:
             rb[1] = ra[1]
         for x in range(W):
@@ -488,7 +438,12 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
             d = ra[x + 2]
             lev = _context(a, b, c, d, eb[x], ea[x + 1], ea[x], ea[x + 2], grad, errs, wp, at(pe_row, x))
             k = kr[x]
-            pl = at(pw_row, x) if k == K_WP else local_pred(k, a, b, c, d, pf[x])
+            if k == K_WP:
+                pl = at(pw_row, x)
+            elif k == K_LS:
+                pl = pls[y, x]
+            else:
+                pl = local_pred(k, a, b, c, d, pf[x])
             p0 = pl + ((aw * sb[x] + an * sa[x + 1]) >> FB_SHIFT)
             q = 0
             p = p0
@@ -541,15 +496,17 @@ def _bias_update(bsum, bcnt, bcor, q, err):
 
 @njit(cache=True, nogil=True)
 def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, cofs, cshift,
-                     wp, sc, scale, t_res, out):
+                     wp, sc, scale, t_res, out, lsw):
     """Inverse of :func:`encode_residuals` (with every option on) into ``out`` (H, W) float32,
     NaN where invalid, running the weighted predictor along when ``wp``, with sign contexts
-    when ``sc``; returns (xa, xb, pos)."""
+    when ``sc``, the least-squares weights ``lsw`` (NLS,) int64 for the leaves that take them;
+    returns (xa, xb, pos)."""
     H, W = valid.shape
     pf = np.zeros(W, np.int64)
     kr = np.zeros(W, np.int64)
     ra = np.zeros(W + 3, np.int64)
     rb = np.zeros(W + 3, np.int64)
+    rc = np.zeros(W + 3, np.int64)  # the row two above (the least-squares predictor)
     ea = np.zeros(W + 3, np.int64)
     eb = np.zeros(W + 3, np.int64)
     sa = np.zeros(W + 3, np.int64)
@@ -570,7 +527,8 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
     for y in range(H):
         row_prediction(y, W, cells, leaves, lcoef, pf, kr)
         if y == 0:
-            _first_row(ra, pf, valid, W)
+            first_row(ra, pf, valid, W)
+            rc[:] = ra
         vrow = valid[y]
         orow = out[y]
         if not vrow[0]:
@@ -596,7 +554,12 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
             if wp:
                 pw, me = wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub)
             lev = _context(a, b, c, d, at(eb, x), at(ea, x + 1), at(ea, x), at(ea, x + 2), True, True, wp, me)
-            pl = pw if k == K_WP else local_pred(k, a, b, c, d, at(pf, x))
+            if k == K_WP:
+                pl = pw
+            elif k == K_LS:
+                pl = ls_predict(x, W, a, ra, rb, rc, lsw)
+            else:
+                pl = local_pred(k, a, b, c, d, at(pf, x))
             p0 = pl + ((aw * at(sb, x) + an * at(sa, x + 1)) >> FB_SHIFT)
             q = 0
             p = p0
@@ -629,7 +592,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
         rb[0] = rb[1]
         rb[W + 1] = rb[W]
         rb[W + 2] = rb[W]
-        ra, rb = rb, ra
+        rc, ra, rb = ra, rb, rc
         ea, eb = eb, ea
         sa, sb = sb, sa
         qa, qb = qb, qa

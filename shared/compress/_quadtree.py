@@ -1,7 +1,7 @@
 """Quadtree range-image band codec kernels (private; the public API is :mod:`shared.compress.range`,
 the band's encoder and decoder over these kernels :mod:`shared.compress._band`).
 
-A band of rows is coded as one rANS stream (codec ``quadtree-lp-5``) of three parts:
+A band of rows is coded as one rANS stream (codec ``quadtree-lp-6``) of three parts:
 
 1. the validity mask, exactly: per row where its alternating invalid/valid runs end, against
    the row above (:mod:`shared.compress._mask`), then the band's order: :data:`MODE_RASTER` (the
@@ -37,7 +37,6 @@ import numpy as np
 from numba import njit
 
 from shared.compress import _lpred as lp
-from shared.compress._lpred import A_SHIFT, F_SHIFT, FINE, MINB, Q_SHIFT
 from shared.compress._mask import encode_mask
 from shared.compress._rans import (
     NSYM,
@@ -51,6 +50,7 @@ from shared.compress._rans import (
     unzigzag,
     zigzag,
 )
+from shared.compress._rows import A_SHIFT, F_SHIFT, FINE, MINB, Q_SHIFT
 from shared.compress._tables import pack_codes, quantise_tables
 
 TOP = 64  # top block size (a band's height is a multiple of it)
@@ -446,7 +446,7 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
 
 @njit(cache=True, nogil=True)
 def _put_predictors(tab, val, nb, n, head, leaves, nleaf):
-    """The band's flags and weights ``head`` (7,) int64 and each leaf's predictor, from event ``n``."""
+    """The band's flags and weights ``head`` (n,) int64 and each leaf's predictor, from event ``n``."""
     for i in range(head.shape[0]):
         n = put(tab, val, nb, n, T_PRED, head[i], 0)
     for i in range(nleaf):
@@ -544,8 +544,9 @@ def _cell_integral(valid):
 @njit(cache=True, nogil=True)
 def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef, head):
     """A band's quadtree, its mask ``valid`` decoded: the leaves into ``leaves`` (n, 5) (x0, y0,
-    B, model, predictor) and ``lcoef`` (n, 6) int64, then the seven flags and weights into ``head``
-    (7,) int64 (as :func:`_put_predictors` put them). Returns (leaves, xa, xb, pos), -1 leaves
+    B, model, predictor) and ``lcoef`` (n, 6) int64, then the eight flags and weights into ``head``
+    (8 + 2 NLS,) int64 and, where the eighth flag says the least-squares predictor runs, its
+    weights' bytes after them (as :func:`_put_predictors` put them). Returns (leaves, xa, xb, pos), -1 leaves
     for a corrupt stream."""
     H, W = valid.shape
     ii = _cell_integral(valid)
@@ -614,17 +615,26 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
                 pB = B
     if pos > nw:
         return -1, xa, xb, pos
-    for i in range(head.shape[0]):
+    # the flags and weights (8 symbols), then with the least-squares predictor its weights' bytes
+    nh = 8
+    i = 0
+    while i < nh:
         v, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
         head[i] = v
-    bias, cofs, cshift, wp, aw, an, sc = head[0], head[1], head[2], head[3], head[4], head[5], head[6]
-    # the weighted predictor runs in lossless bands only (the encoder's choice)
+        if i == 7 and v == 1:
+            nh = head.shape[0]
+        i += 1
+    bias, cofs, cshift, wp, aw, an, sc, ls = head[0], head[1], head[2], head[3], head[4], head[5], head[6], head[7]
+    # the weighted and least-squares predictors run in lossless bands only (the encoder's choice)
     if (bias > 1 or cofs > lp.MAX_COFS or cshift > 2 or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX
-            or an > 2 * lp.FB_MAX or sc > 1):
+            or an > 2 * lp.FB_MAX or sc > 1 or ls > (1 if lossless else 0)):
         return -1, xa, xb, pos
+    for i in range(8, nh):
+        if head[i] > 255:
+            return -1, xa, xb, pos
     for i in range(nleaf):
         k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
-        if k >= (lp.NK if wp else lp.K_WP):
+        if k >= lp.NK or (k == lp.K_WP and not wp) or (k == lp.K_LS and not ls):
             return -1, xa, xb, pos
         leaves[i, 4] = k
     if pos > nw:

@@ -1,6 +1,6 @@
 """Range images (depth on the camera grid) coded by a quadtree of surface models, local
 prediction (LOCO-I/CALIC-style, JPEG-XL's weighted predictor) or, error-bounded, hierarchical
-interpolation (SZ3's order), and rANS: codec ``quadtree-lp-4``.
+interpolation (SZ3's order), and rANS: codec ``quadtree-lp-6``.
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -53,9 +53,9 @@ log = logging.getLogger(__name__)
 
 #: Rows per chunk (a multiple of the quadtree's top block).
 BAND_ROWS = 256
-CODEC = "quadtree-lp-5"
+CODEC = "quadtree-lp-6"
 #: Range codecs of earlier releases, refused by name (their streams are not read any more).
-OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3", "quadtree-lp-4")
+OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3", "quadtree-lp-4", "quadtree-lp-5")
 #: The encoder's options per effort. 1 (the default): every tool but JPEG-XL's weighted
 #: predictor; 2: the weighted predictor tried too, per lossless band, kept where it saves 0.5 %.
 #: Measured A/B in one run with ``quadtree-lp-3`` (MP per CPU second; bits per valid sample at 0.02 mm, effort 1 / 2):

@@ -1,4 +1,4 @@
-"""The range codec's per-band choices of ``quadtree-lp-5``: hierarchical interpolation (bounded
+"""The range codec's per-band choices of ``quadtree-lp-6``: hierarchical interpolation (bounded
 mode) with its feedback weights per spacing and pass and its sign contexts, and the raster
 order's sign contexts (both modes): each is taken where it codes smaller, its streams decode
 exactly (lossless) or within the bound (every sample), masks exact, on smooth oversampled depth
