@@ -33,7 +33,7 @@ from shared.compress._interp import (
     interp_events,
     sign_estimate,
 )
-from shared.compress._ls import NLS, ls_band, ls_weights
+from shared.compress._ls import NLS, ls_band, ls_weights, n_tiles
 from shared.compress._mask import decode_mask, encode_mask
 from shared.compress._quadtree import (
     MINB,
@@ -77,8 +77,8 @@ LS_MODEL_MAX = 0.8
 #: 0.983 -> 0.9953, 0.9999 -> 1.0004 (the bunny at 1:1), 0.85 -> 0.93 (the relief at 1:1);
 #: where it saves less, the stream hardly shrinks and its leaves decode about 40 % slower.
 LS_MIN_GAIN = 0.01
-#: About the bits of the least-squares weights in a band's header: the stream without them is
-#: kept unless the one with them is smaller by this much.
+#: About the bits of a tile's least-squares weights in a band's header: the stream without them
+#: is kept unless the one with them is smaller by this much a tile.
 LS_HEAD_BITS = 16.0 * NLS
 #: A least-squares weight (:mod:`shared.compress._ls`) is coded as two bytes of itself plus this.
 LS_BIAS = 1 << 15
@@ -169,7 +169,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     an = np.int64(an)
     # the flags of bias cancellation and the weighted predictor, the weights and each leaf's
     # predictor, then the residuals
-    head_n = 8 + (2 * NLS if ls else 0)
+    head_n = 8 + (2 * NLS * n_tiles(W) if ls else 0)
     n_res = np.int64(n + head_n + nleaf)
     if n < 0 or n_res + 1 > tab.shape[0]:
         return -1, None
@@ -211,7 +211,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
                                      TR, tab, val, nb, n_res0, none, none, ZERO, ZERO, ZERO, alt_b, none)
             if n0 < 0:
                 return -1, None
-            if lp.context_choice(tab, val, nb, n_res0, np.int64(n0), TR)[0] <= with_ls + LS_HEAD_BITS:
+            if lp.context_choice(tab, val, nb, n_res0, np.int64(n0), TR)[0] <= with_ls + LS_HEAD_BITS * n_tiles(W):
                 ls, pls, head_n = ZERO, none, 8
                 aw, an, n_res, n_end = np.int64(aw0), np.int64(an0), n_res0, n0
                 alt, alt_b = alt_b, alt
@@ -530,7 +530,7 @@ def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless:
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
     leaves = np.zeros((nleaf_max, 5), np.int64)
     lcoef = np.zeros((nleaf_max, 6), np.int64)
-    head = np.zeros(8 + 2 * NLS, np.int64)
+    head = np.zeros(8 + 2 * NLS * n_tiles(W), np.int64)
     nleaf, xa, xb, pos = _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, bool(lossless), leaves, lcoef, head)
     if nleaf < 0:
         return -1

@@ -139,6 +139,11 @@ def _masks() -> list[tuple[str, np.ndarray]]:
     grid[:, ::16] = np.nan
     out.append(("holes on the coarse grid", grid))
     out.append(("all holes", np.full((20, 30), np.nan, np.float32)))
+    wide = smooth_relief(64, 1100, seed=2)  # three tiles of weights, the last 76 columns
+    out.append(("three tiles", wide))
+    gap = wide.copy()
+    gap[:, 512:1024] = np.nan  # a tile without samples: it takes the band's weights
+    out.append(("a tile of holes", gap))
     jumps = base[:64, :64] + np.where(np.indices((64, 64))[1] % 5 < 2, 2000.0, -1500.0)
     out.append(("depth jumps of 3.5 m", jumps.astype(np.float32)))
     far = base[:64, :64].astype(np.float64) * 1e6  # about 7e8 units: 3.5e10 quanta
@@ -159,7 +164,8 @@ def test_streams_with_the_predictor_forced_on_decode_exactly_on_hostile_masks(
     t, valid = qt.quantise(z, Q, True)
     tables, words = band.encode_band(t, valid, True, WITH)
     check_exact(z, decoded(tables, words, z.shape, True, Q))
-    if name in ("256x320 0 % holes", "256x320 30 % holes", "leading holes", "leading holes in the first rows"):
+    if name in ("256x320 0 % holes", "256x320 30 % holes", "leading holes", "leading holes in the first rows",
+                "three tiles", "a tile of holes"):
         assert ls_leaves(z) > 0.3
         assert ls_leaves(z, qt.SPLIT_LOSSLESS[-1]) > 0.3
 
@@ -231,6 +237,24 @@ def test_the_fit_leaves_out_depth_jumps() -> None:
     e0 = interior_error(t, w0)
     assert e0 < 0.5 * interior_error(t, np.zeros(ls.NLS))  # the fit predicts better than N alone
     assert interior_error(t, w1) < 1.02 * e0
+
+
+def test_each_tile_fits_its_own_depth() -> None:
+    # noise smoothed along rows in the first tile of 512 columns, along columns in the second:
+    # each tile's weights predict its own samples better than the other tile's (and the
+    # band's prior does not pull them together)
+    from scipy.ndimage import gaussian_filter
+
+    rng = np.random.default_rng(4)
+    n = rng.normal(0.0, 1.0, (256, 1024))
+    n[:, :512] = gaussian_filter(n[:, :512], (0.3, 2.5))
+    n[:, 512:] = gaussian_filter(n[:, 512:], (2.5, 0.3))
+    z = (700.0 + 0.02 * np.arange(1024)[None, :] + 0.05 * n / n.std()).astype(np.float32)
+    t, valid = qt.quantise(z, Q, True)
+    w = ls.ls_weights(t, valid).reshape(2, ls.NLS)
+    left, right = t[:, :512], t[:, 512:]
+    assert interior_error(left, w[0]) < 0.95 * interior_error(left, w[1])
+    assert interior_error(right, w[1]) < 0.95 * interior_error(right, w[0])
 
 
 def test_no_fit_on_too_few_samples() -> None:
