@@ -7,13 +7,16 @@ predictions above it):
 
 - each leaf picks one of :data:`NK` predictors (:func:`local_pred`: the model, LOCO-I's median
   edge detector, the plane through W, N, NW, means, blends of the model with the median or
-  the plane; in a band that runs it, :data:`K_WP` the self-correcting weighted predictor of
-  :mod:`shared.compress._wp`), chosen by the encoder per leaf by the summed absolute error
-  and coded as a symbol after the tree: smooth, detailed depth (an oversampling camera's
-  sub-pixel depth) takes a neighbour predictor, white noise keeps the model;
-- the weighted predictor (lossless mode) runs over a band where the encoder finds it pays
-  (both ways tried): its state is a function of the reconstruction alone, so the encoder
-  computes it once over the targets (:func:`wp_band`) and the decoder alongside its samples;
+  the plane; in a band that runs them, :data:`K_WP` the self-correcting weighted predictor of
+  :mod:`shared.compress._wp` and :data:`K_LS` the band's least-squares predictor over 16
+  neighbours in three rows, :mod:`shared.compress._ls`), chosen by the encoder per leaf by the
+  summed absolute error and coded as a symbol after the tree: smooth, detailed depth (an
+  oversampling camera's sub-pixel depth) takes a neighbour predictor, white noise keeps the model;
+- the weighted and least-squares predictors (lossless mode) run over a band where the encoder
+  finds they pay (both ways tried): both are functions of the reconstruction alone, so the
+  encoder computes them once over the targets (:func:`wp_band`,
+  :func:`shared.compress._ls.ls_band`) and the decoder alongside its samples (the least-squares
+  one in the leaves that take it, from a third row buffer);
 - error feedback (lossless mode): the W and N neighbours' prediction errors, weighted by the
   band's least-squares weights (:func:`feedback_weights`, coded in sixteenths), are added to
   the prediction -- the sub-pixel decoder's errors are correlated along the stripes;
@@ -528,7 +531,8 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
         row_prediction(y, W, cells, leaves, lcoef, pf, kr)
         if y == 0:
             first_row(ra, pf, valid, W)
-            rc[:] = ra
+            for x in range(W + 3):  # scalar loops: slices cost seconds of compilation
+                rc[x] = ra[x]
         vrow = valid[y]
         orow = out[y]
         if not vrow[0]:

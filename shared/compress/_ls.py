@@ -11,11 +11,10 @@ neighbour so that a constant depth is predicted exactly whatever the weights. It
 predictor a leaf may choose (:data:`shared.compress._lpred.K_LS`), where its summed absolute error
 is the smallest.
 
-Measured through the coder, lossless at 0.02 mm, before it was one of the kernels (bits per valid
-sample, the leaves' choice with and without it): the relief at 1:1 2.511 -> 2.334, at 4:1 1.907
--> 1.832, the bunny at 4:1 2.562 -> 2.330, the spot at 4:1 2.548 -> 2.303, a real capture 9.069
--> 8.935, the Cyberware dragon 4.955 -> 4.917, the synthetic noise unchanged (its leaves keep
-their fitted surface).
+The leaves choose by summed absolute error, which is not code length (depth held constant over
+2 x 2 pixels gives the local predictors' errors of 0 at every other pixel, which code smaller
+than the fit's smaller errors), so the encoder codes the band's residuals both ways and keeps
+the smaller (:mod:`shared.compress._band`).
 
 The fit is robust to the depth jumps at silhouettes, which would otherwise dominate the squares:
 a first fit over every fifth row, then a second without the samples it predicts worse than
@@ -36,10 +35,14 @@ from shared.compress._rans import at
 from shared.compress._rows import FINE, fill_row, first_row, row_prediction
 
 #: Neighbours of a sample (rows above, column offset): W, NW, NE, WW, NWW, NEE, NN, NNW, NNE,
-#: WWW, NNWW, NNEE (N is the origin of the differences).
-LS_DY = np.array([0, 1, 1, 0, 1, 1, 2, 2, 2, 0, 2, 2], np.int64)
-LS_DX = np.array([-1, -1, 1, -2, -2, 2, 0, -1, 1, -3, -2, 2], np.int64)
-NLS = 12
+#: WWW, NNWW, NNEE, then the row above out to 3 and 4 columns (N is the origin of the
+#: differences). Measured, bits per valid sample with 12 / 14 / 16 of them: the relief at 1:1
+#: 2.330 / 2.304 / 2.296, the bunny at 2:1 2.814 / 2.798 / 2.796, at 4:1 2.341 / 2.351 / 2.332,
+#: the fandisk 2.737 / 2.726 / 2.724; 18 (two above, 3 columns out) within 0.5 % of 16 either way.
+#: (The first six alone: the relief at 1:1 3.6 % larger than with 12, the bunny at 4:1 2.5 %.)
+LS_DY = np.array([0, 1, 1, 0, 1, 1, 2, 2, 2, 0, 2, 2, 1, 1, 1, 1], np.int64)
+LS_DX = np.array([-1, -1, 1, -2, -2, 2, 0, -1, 1, -3, -2, 2, -3, 3, -4, 4], np.int64)
+NLS = 16
 #: A band is fitted in tiles of 2**TILE_SHIFT columns, a set of weights each (local depth and
 #: slopes), each tile's fit weighing the whole band's samples by TILE_PRIOR besides its own.
 #: Measured on whole bench images, bits per valid sample, one set a band / tiles alone / tiles
@@ -65,12 +68,13 @@ ROBUST = 4.0
 ERR_CAP = 64.0 * FINE
 
 
-@njit(cache=True, nogil=True, inline="always")
+# plain kernels, inlined by LLVM (numba's IR inlining of their call sites cost seconds of compilation)
+@njit(cache=True, nogil=True)
 def _d(v, n):
     return min(max(v - n, -D_LIM), D_LIM)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@njit(cache=True, nogil=True)
 def _neighbour(i, x, W, a, ra, rb, rc):
     """Neighbour i of :data:`LS_DY`, :data:`LS_DX` of pixel x (W ``a``), clamped to the band."""
     dy = LS_DY[i]
@@ -89,7 +93,7 @@ def ls_predict(x, W, a, ra, rb, rc, w):
     n = at(ra, x + 1)
     o = (x >> TILE_SHIFT) * NLS
     acc = 0
-    if x >= 3 and x + 2 < W:
+    if x >= 3 and x + 3 < W:
         # unsigned indices (shared.compress._rans.at): no negative-index wraparound per load
         i = x + 1
         acc = (at(w, o) * _d(a, n) + at(w, o + 1) * _d(at(ra, i - 1), n) + at(w, o + 2) * _d(at(ra, i + 1), n)
@@ -97,7 +101,9 @@ def ls_predict(x, W, a, ra, rb, rc, w):
                + at(w, o + 5) * _d(at(ra, i + 2), n) + at(w, o + 6) * _d(at(rc, i), n)
                + at(w, o + 7) * _d(at(rc, i - 1), n) + at(w, o + 8) * _d(at(rc, i + 1), n)
                + at(w, o + 9) * _d(at(rb, i - 3), n) + at(w, o + 10) * _d(at(rc, i - 2), n)
-               + at(w, o + 11) * _d(at(rc, i + 2), n))
+               + at(w, o + 11) * _d(at(rc, i + 2), n) + at(w, o + 12) * _d(at(ra, i - 3), n)
+               + at(w, o + 13) * _d(at(ra, i + 3), n) + at(w, o + 14) * _d(at(ra, i - 4), n)
+               + at(w, o + 15) * _d(at(ra, i + 4), n))
     else:
         for k in range(NLS):
             acc += at(w, o + k) * _d(_neighbour(k, x, W, a, ra, rb, rc), n)
@@ -120,7 +126,8 @@ def ls_rows(t, valid, cells, leaves, lcoef, w, pred, rows):
         if y == 0:
             row_prediction(y, W, cells, leaves, lcoef, pf, kr)
             first_row(ra, pf, valid, W)
-            rc[:] = ra
+            for x in range(W + 3):  # scalar loops: slices cost seconds of compilation
+                rc[x] = ra[x]
         for x in range(W):
             rb[x + 1] = t[y, x]
         fill_row(ra, rb, valid, y, W)
@@ -135,7 +142,8 @@ def ls_samples(t, valid, x0, x1):
     """The fit's samples of columns x0..x1-1 of a band's targets ``t`` (H, W) int64: from every
     :data:`STEP`-th row from the third on (the rows above the first two are the quadtree's, not
     yet known), each valid sample whose neighbours lie within :data:`N_LIM` of N, its
-    neighbours' differences from N (n, NLS) float64 and its own (n,) float64."""
+    neighbours' differences from N (cap, NLS) float64 and its own (cap,) float64, the first n
+    of them filled, and n."""
     H, W = t.shape
     cap = ((H + STEP - 1) // STEP) * (x1 - x0)
     F = np.empty((cap, NLS))
@@ -155,7 +163,7 @@ def ls_samples(t, valid, x0, x1):
                     continue
                 a = rb[x] if x > 0 else ra[1]
                 c = ra[x + 1]
-                if x >= 3 and x + 2 < W:
+                if x >= 3 and x + 3 < W:
                     i = x + 1
                     f[0] = a - c
                     f[1] = ra[i - 1] - c
@@ -169,20 +177,24 @@ def ls_samples(t, valid, x0, x1):
                     f[9] = rb[i - 3] - c
                     f[10] = rc[i - 2] - c
                     f[11] = rc[i + 2] - c
+                    f[12] = ra[i - 3] - c
+                    f[13] = ra[i + 3] - c
+                    f[14] = ra[i - 4] - c
+                    f[15] = ra[i + 4] - c
                 else:
                     for k in range(NLS):
                         f[k] = _neighbour(k, x, W, a, ra, rb, rc) - c
-                far = False
+                near = 0
                 for k in range(NLS):
-                    far |= abs(f[k]) > N_LIM
-                if far:
+                    near += abs(f[k]) <= N_LIM
+                if near < NLS:
                     continue
                 for k in range(NLS):
                     F[n, k] = f[k]
                 e[n] = t[y, x] - c
                 n += 1
         rc, ra, rb = ra, rb, rc
-    return F[:n], e[:n]
+    return F, e, n
 
 
 def _solve_normal(A: np.ndarray, b: np.ndarray) -> np.ndarray | None:
@@ -226,7 +238,8 @@ def ls_weights(t: np.ndarray, valid: np.ndarray) -> np.ndarray | None:
 def _tile_normal(t: np.ndarray, valid: np.ndarray, x0: int, x1: int) -> tuple[np.ndarray, np.ndarray, int]:
     """The normal equations (NLS, NLS), (NLS,) of the samples of columns x0..x1-1 of ``t``, those
     a first fit predicts worse than :data:`ROBUST` times its mean error left out, and their count."""
-    F, e = ls_samples(t, valid, np.int64(x0), np.int64(x1))
+    F, e, n = ls_samples(t, valid, np.int64(x0), np.int64(x1))
+    F, e = F[:n], e[:n]  # sliced here: in the kernel the slices cost a second of compilation
     A = F.T @ F
     b = F.T @ e
     if e.shape[0] < 8 * NLS or (w := _solve_normal(A, b)) is None:

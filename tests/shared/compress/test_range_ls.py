@@ -174,51 +174,14 @@ def interior_error(t: np.ndarray, w: np.ndarray) -> float:
     """Mean absolute error (fine units) of the weights ``w`` over the interior of a hole-free
     band ``t`` (numpy's own sum of the neighbours, not the kernel's)."""
     H, W = t.shape
-    n = t[1:H - 2, 3:W - 2].astype(np.float64)  # N of the samples t[2:H-1, 3:W-2]
+    lo, hi = -int(ls.LS_DX.min()), int(ls.LS_DX.max())  # columns out to the left and right
+    n = t[1:H - 1, lo:W - hi].astype(np.float64)  # N of the samples t[2:H, lo:W-hi]
     acc = np.zeros_like(n)
     for k in range(ls.NLS):
         dy, dx = int(ls.LS_DY[k]), int(ls.LS_DX[k])
-        acc += w[k] * (t[2 - dy:H - 1 - dy, 3 + dx:W - 2 + dx] - n)
+        acc += w[k] * (t[2 - dy:H - dy, lo + dx:W - hi + dx] - n)
     pred = n + np.floor((acc + (1 << (ls.LS_SHIFT - 1))) / (1 << ls.LS_SHIFT))
-    return float(np.abs(t[2:H - 1, 3:W - 2] - pred).mean())
-
-
-def _tree(t: np.ndarray, valid: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A band's quadtree: (cells, leaves, coefficients)."""
-    tab, val, nb = buffers(t.size)
-    leaves = np.zeros((t.size // 16 + 64, 5), np.int64)
-    lcoef = np.zeros((t.size // 16 + 64, 6), np.int64)
-    n, nleaf = band._encode_tree(t, valid, True, np.int64(WITH), float(margin), 0.0, tab, val, nb, leaves, lcoef)
-    assert n > 0
-    cells = band._leaf_cells(np.int64(t.shape[0]), np.int64(t.shape[1]), leaves, np.int64(nleaf))
-    return cells, leaves, lcoef
-
-
-@pytest.mark.parametrize("lead", ["none", "every row", "the first 40 rows", "a row in two"])
-def test_predictions_made_again_for_another_tree_are_those_made_afresh(lead: str) -> None:
-    # the encoder makes the predictions of its second tree margin from its first's, again only
-    # where rows depend on the tree: rows that start with holes are filled from the row above,
-    # the first from the tree's virtual row (a leaf's model at pixel 0, where the leaf holds
-    # samples further right). Another tree (every leaf's surface 5 mm higher): the same
-    # predictions as made afresh.
-    z = smooth_relief()
-    z[np.isnan(z)] = 700.0
-    if lead == "every row":
-        z[:, :5] = np.nan
-    elif lead == "the first 40 rows":
-        z[:40, :2] = np.nan
-    elif lead == "a row in two":
-        z[::2, :3] = np.nan
-    t, valid = qt.quantise(z, Q, True)
-    w = ls.ls_weights(t, valid)
-    a = _tree(t, valid, qt.SPLIT_LOSSLESS[0])
-    b = (a[0], a[1], a[2].copy())
-    b[2][:, 0] += 250 * 32  # 250 quanta, in fine units
-    first = ls.ls_band(t, valid, *a, w)
-    afresh = ls.ls_band(t, valid, *b, w)
-    np.testing.assert_array_equal(ls.ls_band(t, valid, *b, w, first), afresh)
-    if lead != "none":
-        assert not np.array_equal(first, afresh)  # the tree matters to these rows
+    return float(np.abs(t[2:H, lo:W - hi] - pred).mean())
 
 
 def test_the_fit_leaves_out_depth_jumps() -> None:
