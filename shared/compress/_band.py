@@ -72,10 +72,10 @@ WP_MIN_GAIN = 0.005
 #: of its area keep their surface model after the first choice (noise about a smooth surface,
 #: where no leaf took it: the synthetic noise).
 LS_MODEL_MAX = 0.8
-#: Least share of the leaves' summed absolute errors the least-squares predictor must save to be
-#: kept. Measured per band (lossless, stream with / without): the summed errors 0.9963 -> 0.9992,
-#: 0.983 -> 0.9953, 0.9999 -> 1.0004 (the bunny at 1:1), 0.85 -> 0.93 (the relief at 1:1);
-#: where it saves less, the stream hardly shrinks and its leaves decode about 40 % slower.
+#: Least share of the leaves' summed costs (:func:`shared.compress._lpred.choose_predictors`) the
+#: least-squares predictor must save to be tried: where it saves less, the stream hardly
+#: shrinks and its leaves decode about 40 % slower (the bunny at 1:1, a real capture and a
+#: Cyberware dragon coded the same tried at 0.2 % as at 1 %).
 LS_MIN_GAIN = 0.01
 #: About the bits of a tile's least-squares weights in a band's header: the stream without them
 #: is kept unless the one with them is smaller by this much a tile.
@@ -136,7 +136,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     alt = np.zeros((lp.NLEVEL * lp.NSUB, NSYM) if count else (1, 1), np.int32)
     alt_b = np.zeros_like(alt)
     cost = np.empty((nleaf, lp.NK), np.int64)  # the leaves' summed errors by predictor
-    lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, none, ZERO, none, ZERO, cost, ONE)
+    lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ONE)
     # the least-squares predictor (lossless mode), where the leaves do not keep their fitted
     # surface (white noise): one more choice of every leaf, its weights in the header
     pls, lsw = none, None
@@ -148,15 +148,14 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             # the predictions below the first two rows do not depend on the tree either
             pls = ls_band(t, valid, cells, leaves, lcoef, lsw, fits[1] if len(fits) > 1 else None)
             fits[1:] = [pls]
-            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, none, ZERO, pls, ONE, cost, ZERO)
-            # kept where the leaves' summed absolute errors fall by LS_MIN_GAIN (where they
-            # fall less, the stream does not shrink and the band decodes slower)
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, pls, ONE, cost, ZERO)
+            # tried where the leaves' summed costs fall by LS_MIN_GAIN
             k = leaves[:nleaf, 4]
             with_ls = float(cost[np.arange(nleaf), k].sum())
             c0 = cost[:nleaf, : lp.K_WP]
             without = float(c0.min(axis=1).sum())
             if with_ls > (1.0 - LS_MIN_GAIN) * without:
-                lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, none, ZERO, none, ZERO, cost, ZERO)
+                lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ZERO)
                 pls, lsw = none, None
     ls = ZERO if lsw is None else ONE
     # error feedback (lossless mode: in bounded mode the reconstruction's rounding noise in the
@@ -197,14 +196,14 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
         if n_end < 0:
             return -1, None
         if ls:
-            # the least-squares predictor both ways, the smaller kept: the leaves choose by
-            # their absolute errors, which is not the code length (on depth held constant over
-            # 2 x 2 pixels, the local predictors' errors are 0 at every other pixel, the fit's
-            # smaller but never 0: 5 % larger with it)
+            # the least-squares predictor both ways, the smaller kept: the leaves' costs are
+            # not the code length (on depth held constant over 2 x 2 pixels, the local
+            # predictors' errors are 0 at every other pixel, the fit's smaller but never 0:
+            # with the leaves choosing by absolute error it coded 5 % larger)
             with_ls = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
             keep = _save(tab, val, nb, n_res, n_end)
             keep_k = leaves[:nleaf, 4].copy()
-            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, none, ZERO, none, ZERO, cost, ZERO)
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ZERO)
             aw0, an0 = lp.feedback_weights(t, valid, cells, leaves, lcoef, none, none) if opts & lp.OPT_FEEDBACK else (0, 0)
             n_res0 = np.int64(n + 8 + nleaf)  # the header without the weights
             n0 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, np.int64(aw0), np.int64(an0),
@@ -227,7 +226,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             keep = _save(tab, val, nb, n_res, n_end)
             keep_k = leaves[:nleaf, 4].copy()
             pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
-            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, opts, pw, ONE, pls, ls, cost, ZERO)
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, ONE, pls, ls, cost, ZERO)
             aw1, an1 = 0, 0
             if opts & lp.OPT_FEEDBACK:
                 aw1, an1 = lp.feedback_weights(t, valid, cells, leaves, lcoef, pw, pls)
