@@ -74,8 +74,8 @@ WP_MIN_GAIN = 0.005
 LS_MODEL_MAX = 0.8
 #: Least share of the leaves' summed costs (:func:`shared.compress._lpred.choose_predictors`) the
 #: least-squares predictor must save to be tried: where it saves less, the stream hardly
-#: shrinks and its leaves decode about 40 % slower (the bunny at 1:1, a real capture and a
-#: Cyberware dragon coded the same tried at 0.2 % as at 1 %).
+#: shrinks and a band coded with it decodes at about 60 % of the speed (the bunny at 1:1, a real
+#: capture and a Cyberware dragon coded the same tried at 0.2 % as at 1 %).
 LS_MIN_GAIN = 0.01
 #: About the bits of a tile's least-squares weights in a band's header: the stream without them
 #: is kept unless the one with them is smaller by this much a tile.

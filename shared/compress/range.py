@@ -1,6 +1,7 @@
 """Range images (depth on the camera grid) coded by a quadtree of surface models, local
-prediction (LOCO-I/CALIC-style, JPEG-XL's weighted predictor) or, error-bounded, hierarchical
-interpolation (SZ3's order), and rANS: codec ``quadtree-lp-6``.
+prediction (LOCO-I/CALIC-style, a least-squares predictor fitted per band, JPEG-XL's weighted
+predictor) or, error-bounded, hierarchical interpolation (SZ3's order), and rANS: codec
+``quadtree-lp-6``.
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -14,16 +15,16 @@ The validity mask (the non-NaN samples) is always coded exactly. The image is cu
 bands of :data:`BAND_ROWS` rows, each an independent chunk of the container
 (:mod:`shared.formats.container`, kind ``range``), coded and decoded on a thread pool by
 ``nogil`` kernels (:mod:`shared.compress._band` over :mod:`shared.compress._quadtree`, :mod:`shared.compress._lpred`,
-:mod:`shared.compress._wp`, :mod:`shared.compress._interp`), so memory stays proportional to a few bands and both cores work.
+:mod:`shared.compress._ls`, :mod:`shared.compress._wp`, :mod:`shared.compress._interp`), so memory stays proportional to a few bands and both cores work.
 Files of the earlier codecs (:data:`OLD_CODECS`) are refused by name (re-encode them from the
 ``range.npz``).
 
 Measured (``tests/bench/bench_compress.py``, bits per valid sample, lossless at 0.02 mm / within
 0.1 mm, effort 1): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768
-projector 2.085 / 0.379 (``quadtree-lp-4`` 2.085 / 0.404; JPEG-XL effort 7 2.16, JPEG-LS 2.44,
-JPEG-LS NEAR 1.29, SZ3 0.51); the bunny at 2:1 2.952 / 0.742 (JPEG-XL 2.93, SZ3 0.86); the
-Cyberware dragon scan 4.95 / 1.94 (effort 2: 4.85 lossless; JPEG-XL 4.55, JPEG-LS NEAR 3.00); a
-synthetic image with 0.2 mm white noise 5.51 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
+projector 1.977 / 0.379 (``quadtree-lp-5`` 2.085 / 0.379; JPEG-XL effort 7 2.16, JPEG-LS 2.44,
+JPEG-LS NEAR 1.29, SZ3 0.51); the bunny at 2:1 2.746 / 0.742 (``-lp-5`` 2.952; JPEG-XL 2.93,
+SZ3 0.86); the Cyberware dragon scan 4.86 / 1.94 (``-lp-5`` 4.95; JPEG-XL 4.55, JPEG-LS NEAR
+3.00); a synthetic image with 0.2 mm white noise 5.51 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
 """
 
 from __future__ import annotations
@@ -57,7 +58,9 @@ CODEC = "quadtree-lp-6"
 #: Range codecs of earlier releases, refused by name (their streams are not read any more).
 OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3", "quadtree-lp-4", "quadtree-lp-5")
 #: The encoder's options per effort. 1 (the default): every tool but JPEG-XL's weighted
-#: predictor; 2: the weighted predictor tried too, per lossless band, kept where it saves 0.5 %.
+#: predictor (the least-squares predictor included: its bands encode about half as fast,
+#: 5 MP per CPU second against 9-10 on the relief and the bunny); 2: the weighted predictor
+#: tried too, per lossless band, kept where it saves 0.5 %.
 #: Measured A/B in one run with ``quadtree-lp-3`` (MP per CPU second; bits per valid sample at 0.02 mm, effort 1 / 2):
 #: the relief at 2:1 2.165 / 2.141, the bunny at 1:1 4.204 / 4.196, the Cyberware dragon scan 0
 #: 4.953 / 4.851, the synthetic image 5.512 either way; lossless encoding 15-18 / 6-10, decoding
