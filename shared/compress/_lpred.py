@@ -44,7 +44,7 @@ from numba.cpython.unsafe.numbers import leading_zeros
 
 from shared.compress._ls import ls_predict
 from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
-from shared.compress._rows import F_SHIFT, FINE, MINB, fill_row, first_row, row_prediction
+from shared.compress._rows import F_SHIFT, FINE, MINB, fill_row, first_row, row_prediction, target_row
 from shared.compress._wp import wp_hole, wp_predict, wp_update
 
 #: Residual predictors a leaf may choose (see :func:`local_pred`; :data:`K_WP` is the weighted
@@ -163,20 +163,13 @@ def local_cost_integral(t, valid, lossless):
     S = np.zeros((H + 1, W + 1), np.int64)
     ra = np.zeros(W + 3, np.int64)
     rb = np.zeros(W + 3, np.int64)
-    sh = 0  # open loop: the targets themselves (measured better than rounding them in bounded mode)
-    half = 0
-    for x in range(W):
-        ra[x + 1] = ((t[0, x] + half) >> sh) << sh
-    for x in range(1, W):
-        if not valid[0, x]:
-            ra[x + 1] = ra[x]
-    ra[0] = ra[1]
-    ra[W + 1] = ra[W]
-    ra[W + 2] = ra[W]
+    # open loop: the targets themselves (measured better than rounding them in bounded mode),
+    # the first row its own row above
+    first_row(ra, t[0], valid, W)
     for y in range(H):
         acc = 0
         for x in range(W):
-            rb[x + 1] = ((t[y, x] + half) >> sh) << sh
+            rb[x + 1] = t[y, x]
         fill_row(ra, rb, valid, y, W)
         for x in range(W):
             if valid[y, x]:
@@ -224,12 +217,7 @@ def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw,
         ra = np.zeros(W + 3, np.int64)
         rb = np.zeros(W + 3, np.int64)
         for y in range(H):
-            row_prediction(y, W, cells, leaves, lcoef, pf, kr)
-            if y == 0:
-                first_row(ra, pf, valid, W)
-            for x in range(W):
-                rb[x + 1] = t[y, x]
-            fill_row(ra, rb, valid, y, W)
+            target_row(y, t, valid, cells, leaves, lcoef, pf, kr, ra, rb)
             cy = y // MINB
             for x in range(W):
                 if not valid[y, x]:
@@ -286,12 +274,7 @@ def feedback_weights(t, valid, cells, leaves, lcoef, pw, pls):
     sww = swn = snn = swe = sne = 0.0
     lim = float(64 * FINE)
     for y in range(H):
-        row_prediction(y, W, cells, leaves, lcoef, pf, kr)
-        if y == 0:
-            first_row(ra, pf, valid, W)
-        for x in range(W):
-            rb[x + 1] = t[y, x]
-        fill_row(ra, rb, valid, y, W)
+        target_row(y, t, valid, cells, leaves, lcoef, pf, kr, ra, rb)
         for x in range(W):
             if not valid[y, x]:
                 eb[x + 1] = 0.0

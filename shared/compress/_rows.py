@@ -85,3 +85,18 @@ def first_row(ra, pf, valid, W):
     ra[0] = ra[1]
     ra[W + 1] = ra[W]
     ra[W + 2] = ra[W]
+
+
+@njit(cache=True, nogil=True)
+def target_row(y, t, valid, cells, leaves, lcoef, pf, kr, ra, rb):
+    """Row y of a band's targets ``t`` (H, W) int64 into the padded row ``rb``, holes filled (the
+    reconstruction in lossless mode, the open-loop estimate in bounded mode), and its leaves'
+    model predictions and predictors into ``pf``, ``kr`` (:func:`row_prediction`); at the band's
+    first row, the virtual row above into ``ra``."""
+    W = t.shape[1]
+    row_prediction(y, W, cells, leaves, lcoef, pf, kr)
+    if y == 0:
+        first_row(ra, pf, valid, W)
+    for x in range(W):
+        rb[x + 1] = t[y, x]
+    fill_row(ra, rb, valid, y, W)

@@ -227,16 +227,21 @@ def _raster_events(z: np.ndarray, lossless: bool) -> tuple[np.ndarray, np.ndarra
     return tab, val, nb, n, head
 
 
+def _decodes(z: np.ndarray, tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n: int, lossless: bool) -> bool:
+    """Whether the band's events decode (the decoder's answer 0, not -1)."""
+    scale = Q if lossless else _plan(z, None, 0.1).scale
+    out = np.empty(z.shape, np.float32)
+    return band.decode_band(*band._pack(tab, val, nb, n), z.shape[0], z.shape[1], lossless, scale, out) == 0
+
+
 @pytest.mark.parametrize("what, at, value", [("flag 2", 8, 2), ("a weight's byte beyond 255", 9, 256),
                                              ("the last weight's byte beyond 255", 8 + 2 * ls.NLS, 300)])
 def test_a_damaged_least_squares_header_is_refused(what: str, at: int, value: int) -> None:
     z = smooth_relief(64, 64)
     tab, val, nb, n, head = _raster_events(z, True)
-    assert val[head[8]] == 1  # the band runs the predictor
+    assert val[head[8]] == 1 and _decodes(z, tab, val, nb, n, True)  # the band runs the predictor
     val[head[at]] = value
-    tables, words = band._pack(tab, val, nb, n)
-    out = np.empty(z.shape, np.float32)
-    assert band.decode_band(tables, words, 64, 64, True, Q, out) == -1
+    assert not _decodes(z, tab, val, nb, n, True)
 
 
 def test_a_leaf_taking_the_predictor_in_a_band_without_it_is_refused() -> None:
@@ -245,16 +250,12 @@ def test_a_leaf_taking_the_predictor_in_a_band_without_it_is_refused() -> None:
     leaves = head[9 + 2 * ls.NLS:]
     assert np.any(val[leaves] == lp.K_LS)
     val[head[8]] = 0  # the flag off: the weights' bytes now read as leaves' predictors
-    tables, words = band._pack(tab, val, nb, n)
-    out = np.empty(z.shape, np.float32)
-    assert band.decode_band(tables, words, 64, 64, True, Q, out) == -1
+    assert not _decodes(z, tab, val, nb, n, True)
 
 
 def test_the_predictor_in_a_bounded_band_is_refused() -> None:
     z = smooth_relief(64, 64)
     tab, val, nb, n, head = _raster_events(z, False)
-    assert val[head[8]] == 0
+    assert val[head[8]] == 0 and _decodes(z, tab, val, nb, n, False)
     val[head[8]] = 1
-    tables, words = band._pack(tab, val, nb, n)
-    out = np.empty(z.shape, np.float32)
-    assert band.decode_band(tables, words, 64, 64, False, _plan(z, None, 0.1).scale, out) == -1
+    assert not _decodes(z, tab, val, nb, n, False)
