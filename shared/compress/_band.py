@@ -140,7 +140,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     count = (opts & lp.OPT_SIGN) != 0
     alt = np.zeros((lp.NLEVEL * lp.NSUB, NSYM) if count else (1, 1), np.int32)
     alt_b = np.zeros_like(alt)
-    cost = np.empty((nleaf, lp.NK), np.int64)  # the leaves' summed errors by predictor
+    cost = np.empty((nleaf, lp.NK), np.int64)  # the leaves' summed costs by predictor
     lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ONE)
     # the least-squares predictor (lossless mode), where the leaves do not keep their fitted
     # surface (white noise): one more choice of every leaf, its weights in the header
@@ -151,7 +151,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             fits.append(ls_weights(t, valid))
         lsw = fits[0]
         if lsw is not None:
-            # the predictions below the first two rows do not depend on the tree either
+            # the predictions of the rows that do not depend on the tree are made once (ls_band)
             pls = ls_band(t, valid, cells, leaves, lcoef, lsw, fits[1] if len(fits) > 1 else None)
             fits[1:] = [pls]
             lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, pls, ONE, cost, ZERO)

@@ -545,9 +545,9 @@ def _cell_integral(valid):
 def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef, head):
     """A band's quadtree, its mask ``valid`` decoded: the leaves into ``leaves`` (n, 5) (x0, y0,
     B, model, predictor) and ``lcoef`` (n, 6) int64, then the eight flags and weights into ``head``
-    (8 + 2 NLS,) int64 and, where the eighth flag says the least-squares predictor runs, its
-    weights' bytes after them (as :func:`_put_predictors` put them). Returns (leaves, xa, xb, pos), -1 leaves
-    for a corrupt stream."""
+    (8 + 2 NLS tiles,) int64 (:mod:`shared.compress._ls`) and, where the eighth flag says the
+    least-squares predictor runs, its weights' bytes after them (as :func:`_put_predictors` put
+    them). Returns (leaves, xa, xb, pos), -1 leaves for a corrupt stream."""
     H, W = valid.shape
     ii = _cell_integral(valid)
     nleaf = 0
