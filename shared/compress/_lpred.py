@@ -140,8 +140,8 @@ def _log_cost(e):
     4.810 -> 4.860 / 4.555, the real captures within 0.3 % (9.351 -> 9.363 the worst), the
     synthetic noise 5.512 -> 5.509; m in eighths or halves of a quantum: up to 1.5 % larger on the
     relief at 2:1 and 4:1 or on a dragon; in sixteenths 4 % larger on the relief."""
-    m = min(abs(e), E_LIM) >> (F_SHIFT - 2)
-    return 63 - np.int64(leading_zeros(np.uint64(2 * m + 1)))
+    # floor(log2(2 m + 1)) is the bit length of m: 64 less its leading zeros (|e| < 2**63)
+    return 64 - np.int64(leading_zeros(np.uint64(abs(e) >> (F_SHIFT - 2))))
 
 
 @njit(cache=True, nogil=True)
