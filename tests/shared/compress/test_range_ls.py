@@ -177,6 +177,70 @@ def interior_error(t: np.ndarray, w: np.ndarray) -> float:
     return float(np.abs(t[2:H, lo:W - hi] - pred).mean())
 
 
+def _tree(t: np.ndarray, valid: np.ndarray, margin: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A band's quadtree: (cells, leaves, coefficients)."""
+    tab, val, nb = buffers(t.size)
+    leaves = np.zeros((t.size // 16 + 64, 5), np.int64)
+    lcoef = np.zeros((t.size // 16 + 64, 6), np.int64)
+    n, nleaf = band._encode_tree(t, valid, True, np.int64(WITH), float(margin), 0.0, tab, val, nb, leaves, lcoef)
+    assert n > 0
+    cells = band._leaf_cells(np.int64(t.shape[0]), np.int64(t.shape[1]), leaves, np.int64(nleaf))
+    return cells, leaves, lcoef
+
+
+@pytest.mark.parametrize("lead", ["none", "every row", "the first 40 rows", "a row in two"])
+def test_predictions_made_again_for_another_tree_are_those_made_afresh(lead: str) -> None:
+    # the encoder makes the predictions of its second tree margin from its first's, again only
+    # where rows depend on the tree: rows that start with holes are filled from the row above,
+    # the first from the tree's virtual row (a leaf's model at pixel 0, where the leaf holds
+    # samples further right). Another tree (every leaf's surface 5 mm higher): the same
+    # predictions as made afresh.
+    z = smooth_relief()
+    z[np.isnan(z)] = 700.0
+    if lead == "every row":
+        z[:, :5] = np.nan
+    elif lead == "the first 40 rows":
+        z[:40, :2] = np.nan
+    elif lead == "a row in two":
+        z[::2, :3] = np.nan
+    t, valid = qt.quantise(z, Q, True)
+    w = ls.ls_weights(t, valid)
+    a = _tree(t, valid, qt.SPLIT_LOSSLESS[0])
+    b = (a[0], a[1], a[2].copy())
+    b[2][:, 0] += 250 * 32  # 250 quanta, in fine units
+    first = ls.ls_band(t, valid, *a, w)
+    afresh = ls.ls_band(t, valid, *b, w)
+    np.testing.assert_array_equal(ls.ls_band(t, valid, *b, w, first), afresh)
+    if lead != "none":
+        assert not np.array_equal(first, afresh)  # the tree matters to these rows
+
+
+def test_the_kernel_predicts_what_the_neighbour_list_says() -> None:
+    # the decoder's written-out sum (the band's interior) and its loop over LS_DY, LS_DX (its
+    # edges) are the same predictor: numpy's sum over the list gives the kernel's predictions
+    # exactly, in every tile
+    z = smooth_relief(64, 1100, seed=3)
+    z[np.isnan(z)] = 700.0
+    t, valid = qt.quantise(z, Q, True)
+    w = ls.ls_weights(t, valid)
+    pred = ls.ls_band(t, valid, *_tree(t, valid, qt.SPLIT_LOSSLESS[0]), w)
+    H, W = t.shape
+    lo, hi = -int(ls.LS_DX.min()), int(ls.LS_DX.max())
+    n = t[1:H - 1].astype(np.int64)  # N of rows 2.. (the rows above are the band's own)
+    for x in list(range(lo, lo + 8)) + list(range(505, 520)) + list(range(W - hi - 8, W - hi)):
+        o = (x >> ls.TILE_SHIFT) * ls.NLS
+        acc = sum(int(w[o + k]) * (t[2 - ls.LS_DY[k]:H - ls.LS_DY[k], x + ls.LS_DX[k]] - n[:, x]) for k in range(ls.NLS))
+        np.testing.assert_array_equal(pred[2:, x], n[:, x] + ((acc + (1 << (ls.LS_SHIFT - 1))) >> ls.LS_SHIFT))
+    # at the first column the loop clamps to the band: the neighbours in the rows above take the
+    # row's first pixel, those to the left in its own row the W neighbour (the row above's first)
+    acc = 0
+    for k in range(ls.NLS):
+        dy, dx = int(ls.LS_DY[k]), int(ls.LS_DX[k])
+        v = t[2 - dy:H - dy, min(max(dx, 0), W - 1)] if dy else t[1:H - 1, 0]
+        acc = acc + int(w[k]) * (v - n[:, 0])
+    np.testing.assert_array_equal(pred[2:, 0], n[:, 0] + ((acc + (1 << (ls.LS_SHIFT - 1))) >> ls.LS_SHIFT))
+
+
 def test_the_fit_leaves_out_depth_jumps() -> None:
     # a silhouette's 3.5 m steps do not pull the fit: the weights fitted with them predict the
     # relief without them within 2 % of its own fit's error (with the steps' samples in the
