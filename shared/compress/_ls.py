@@ -4,17 +4,17 @@
 An oversampling camera's sub-pixel depth is smooth and detailed at once: its samples are
 correlated over more than the four neighbours the median and plane predictors see, in a way a
 fixed predictor does not know (the decoder's errors run along the projector's stripes). The
-encoder fits, per band, the linear prediction of each sample from :data:`NLS` causal neighbours
-in the current row and the two above (as the least-squares predictors of TMW and GLICBAWLS do per
-pixel; here once per band, its weights in the band's header), as differences from the N
-neighbour so that a constant depth is predicted exactly whatever the weights. It is one more
-predictor a leaf may choose (:data:`shared.compress._lpred.K_LS`), where its summed absolute error
-is the smallest.
+encoder fits, per tile of a band's columns (:data:`TILE_SHIFT`), the linear prediction of each
+sample from :data:`NLS` causal neighbours in the current row and the two above (as the
+least-squares predictors of TMW and GLICBAWLS do per pixel; here once per tile, its weights in
+the band's header), as differences from the N neighbour so that a constant depth is predicted
+exactly whatever the weights. It is one more predictor a leaf may choose
+(:data:`shared.compress._lpred.K_LS`), where its summed cost is the smallest.
 
-The leaves choose by summed absolute error, which is not code length (depth held constant over
-2 x 2 pixels gives the local predictors' errors of 0 at every other pixel, which code smaller
-than the fit's smaller errors), so the encoder codes the band's residuals both ways and keeps
-the smaller (:mod:`shared.compress._band`).
+A leaf's cost is not the code length (depth held constant over 2 x 2 pixels gives the local
+predictors' errors of 0 at every other pixel, which code smaller than the fit's smaller
+errors), so where the costs do not clearly favour it the encoder codes the band's residuals
+both ways and keeps the smaller (:mod:`shared.compress._band`).
 
 The fit is robust to the depth jumps at silhouettes, which would otherwise dominate the squares:
 a first fit over every fifth row, then a second without the samples it predicts worse than
