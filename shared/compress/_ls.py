@@ -32,7 +32,7 @@ import numpy as np
 from numba import njit
 
 from shared.compress._rans import at
-from shared.compress._rows import FINE, fill_row, first_row, row_prediction
+from shared.compress._rows import FINE, fill_row, target_row
 
 #: Neighbours of a sample (rows above, column offset): W, NW, NE, WW, NWW, NEE, NN, NNW, NNE,
 #: WWW, NNWW, NNEE, then the row above out to 3 and 4 columns (N is the origin of the
@@ -123,14 +123,10 @@ def ls_rows(t, valid, cells, leaves, lcoef, w, pred, rows):
     rb = np.zeros(W + 3, np.int64)
     rc = np.zeros(W + 3, np.int64)
     for y in range(H):
+        target_row(y, t, valid, cells, leaves, lcoef, pf, kr, ra, rb)
         if y == 0:
-            row_prediction(y, W, cells, leaves, lcoef, pf, kr)
-            first_row(ra, pf, valid, W)
             for x in range(W + 3):  # scalar loops: slices cost seconds of compilation
                 rc[x] = ra[x]
-        for x in range(W):
-            rb[x + 1] = t[y, x]
-        fill_row(ra, rb, valid, y, W)
         for x in range(W):
             if valid[y, x]:
                 pred[y, x] = ls_predict(x, W, rb[x] if x > 0 else ra[1], ra, rb, rc, w)
