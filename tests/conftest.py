@@ -18,7 +18,6 @@
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 import os
@@ -28,6 +27,8 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+
+from tests.support.locks import held
 
 
 def _run_cache(tmp_path_factory: pytest.TempPathFactory, name: str) -> Path:
@@ -51,15 +52,11 @@ def sim_capture_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[..
         key = json.dumps([scene, [w, h], seed, list(projector), sorted(kw.items())], default=str)
         digest = hashlib.sha1(key.encode()).hexdigest()[:10]
         folder = root / f"{scene}-{w}x{h}-s{seed}-{digest}"
-        with open(root / f"{folder.name}.lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)  # released when the holder finishes or dies
-            try:
-                # simulate_named renames a complete folder into place, so its presence means done.
-                if not (folder / "capture.json").is_file():
-                    simulate_named(scene, folder, size=(w, h), projector=projector, seed=seed,
-                                   imaging=ImagingParams(**kw), overwrite=True)
-            finally:
-                fcntl.flock(lock, fcntl.LOCK_UN)
+        with held(root / f"{folder.name}.lock"):
+            # simulate_named renames a complete folder into place, so its presence means done.
+            if not (folder / "capture.json").is_file():
+                simulate_named(scene, folder, size=(w, h), projector=projector, seed=seed,
+                               imaging=ImagingParams(**kw), overwrite=True)
         return folder
 
     return make
@@ -96,16 +93,12 @@ def merge_factory(tmp_path_factory: pytest.TempPathFactory) -> Callable[[Path], 
     def make(scanset: Path) -> Path:
         key = hashlib.sha1(str(scanset.resolve()).encode()).hexdigest()[:10]
         out, done = root / key / "merge", root / f"{key}.done"
-        with open(root / f"{key}.lock", "w") as lock:
-            fcntl.flock(lock, fcntl.LOCK_EX)  # the first worker merges, the other waits
-            try:
-                if not done.is_file():
-                    shutil.rmtree(out.parent, ignore_errors=True)  # a merge cut short earlier
-                    out.parent.mkdir()
-                    assert main(["merge", str(scanset), "--out", str(out)]) == 0
-                    done.touch()
-            finally:
-                fcntl.flock(lock, fcntl.LOCK_UN)
+        with held(root / f"{key}.lock"):  # the first worker merges, the other waits
+            if not done.is_file():
+                shutil.rmtree(out.parent, ignore_errors=True)  # a merge cut short earlier
+                out.parent.mkdir()
+                assert main(["merge", str(scanset), "--out", str(out)]) == 0
+                done.touch()
         return out
 
     return make

@@ -11,7 +11,6 @@
 
 from __future__ import annotations
 
-import fcntl
 import hashlib
 import json
 from pathlib import Path
@@ -21,6 +20,7 @@ from scipy.spatial.transform import Rotation
 
 from shared.core.datapaths import shared_data_dir
 from tests.support.links import place_file
+from tests.support.locks import held
 
 DRAGON = shared_data_dir() / "stanford-dragon-turntable"
 
@@ -35,14 +35,10 @@ def cached_scanset(root: Path, scene: str = "bunny", views: int = 8, mode: str =
     key = json.dumps([scene, views, mode, list(size), list(projector), seed] + (["roi"] if roi else []))
     folder = root / f"scanset-{scene}-{mode}-{views}-{size[0]}x{size[1]}-{hashlib.sha1(key.encode()).hexdigest()[:8]}"
     root.mkdir(parents=True, exist_ok=True)
-    with open(root / f"{folder.name}.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
-        try:
-            if not (folder / "scanset.json").is_file():
-                simulate_scanset(scene, folder, views=views, mode=mode, size=size, projector=projector, seed=seed,
-                                 overwrite=True, roi=roi)
-        finally:
-            fcntl.flock(lock, fcntl.LOCK_UN)
+    with held(root / f"{folder.name}.lock"):
+        if not (folder / "scanset.json").is_file():
+            simulate_scanset(scene, folder, views=views, mode=mode, size=size, projector=projector, seed=seed,
+                             overwrite=True, roi=roi)
     return folder
 
 

@@ -7,7 +7,6 @@ downloads. The app is served by uvicorn on 127.0.0.1 (a free port) in a thread.
 from __future__ import annotations
 
 import base64
-import fcntl
 import shutil
 import socket
 import subprocess
@@ -24,6 +23,7 @@ import pytest
 from fastapi import FastAPI
 
 from services.viewer import routes
+from tests.support.locks import held
 
 __all__ = ["CHROMIUM", "CHROMIUM_ARGS", "VIEWER_DIR", "Page", "Server", "built_viewer", "chromium", "rays_through_pixels"]
 
@@ -53,8 +53,7 @@ def _sources_newer_than_build() -> bool:
 def built_viewer() -> Path:
     """The viewer's ``dist`` folder, rebuilt with npm when the sources changed since the last build."""
     # Test processes may run this at once: one builds while the others wait on the lock.
-    with open(Path(tempfile.gettempdir()) / "graylight-viewer-build.lock", "w") as lock:
-        fcntl.flock(lock, fcntl.LOCK_EX)
+    with held(Path(tempfile.gettempdir()) / "graylight-viewer-build.lock"):
         if _sources_newer_than_build():
             npm = shutil.which("npm")
             if npm is None or not (VIEWER_DIR / "node_modules").is_dir():
