@@ -241,6 +241,30 @@ def test_the_kernel_predicts_what_the_neighbour_list_says() -> None:
     np.testing.assert_array_equal(pred[2:, 0], n[:, 0] + ((acc + (1 << (ls.LS_SHIFT - 1))) >> ls.LS_SHIFT))
 
 
+def test_the_fit_samples_what_the_neighbour_list_says() -> None:
+    # the fit's samples (written out in the band's interior, looped over the list at its edges)
+    # are each neighbour's difference from N as LS_DY, LS_DX say: from every STEP-th row from the
+    # third, every column of the tile
+    z = smooth_relief(64, 300, seed=5)
+    z[np.isnan(z)] = 700.0
+    t, valid = qt.quantise(z, Q, True)
+    F, e, n = ls.ls_samples(t, valid, np.int64(0), np.int64(300))
+    H, W = t.shape
+    rows = [y for y in range(2, H) if y % ls.STEP == 0]
+    assert n == len(rows) * W
+    for i, y in enumerate(rows):
+        c = t[y - 1]
+        np.testing.assert_array_equal(e[i * W:(i + 1) * W], t[y] - c)
+        for k in range(ls.NLS):
+            dy, dx = int(ls.LS_DY[k]), int(ls.LS_DX[k])
+            cols = np.clip(np.arange(W) + dx, 0, W - 1)
+            v = t[y - dy, cols]
+            if dy == 0:  # off the row's start: its W neighbour, the row above's first pixel at x = 0
+                left = np.arange(W) + dx < 0
+                v = np.where(left, np.where(np.arange(W) > 0, t[y, np.maximum(np.arange(W) - 1, 0)], t[y - 1, 0]), v)
+            np.testing.assert_array_equal(F[i * W:(i + 1) * W, k], v - c, err_msg=f"row {y}, neighbour {k}")
+
+
 def test_the_fit_leaves_out_depth_jumps() -> None:
     # a silhouette's 3.5 m steps do not pull the fit: the weights fitted with them predict the
     # relief without them within 2 % of its own fit's error (with the steps' samples in the
