@@ -5,18 +5,20 @@ plain Python over the kernels of :mod:`shared.compress._quadtree` (the mask and 
 and releasing the GIL, so bands still code in parallel threads.
 
 Per band the encoder codes the raster order with each tree margin of
-:data:`shared.compress._quadtree.SPLIT_LOSSLESS` (lossless) and keeps the smaller stream, tries
-the weighted predictor (effort 2) and bias cancellation (bounded) both ways, codes the residuals
-of the kept margin again with sign contexts where the first pass's counts say they pay, and in
-bounded mode codes the interpolation order too (a first pass, then, unless its estimate says
-the raster order's stream is smaller, a second with the feedback weights and the tables the
-first pass's counts choose), keeping the smaller stream.
+:data:`shared.compress._quadtree.SPLIT_LOSSLESS` (lossless) and keeps the smaller stream (the
+margins share the blocks' fits and the least-squares fit; a margin that builds a tree another
+built is not coded again), tries the weighted predictor (effort 2) and bias cancellation
+(bounded) both ways, codes the residuals of the kept margin again with sign contexts where the
+first pass's counts say they pay, and in bounded mode codes the interpolation order too (a
+first pass, then, unless its estimate says the raster order's stream is smaller, a second with
+the feedback weights and the tables the first pass's counts choose), keeping the smaller
+stream.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
@@ -50,6 +52,7 @@ from shared.compress._quadtree import (
     _leaf_cells,
     _put_predictors,
     _stream_bits,
+    tree_memo,
 )
 from shared.compress._rans import (
     NSYM,
@@ -108,13 +111,34 @@ def _restore(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, a: int, saved: tu
     tab[a:b], val[a:b], nb[a:b] = saved
 
 
+@dataclass
+class _Margins:
+    """What a band's tree margins share (:func:`_encode_events`): the blocks' fits, the
+    least-squares weights once fitted (:func:`shared.compress._ls.ls_weights`: they do not
+    depend on the tree) and their predictions, and the trees (leaves and models) already coded."""
+
+    fitted: bool = False
+    lsw: np.ndarray | None = None
+    pls: np.ndarray | None = None
+    trees: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    memo: tuple[np.ndarray, ...] = ()  # the blocks' fits (shared.compress._quadtree.tree_memo)
+
+    def seen(self, leaves: np.ndarray, lcoef: np.ndarray) -> bool:
+        """Whether this tree was coded already: then its stream would be the same."""
+        return any(np.array_equal(lv, leaves) and np.array_equal(cf, lcoef) for lv, cf in self.trees)
+
+
+#: :func:`_encode_events`' count where a band's tree margin built a tree another had built.
+SAME_TREE = -2
+
+
 def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, margin: float, share: float,
                    tab: np.ndarray, val: np.ndarray, nb: np.ndarray,
-                   fits: list[Any] | None = None) -> tuple[int, _SignPass | None]:
+                   shared: _Margins | None = None) -> tuple[int, _SignPass | None]:
     """Every event of one band, the residuals without sign contexts; returns the count (or -1
-    when the event buffers are too small) and what coding them with sign contexts needs.
-    ``fits`` holds the band's least-squares weights once fitted (:func:`shared.compress._ls.ls_weights`,
-    the same for every tree margin) and their predictions, to share them between calls.
+    when the event buffers are too small, :data:`SAME_TREE` when ``shared`` holds the tree
+    already) and what coding them with sign contexts needs. ``shared`` is what the band's tree
+    margins share.
 
     Plain Python over the kernels (the tree's, the predictors', the residuals'), each compiled
     once on its own: as one kernel it spent 4.7 s of numba's time linking and optimising them
@@ -122,13 +146,20 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     H, W = t.shape
     lossless = bool(lossless)
     opts = np.int64(opts)
-    fits = [] if fits is None else fits
+    shared = _Margins() if shared is None else shared
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
     leaves = np.zeros((nleaf_max, 5), np.int64)  # x0, y0, B, model, residual predictor
     lcoef = np.empty((nleaf_max, 6), np.int64)
-    n, nleaf = _encode_tree(t, valid, lossless, opts, float(margin), float(share), tab, val, nb, leaves, lcoef)
+    if not shared.memo:
+        shared.memo = tree_memo(t, valid, lossless, int(opts))
+    n, nleaf = _encode_tree(t, valid, lossless, opts, float(margin), float(share), tab, val, nb, leaves, lcoef,
+                            *shared.memo)
     if n < 0:
         return -1, None
+    if shared.seen(leaves[:nleaf, :4], lcoef[:nleaf]):
+        # the same leaves make the same events (noise about smooth depth: both margins split
+        # the first two of the 15 MP bench image's 14 bands alike)
+        return SAME_TREE, None
     n = np.int64(n)
     nleaf = np.int64(nleaf)
     # 3. each leaf's residual predictor, then the residuals in raster order
@@ -147,13 +178,14 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     pls, lsw = none, None
     sure = False  # the least-squares predictor kept without coding the band the other way
     if lossless and (opts & lp.OPT_LS) and (opts & lp.OPT_PRED) and _model_share(leaves[:nleaf]) < LS_MODEL_MAX:
-        if not fits:  # the fit does not depend on the tree: once for every margin
-            fits.append(ls_weights(t, valid))
-        lsw = fits[0]
+        if not shared.fitted:  # the fit does not depend on the tree: once for every margin
+            shared.lsw = ls_weights(t, valid)
+            shared.fitted = True
+        lsw = shared.lsw
         if lsw is not None:
             # the predictions of the rows that do not depend on the tree are made once (ls_band)
-            pls = ls_band(t, valid, cells, leaves, lcoef, lsw, fits[1] if len(fits) > 1 else None)
-            fits[1:] = [pls]
+            pls = ls_band(t, valid, cells, leaves, lcoef, lsw, shared.pls)
+            shared.pls = pls
             lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, pls, ONE, cost, ZERO)
             # tried where the leaves' summed costs fall by LS_MIN_GAIN
             k = leaves[:nleaf, 4]
@@ -267,6 +299,8 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
         gain = bits - lp.sign_bits(alt, np.int64(cofs), tab, nb, n_res, np.int64(n_end))
     signs = _SignPass(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, pw, pe, np.int64(wp),
                       np.int64(cofs), alt, n + 6, n_res, gain, pls)
+    # kept once coded: a margin whose buffers were too small codes its tree again
+    shared.trees.append((leaves[:nleaf, :4].copy(), lcoef[:nleaf].copy()))
     return int(n_end), signs
 
 
@@ -358,11 +392,13 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
     signs = None
     interp = not lossless and bool(opts & lp.OPT_INTERP)
     compare = len(margins) > 1 or interp  # streams' bits wanted
-    fits: list[Any] = []
+    shared = _Margins()
     for margin in margins:
         cap, (tab_i, val_i, nb_i), (n_i, signs_i) = _coded(
             cap, lambda tb, vl, nbt, m=margin: _encode_events(t, valid, bool(lossless), np.int64(opts), float(m),
-                                                             float(share), tb, vl, nbt, fits))
+                                                             float(share), tb, vl, nbt, shared))
+        if n_i == SAME_TREE:
+            continue
         # each margin's stream without sign contexts, less what they would save: the residuals
         # are coded again with them for the margin kept alone
         bits = _stream_bits(tab_i, val_i, nb_i, np.int64(n_i)) - max(signs_i.gain, 0.0) if compare else 0.0

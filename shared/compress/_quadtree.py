@@ -333,10 +333,57 @@ def _put_coef(tab, val, nb, n, t, u):
     return put_value(tab, val, nb, n, t, u, L_COEF)
 
 
+#: Levels of the quadtree: blocks of TOP, TOP / 2, ... MINB samples.
+NLEV = 5
+assert TOP >> (NLEV - 1) == MINB
+
+
+def tree_memo(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> tuple[np.ndarray, ...]:
+    """What a band's trees share whatever their margin (:func:`_encode_tree`): the integral of
+    local prediction's errors (:func:`shared.compress._lpred.local_cost_integral`) and, empty,
+    every block's fitted model (int64 (cells, 8): model, valid count + 1 (0: not yet fitted),
+    six coefficients) and its estimated bits (float64 (cells,)), the blocks of each level in
+    raster order (zeros: only the pages of the blocks fitted are ever touched). A block's fit
+    does not depend on the margin; a larger margin splits fewer blocks, so its tree fits none
+    the smaller margin's did not."""
+    H, W = t.shape
+    local = (opts & lp.OPT_PRED) != 0
+    S = lp.local_cost_integral(t, valid, lossless) if local else np.zeros((1, 1), np.int64)
+    cells = sum(-(-H // (TOP >> lev)) * -(-W // (TOP >> lev)) for lev in range(NLEV))
+    return S, np.zeros((cells, 8), np.int64), np.zeros(cells)
+
+
 @njit(cache=True, nogil=True)
-def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, lcoef):
+def _memo_node(t, valid, S, y0, x0, B, lev, coef, ws, local, memo, memo_c):
+    """:func:`_node` of block (y0, x0, B) at level ``lev``, fitted once (:func:`tree_memo`; an
+    empty ``memo``: fitted every time). A block at the band's edge has children past it: they
+    are empty, and have no cell (their index would be another block's)."""
+    H, W = t.shape
+    if y0 >= H or x0 >= W or memo.shape[0] == 0:
+        return _node(t, valid, S, y0, x0, B, coef, ws, local)
+    off = 0
+    for j in range(lev):
+        b = TOP >> j
+        off += ((H + b - 1) // b) * ((W + b - 1) // b)
+    i = off + (y0 // B) * ((W + B - 1) // B) + x0 // B
+    if memo[i, 1] == 0:
+        m, cost, cnt = _node(t, valid, S, y0, x0, B, coef, ws, local)
+        memo[i, 0] = m
+        memo[i, 1] = cnt + 1
+        memo_c[i] = cost
+        for k in range(6):
+            memo[i, 2 + k] = coef[k]
+        return m, cost, cnt
+    for k in range(6):
+        coef[k] = memo[i, 2 + k]
+    return memo[i, 0], memo_c[i], memo[i, 1] - 1
+
+
+@njit(cache=True, nogil=True)
+def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, lcoef, S, memo, memo_c):
     """The mask's and the quadtree's events of one band (its leaves into ``leaves`` (n, 5) and
     ``lcoef`` (n, 6) int64); returns (events, leaves), events -1 when the buffers are too small.
+    ``S``, ``memo`` and ``memo_c`` from :func:`tree_memo`, shared by the band's margins.
     (Arrays copied by loops, not ``a[:] = b``: numba links a shape mismatch's error message into
     every kernel holding one, 0.2 s more compilation each, 2.4 s once a process.)"""
     H, W = t.shape
@@ -346,7 +393,6 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
     n = put(tab, val, nb, n, T_PRED, MODE_RASTER, 0)
     # 2. the quadtree with its leaves' models
     local = (opts & lp.OPT_PRED) != 0
-    S = lp.local_cost_integral(t, valid, lossless) if local else np.zeros((1, 1), np.int64)
     nleaf = 0
     st_xyb = np.empty((64, 4), np.int64)  # x0, y0, B, level
     st_fit = np.empty((64, 6), np.int64)
@@ -365,7 +411,8 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
     ws = np.empty(WS_SIZE)
     for ty in range(0, H, TOP):
         for tx in range(0, W, TOP):
-            m, cost, cnt = _node(t, valid, S, np.int64(ty), np.int64(tx), np.int64(TOP), coef, ws, local)
+            m, cost, cnt = _memo_node(t, valid, S, np.int64(ty), np.int64(tx), np.int64(TOP), np.int64(0), coef, ws, local,
+                                      memo, memo_c)
             if cnt == 0:
                 continue
             sp = 0
@@ -394,7 +441,8 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
                     for k in range(4):
                         kx = x0 + (k & 1) * h
                         ky = y0 + (k >> 1) * h
-                        kid_m[k], kid_cost[k], kc = _node(t, valid, S, np.int64(ky), np.int64(kx), np.int64(h), kids[k], ws, local)
+                        kid_m[k], kid_cost[k], kc = _memo_node(t, valid, S, np.int64(ky), np.int64(kx), np.int64(h),
+                                                               np.int64(lev + 1), kids[k], ws, local, memo, memo_c)
                         if kc > 0:
                             split_cost += kid_cost[k]
                     split = split_cost + margin + share * cost < cost

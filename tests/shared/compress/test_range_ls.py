@@ -182,7 +182,8 @@ def _tree(t: np.ndarray, valid: np.ndarray, margin: float) -> tuple[np.ndarray, 
     tab, val, nb = buffers(t.size)
     leaves = np.zeros((t.size // 16 + 64, 5), np.int64)
     lcoef = np.zeros((t.size // 16 + 64, 6), np.int64)
-    n, nleaf = band._encode_tree(t, valid, True, np.int64(WITH), float(margin), 0.0, tab, val, nb, leaves, lcoef)
+    n, nleaf = band._encode_tree(t, valid, True, np.int64(WITH), float(margin), 0.0, tab, val, nb, leaves, lcoef,
+                                 *band.tree_memo(t, valid, True, WITH))
     assert n > 0
     cells = band._leaf_cells(np.int64(t.shape[0]), np.int64(t.shape[1]), leaves, np.int64(nleaf))
     return cells, leaves, lcoef

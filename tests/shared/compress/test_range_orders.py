@@ -252,3 +252,74 @@ def test_interpolation_is_not_tried_where_surface_models_predict_the_band() -> N
     noise = (800.0 + 0.02 * xx + 0.01 * yy + rng.normal(0.0, 0.2, (256, 320))).astype(np.float32)
     assert share(noise) >= band.INTERP_MODEL_MAX
     assert share(relief(hold=(1, 3))) < 0.5
+
+
+def _tree_events(t: np.ndarray, valid: np.ndarray, lossless: bool, margin: float, share: float,
+                 memo: tuple[np.ndarray, ...]) -> tuple[np.ndarray, ...]:
+    """A band's mask and tree events, leaves and models, the blocks' fits from ``memo``."""
+    tab, val, nb = buffers(t.size)
+    leaves = np.zeros((t.size // 16 + 64, 5), np.int64)
+    lcoef = np.zeros((t.size // 16 + 64, 6), np.int64)
+    n, nleaf = band._encode_tree(t, valid, lossless, np.int64(lp.OPT_ALL), float(margin), float(share), tab, val, nb,
+                                 leaves, lcoef, *memo)
+    assert n > 0
+    return tab[:n], val[:n], nb[:n], leaves[:nleaf], lcoef[:nleaf]
+
+
+@pytest.mark.parametrize("lossless", [True, False])
+def test_a_tree_built_on_another_margins_fits_is_the_tree_built_afresh(lossless: bool) -> None:
+    # a band's margins share every block's fit (qt.tree_memo: the fit does not depend on the
+    # margin): each margin's tree, built after the other's, is the tree built on its own. A band
+    # whose height and width are not multiples of any block size, with holes, so that every
+    # level's blocks are indexed at the edges.
+    z = relief(250, 333, hold=(1, 1))
+    z[100:140, 200:333] = np.nan
+    z[::7, ::5] = np.nan
+    t, valid = qt.quantise(z, _plan(z, 0.02, None).scale if lossless else _plan(z, None, 0.05).scale, lossless)
+    if lossless:
+        (m0, s0), (m1, s1) = [(m, 0.0) for m in qt.SPLIT_LOSSLESS]
+    else:
+        (m0, s0), (m1, s1) = (0.0, 0.0), qt.SPLIT_BOUNDED
+    for first, second in (((m0, s0), (m1, s1)), ((m1, s1), (m0, s0))):
+        memo = qt.tree_memo(t, valid, lossless, lp.OPT_ALL)
+        a = _tree_events(t, valid, lossless, *first, memo)
+        shared = _tree_events(t, valid, lossless, *second, memo)
+        fresh = _tree_events(t, valid, lossless, *second, qt.tree_memo(t, valid, lossless, lp.OPT_ALL))
+        # an empty memo: every block fitted as it is met
+        unmemo = _tree_events(t, valid, lossless, *second, (memo[0], np.zeros((0, 8), np.int64), np.zeros(0)))
+        for x, y, u in zip(shared, fresh, unmemo, strict=True):
+            np.testing.assert_array_equal(x, y)
+            np.testing.assert_array_equal(x, u)
+        assert a[3].shape != fresh[3].shape  # the margins' trees differ: the memo was part-filled
+
+
+def test_a_margin_that_builds_a_tree_built_already_is_not_coded_again(monkeypatch: pytest.MonkeyPatch) -> None:
+    # white noise about a plane: both lossless margins keep the 64-sample blocks, and the second
+    # is skipped; the band's stream is the one coded without the skip
+    rng = np.random.default_rng(3)
+    z = (700.0 + 0.01 * np.arange(256)[None, :] + rng.normal(0.0, 0.2, (256, 256))).astype(np.float32)
+    t, valid = qt.quantise(z, _plan(z, 0.02, None).scale, True)
+    shared = band._Margins()
+    tab, val, nb = buffers(t.size)
+    n0, _ = band._encode_events(t, valid, True, lp.OPT_ALL, qt.SPLIT_LOSSLESS[0], 0.0, tab, val, nb, shared)
+    assert n0 > 0
+    n1, _ = band._encode_events(t, valid, True, lp.OPT_ALL, qt.SPLIT_LOSSLESS[1], 0.0, tab, val, nb, shared)
+    assert n1 == band.SAME_TREE
+    skipped = band.encode_band(t, valid, True, lp.OPT_ALL)
+    monkeypatch.setattr(band._Margins, "seen", lambda self, leaves, lcoef: False)
+    coded = band.encode_band(t, valid, True, lp.OPT_ALL)
+    for x, y in zip(skipped, coded, strict=True):
+        np.testing.assert_array_equal(x, y)
+
+
+def test_a_margin_retried_in_larger_buffers_is_not_taken_for_one_coded() -> None:
+    # a margin whose event buffers were too small builds its tree again in larger ones: it was
+    # not coded, so it must not be skipped as a tree coded already
+    z = relief()
+    t, valid = qt.quantise(z, _plan(z, 0.02, None).scale, True)
+    shared = band._Margins()
+    small = tuple(b[:5000] for b in buffers(t.size))
+    n, _ = band._encode_events(t, valid, True, lp.OPT_ALL, qt.SPLIT_LOSSLESS[0], 0.0, *small, shared)
+    assert n == -1
+    n, _ = band._encode_events(t, valid, True, lp.OPT_ALL, qt.SPLIT_LOSSLESS[0], 0.0, *buffers(t.size), shared)
+    assert n > 0
