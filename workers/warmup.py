@@ -398,7 +398,7 @@ def _compress_inputs(work: Path) -> tuple[list[Path], Path]:
     """Scan-like inputs of the compress workload, made without scanning (so that it can run
     beside the scan in a process of its own): range images as a scan writes them (``z``
     float32 with NaN holes, ``K`` and ``dist`` float64, ``units``) of a tilted plane, a sphere
-    and a step edge with sub-quantum noise, and a cloud with every field a scan writes (xyz,
+    and a step edge with sub-quantum noise (one with speckled holes), and a cloud with every field a scan writes (xyz,
     colour, normals, size, albedo). Returns (scan folders, cloud)."""
     import numpy as np
 
@@ -418,6 +418,8 @@ def _compress_inputs(work: Path) -> tuple[list[Path], Path]:
         z[: 3 + k, :] = np.nan  # holes: a border, a shadow and scattered drop-outs
         z[h // 2 : h // 2 + 6, w // 6 : w // 6 + 10] = np.nan
         z[rng.random(z.shape) < 0.02 * k] = np.nan
+        if k == 2:  # speckle, as a real capture's failed decodes: its mask coded in context
+            z[:, : w // 3][rng.random((h, w // 3)) < 0.3] = np.nan
         folder = work / f"range_input_{k}"
         folder.mkdir()
         save_range_npz(folder / "range.npz", RangeImage(z.astype(np.float32), K, np.zeros(5), "mm"))

@@ -36,7 +36,14 @@ from shared.compress._interp import (
     sign_estimate,
 )
 from shared.compress._ls import NLS, ls_band, ls_weights, n_tiles
-from shared.compress._mask import decode_mask, encode_mask
+from shared.compress._mask import (
+    MASK_CTX,
+    MASK_RUNS,
+    decode_mask,
+    decode_mask_ctx,
+    encode_mask,
+    mask_ctx_bits,
+)
 from shared.compress._quadtree import (
     MINB,
     MODE_INTERP,
@@ -52,6 +59,7 @@ from shared.compress._quadtree import (
     _leaf_cells,
     _put_predictors,
     _stream_bits,
+    put_mask,
     tree_memo,
 )
 from shared.compress._rans import (
@@ -122,6 +130,7 @@ class _Margins:
     pls: np.ndarray | None = None
     trees: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     memo: tuple[np.ndarray, ...] = ()  # the blocks' fits (shared.compress._quadtree.tree_memo)
+    mask: int = MASK_RUNS  # the mask's coder (shared.compress._quadtree.put_mask)
 
     def seen(self, leaves: np.ndarray, lcoef: np.ndarray) -> bool:
         """Whether this tree was coded already: then its stream would be the same."""
@@ -153,7 +162,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     if not shared.memo:
         shared.memo = tree_memo(t, valid, lossless, int(opts))
     n, nleaf = _encode_tree(t, valid, lossless, opts, float(margin), float(share), tab, val, nb, leaves, lcoef,
-                            *shared.memo)
+                            *shared.memo, np.int64(shared.mask))
     if n < 0:
         return -1, None
     if shared.seen(leaves[:nleaf, :4], lcoef[:nleaf]):
@@ -373,6 +382,26 @@ def _model_share(leaves: np.ndarray) -> float:
     return float(area[leaves[:, 4] == 0].sum() / total) if total > 0 else 0.0
 
 
+#: A band's mask is tried in context only where its runs cost at least this many bits a sample
+#: of the band (one in a hundred): less is not worth the context coder's pass over every sample
+#: (about 4 ms a band of 256 x 4480), and is what silhouettes cost (the simulated relief 0.001,
+#: bunny 0.005 bits a sample, where the runs are smaller), not speckle (the real captures 0.16 -
+#: 0.33 as runs).
+MASK_CTX_MIN = 0.01
+
+
+def _mask_coder(valid: np.ndarray) -> int:
+    """The coder of a band's mask ``valid`` (H, W) bool of fewer bits
+    (:data:`shared.compress._mask.MASK_RUNS` or ``MASK_CTX``), its runs' bits as
+    :func:`_stream_bits` counts them (their tables with them)."""
+    H, W = valid.shape
+    _, bufs, (n,) = _coded(4 * H + 4096, lambda tb, vl, nbt: (encode_mask(valid, tb, vl, nbt, ZERO, np.int64(T_EDGE)),))
+    runs = _stream_bits(*bufs, np.int64(n))
+    if runs < MASK_CTX_MIN * H * W:
+        return MASK_RUNS
+    return MASK_CTX if mask_ctx_bits(valid) < runs else MASK_RUNS
+
+
 def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> tuple[np.ndarray, np.ndarray]:
     """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool; ``opts`` the
     encoder's options (:data:`shared.compress._lpred.OPT_ALL` for a decodable stream; fewer for
@@ -387,12 +416,13 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
     best = np.inf
     tab = val = nb = None
     n = 0
-    # about one event a valid sample, a few a leaf and a row; rarely escapes (retried when short)
-    cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096
+    shared = _Margins(mask=_mask_coder(valid))
+    # about one event a valid sample (and one a sample for a mask in context), a few a leaf and
+    # a row; rarely escapes (retried when short)
+    cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096 + (H * W if shared.mask == MASK_CTX else 0)
     signs = None
     interp = not lossless and bool(opts & lp.OPT_INTERP)
     compare = len(margins) > 1 or interp  # streams' bits wanted
-    shared = _Margins()
     for margin in margins:
         cap, (tab_i, val_i, nb_i), (n_i, signs_i) = _coded(
             cap, lambda tb, vl, nbt, m=margin: _encode_events(t, valid, bool(lossless), np.int64(opts), float(m),
@@ -409,7 +439,7 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
         # hierarchical interpolation (smooth detailed depth within a bound): both ways, the
         # smaller kept
         cap, (tab_i, val_i, nb_i), (n_i, bits_i) = _coded(
-            cap, lambda tb, vl, nbt: _interp_band(t, valid, tb, vl, nbt, best, opts))
+            cap, lambda tb, vl, nbt: _interp_band(t, valid, tb, vl, nbt, best, opts, mask=shared.mask))
         if n_i >= 0 and bits_i < best:
             tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, None
     if signs is not None and signs.gain > 0:
@@ -462,8 +492,10 @@ _OCTAVE_BITS = np.array([0.0] * 8 + [3.0 + j for j in range(HB - 8)])
 
 
 def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndarray, nb: np.ndarray,
-                 rival: float = np.inf, opts: int = lp.OPT_ALL, force: int | None = None) -> tuple[int, float]:
-    """Every event of one band in interpolation order (bounded mode): the mask, the mode, the
+                 rival: float = np.inf, opts: int = lp.OPT_ALL, force: int | None = None,
+                 mask: int = MASK_RUNS) -> tuple[int, float]:
+    """Every event of one band in interpolation order (bounded mode): the mask (its coder
+    ``mask``, :func:`shared.compress._quadtree.put_mask`), the mode, the
     residual tables' offset and merging, whether they are sign contexts, the error feedback's
     weights, the residuals. ``opts``: without :data:`shared.compress._lpred.OPT_FEEDBACK` no
     feedback, without :data:`shared.compress._lpred.OPT_SIGN` level tables only (ablation);
@@ -471,7 +503,7 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
     tables). Returns (the count, the stream's bits as :func:`_stream_bits` counts them); the count
     -1 when the event buffers are too small, or -2 when the first pass's estimate of the stream is
     more than :data:`INTERP_GIVE_UP` times ``rival`` bits (the raster order's stream)."""
-    n = encode_mask(valid, tab, val, nb, ZERO, np.int64(T_EDGE))
+    n = put_mask(valid, tab, val, nb, ZERO, np.int64(mask))
     no_leaves = np.zeros((0, 5), np.int64)
     head = np.zeros(3 + 2 * NLV, np.int64)
     n = _put_predictors(tab, val, nb, np.int64(n), np.array([MODE_INTERP], np.int64), no_leaves, ZERO)
@@ -553,7 +585,13 @@ def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless:
     sym, fb = decode_tables(freq)
     xa, xb, pos = dec_init(words)
     valid = np.zeros((H, W), np.bool_)
-    ok, xa, xb, pos = decode_mask(xa, xb, pos, words, nw, sym, fb, valid, T_EDGE)
+    mask, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+    if mask == MASK_CTX:
+        ok, xa, xb, pos = decode_mask_ctx(xa, xb, pos, words, nw, valid)
+    elif mask == MASK_RUNS:
+        ok, xa, xb, pos = decode_mask(xa, xb, pos, words, nw, sym, fb, valid, T_EDGE)
+    else:
+        return -1
     if not ok:
         return -1
     mode, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)

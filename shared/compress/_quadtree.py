@@ -1,10 +1,11 @@
 """Quadtree range-image band codec kernels (private; the public API is :mod:`shared.compress.range`,
 the band's encoder and decoder over these kernels :mod:`shared.compress._band`).
 
-A band of rows is coded as one rANS stream (codec ``quadtree-lp-6``) of three parts:
+A band of rows is coded as one rANS stream (codec ``quadtree-lp-7``) of three parts:
 
-1. the validity mask, exactly: per row where its alternating invalid/valid runs end, against
-   the row above (:mod:`shared.compress._mask`), then the band's order: :data:`MODE_RASTER` (the
+1. the validity mask, exactly (:mod:`shared.compress._mask`): its coder, then per row where its
+   alternating invalid/valid runs end, against the row above, or each sample in the context
+   of its decoded neighbours (speckled holes), then the band's order: :data:`MODE_RASTER` (the
    rest of this list) or, in bounded mode, :data:`MODE_INTERP` (the residual tables' offset and
    merging, the flag of sign contexts, the error feedback's eight weights, then the residuals
    in hierarchical interpolation order, :mod:`shared.compress._interp`);
@@ -37,7 +38,7 @@ import numpy as np
 from numba import njit
 
 from shared.compress import _lpred as lp
-from shared.compress._mask import encode_mask
+from shared.compress._mask import MASK_CTX, encode_mask, encode_mask_ctx
 from shared.compress._rans import (
     NSYM,
     PROB_BITS,
@@ -380,16 +381,27 @@ def _memo_node(t, valid, S, y0, x0, B, lev, coef, ws, local, memo, memo_c):
 
 
 @njit(cache=True, nogil=True)
-def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, lcoef, S, memo, memo_c):
+def put_mask(valid, tab, val, nb, n, mask):
+    """A band's mask coder ``mask`` (:data:`shared.compress._mask.MASK_RUNS` or ``MASK_CTX``) and
+    its mask ``valid`` (H, W) bool so coded, from event ``n``; returns the count (-1: full)."""
+    n = put(tab, val, nb, n, T_PRED, mask, 0)
+    if mask == MASK_CTX:
+        return encode_mask_ctx(valid, tab, val, nb, n)
+    return encode_mask(valid, tab, val, nb, n, T_EDGE)
+
+
+@njit(cache=True, nogil=True)
+def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, lcoef, S, memo, memo_c, mask):
     """The mask's and the quadtree's events of one band (its leaves into ``leaves`` (n, 5) and
     ``lcoef`` (n, 6) int64); returns (events, leaves), events -1 when the buffers are too small.
-    ``S``, ``memo`` and ``memo_c`` from :func:`tree_memo`, shared by the band's margins.
+    ``S``, ``memo`` and ``memo_c`` from :func:`tree_memo`, shared by the band's margins;
+    ``mask`` the mask's coder (:func:`put_mask`).
     (Arrays copied by loops, not ``a[:] = b``: numba links a shape mismatch's error message into
     every kernel holding one, 0.2 s more compilation each, 2.4 s once a process.)"""
     H, W = t.shape
     n = 0
-    # 1. the mask, row by row against the row above
-    n = encode_mask(valid, tab, val, nb, n, T_EDGE)
+    # 1. the mask
+    n = put_mask(valid, tab, val, nb, n, mask)
     n = put(tab, val, nb, n, T_PRED, MODE_RASTER, 0)
     # 2. the quadtree with its leaves' models
     local = (opts & lp.OPT_PRED) != 0
@@ -540,7 +552,9 @@ def quantise(z, scale, lossless):
 
 @njit(cache=True, nogil=True)
 def _stream_bits(tab, val, nb, n):
-    """The coded size in bits of events 0..n-1: their tables' code lengths, raw bits and stored tables."""
+    """The coded size in bits of events 0..n-1: their tables' code lengths, raw bits and stored
+    tables; not their binary events (a mask in context, :func:`put_mask`: the same in every way
+    a band is coded, so they do not change which way is smaller)."""
     counts = count_symbols(tab, val, n, np.int64(NTABLES))  # int64: one signature with encode_band's
     codes, freq = quantise_tables(normalise(counts))
     bits = 8.0 * pack_codes(codes).size

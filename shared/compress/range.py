@@ -1,7 +1,7 @@
 """Range images (depth on the camera grid) coded by a quadtree of surface models, local
 prediction (LOCO-I/CALIC-style, a least-squares predictor fitted per band, JPEG-XL's weighted
 predictor) or, error-bounded, hierarchical interpolation (SZ3's order), and rANS: codec
-``quadtree-lp-6``.
+``quadtree-lp-7``.
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -54,9 +54,9 @@ log = logging.getLogger(__name__)
 
 #: Rows per chunk (a multiple of the quadtree's top block).
 BAND_ROWS = 256
-CODEC = "quadtree-lp-6"
+CODEC = "quadtree-lp-7"
 #: Range codecs of earlier releases, refused by name (their streams are not read any more).
-OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3", "quadtree-lp-4", "quadtree-lp-5")
+OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3", "quadtree-lp-4", "quadtree-lp-5", "quadtree-lp-6")
 #: The encoder's options per effort. 1 (the default): every tool but JPEG-XL's weighted
 #: predictor (the least-squares predictor included: its bands encode about half as fast,
 #: 5 MP per CPU second against 9-10 on the relief and the bunny); 2: the weighted predictor

@@ -183,7 +183,7 @@ def _tree(t: np.ndarray, valid: np.ndarray, margin: float) -> tuple[np.ndarray, 
     leaves = np.zeros((t.size // 16 + 64, 5), np.int64)
     lcoef = np.zeros((t.size // 16 + 64, 6), np.int64)
     n, nleaf = band._encode_tree(t, valid, True, np.int64(WITH), float(margin), 0.0, tab, val, nb, leaves, lcoef,
-                                 *band.tree_memo(t, valid, True, WITH))
+                                 *band.tree_memo(t, valid, True, WITH), np.int64(band.MASK_RUNS))
     assert n > 0
     cells = band._leaf_cells(np.int64(t.shape[0]), np.int64(t.shape[1]), leaves, np.int64(nleaf))
     return cells, leaves, lcoef
@@ -313,7 +313,8 @@ def _raster_events(z: np.ndarray, lossless: bool) -> tuple[np.ndarray, np.ndarra
     t, valid = qt.quantise(z, scale, lossless)
     tab, val, nb = buffers(z.size)
     n, _ = band._encode_events(t, valid, lossless, WITH, float(qt.SPLIT_LOSSLESS[0]), 0.0, tab, val, nb)
-    head = np.flatnonzero(tab[:n] == qt.T_PRED)  # the mode, the eight flags, the weights' bytes, the leaves'
+    # after the mask's coder: the mode, the eight flags, the weights' bytes, the leaves'
+    head = np.flatnonzero(tab[:n] == qt.T_PRED)[1:]
     assert val[head[0]] == qt.MODE_RASTER
     return tab, val, nb, n, head
 

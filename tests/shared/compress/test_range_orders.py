@@ -1,4 +1,4 @@
-"""The range codec's per-band choices of ``quadtree-lp-6``: hierarchical interpolation (bounded
+"""The range codec's per-band choices of ``quadtree-lp-7``: hierarchical interpolation (bounded
 mode) with its feedback weights per spacing and pass and its sign contexts, and the raster
 order's sign contexts (both modes): each is taken where it codes smaller, its streams decode
 exactly (lossless) or within the bound (every sample), masks exact, on smooth oversampled depth
@@ -181,7 +181,7 @@ def test_a_damaged_interpolation_header_is_refused(at: int) -> None:
     t, valid = qt.quantise(z, plan.scale, False)
     tab, val, nb = buffers(z.size)
     n, _ = band._interp_band(t, valid, tab, val, nb)
-    head = np.flatnonzero(tab[:n] == qt.T_PRED)  # the mode, then the header
+    head = np.flatnonzero(tab[:n] == qt.T_PRED)[1:]  # after the mask's coder: the mode, then the header
     assert head.shape[0] == 12 and val[head[0]] == qt.MODE_INTERP
     val[head[at]] = 200
     out = np.empty(z.shape, np.float32)
@@ -261,7 +261,7 @@ def _tree_events(t: np.ndarray, valid: np.ndarray, lossless: bool, margin: float
     leaves = np.zeros((t.size // 16 + 64, 5), np.int64)
     lcoef = np.zeros((t.size // 16 + 64, 6), np.int64)
     n, nleaf = band._encode_tree(t, valid, lossless, np.int64(lp.OPT_ALL), float(margin), float(share), tab, val, nb,
-                                 leaves, lcoef, *memo)
+                                 leaves, lcoef, *memo, np.int64(band.MASK_RUNS))
     assert n > 0
     return tab[:n], val[:n], nb[:n], leaves[:nleaf], lcoef[:nleaf]
 
