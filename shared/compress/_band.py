@@ -45,9 +45,12 @@ from shared.compress._mask import (
     mask_ctx_bits,
 )
 from shared.compress._quadtree import (
+    F_SIGNS,
+    HEAD_N,
     MINB,
     MODE_INTERP,
     MODE_RASTER,
+    N_FLAGS,
     NTABLES,
     SPLIT_BOUNDED,
     SPLIT_LOSSLESS,
@@ -216,7 +219,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     an = np.int64(an)
     # the flags of bias cancellation and the weighted predictor, the weights and each leaf's
     # predictor, then the residuals
-    head_n = 8 + (2 * NLS * n_tiles(W) if ls else 0)
+    head_n = HEAD_N + (2 * NLS * n_tiles(W) if ls else 0)
     n_res = np.int64(n + head_n + nleaf)
     if n < 0 or n_res + 1 > tab.shape[0]:
         return -1, None
@@ -253,13 +256,13 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             keep_k = leaves[:nleaf, 4].copy()
             lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ZERO)
             aw0, an0 = lp.feedback_weights(t, valid, cells, leaves, lcoef, none, none) if opts & lp.OPT_FEEDBACK else (0, 0)
-            n_res0 = np.int64(n + 8 + nleaf)  # the header without the weights
+            n_res0 = np.int64(n + HEAD_N + nleaf)  # the header without the weights
             n0 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, np.int64(aw0), np.int64(an0),
                                      TR, tab, val, nb, n_res0, none, none, ZERO, ZERO, ZERO, alt_b, none)
             if n0 < 0:
                 return -1, None
             if lp.context_choice(tab, val, nb, n_res0, np.int64(n0), TR)[0] <= with_ls + LS_HEAD_BITS * n_tiles(W):
-                ls, pls, head_n = ZERO, none, 8
+                ls, pls, head_n = ZERO, none, HEAD_N
                 aw, an, n_res, n_end = np.int64(aw0), np.int64(an0), n_res0, n0
                 alt, alt_b = alt_b, alt
             else:
@@ -295,19 +298,24 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
                 leaves[:nleaf, 4] = keep_k
     # the residual tables: where along the activity levels, and fewer in a small band where the
     # tables cost more than the contexts save
-    bits, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
-    lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
+    # the sign contexts' offset (their groups of four levels), and the levels' tables (their
+    # bits as the coder spends them, as sign_bits counts the sign contexts')
+    counts, raw = lp.level_counts(tab, val, nb, n_res, np.int64(n_end), TR)
+    cofs = lp.choice_of(counts, raw)[1]
+    bits, lut = lp.level_partition(counts, raw)
+    lp.apply_levels(tab, n_res, np.int64(n_end), TR, lut)
     head = np.zeros(head_n, np.int64)
-    head[:8] = bias, cofs, cshift, wp, aw + lp.FB_MAX, an + lp.FB_MAX, 0, ls
+    head[:N_FLAGS] = bias, cofs, wp, aw + lp.FB_MAX, an + lp.FB_MAX, 0, ls
+    head[N_FLAGS:HEAD_N] = np.diff(lut)
     if ls:
         u = lsw + LS_BIAS  # each weight as two bytes
-        head[8::2], head[9::2] = u >> 8, u & 255
+        head[HEAD_N::2], head[HEAD_N + 1 :: 2] = u >> 8, u & 255
     _put_predictors(tab, val, nb, n, head, leaves, nleaf)
     gain = 0.0
     if opts & lp.OPT_SIGN:
         gain = bits - lp.sign_bits(alt, np.int64(cofs), tab, nb, n_res, np.int64(n_end))
     signs = _SignPass(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, pw, pe, np.int64(wp),
-                      np.int64(cofs), alt, n + 6, n_res, gain, pls)
+                      np.int64(cofs), alt, n + F_SIGNS, n_res, gain, pls)
     # kept once coded: a margin whose buffers were too small codes its tree again
     shared.trees.append((leaves[:nleaf, :4].copy(), lcoef[:nleaf].copy()))
     return int(n_end), signs
@@ -610,15 +618,16 @@ def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless:
     nleaf_max = ((H + MINB - 1) // MINB) * ((W + MINB - 1) // MINB)
     leaves = np.zeros((nleaf_max, 5), np.int64)
     lcoef = np.zeros((nleaf_max, 6), np.int64)
-    head = np.zeros(8 + 2 * NLS * n_tiles(W), np.int64)
+    head = np.zeros(HEAD_N + 2 * NLS * n_tiles(W), np.int64)
     nleaf, xa, xb, pos = _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, bool(lossless), leaves, lcoef, head)
     if nleaf < 0:
         return -1
-    bias, cofs, cshift, wp, aw, an, sc, _ = (np.int64(v) for v in head[:8])
-    lsw = (head[8::2] << 8) + head[9::2] - LS_BIAS
+    bias, cofs, wp, aw, an, sc, _ = (np.int64(v) for v in head[:N_FLAGS])
+    lut = lp.activity_tables(lp.partition_tables(head[N_FLAGS:HEAD_N]))
+    lsw = (head[HEAD_N::2] << 8) + head[HEAD_N + 1 :: 2] - LS_BIAS
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
     xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, bool(lossless), bias,
-                                      aw - lp.FB_MAX, an - lp.FB_MAX, cofs, cshift, wp, sc, float(scale), TR, out, lsw)
+                                      aw - lp.FB_MAX, an - lp.FB_MAX, cofs, lut, wp, sc, float(scale), TR, out, lsw)
     # A sound stream ends exactly at its last word, both states back where the encoder began.
     if pos != nw or xa != RANS_L or xb != RANS_L:
         return -1

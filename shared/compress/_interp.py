@@ -191,7 +191,7 @@ def sign_estimate(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n
     # the groups of :func:`_group`
     groups = (np.minimum(np.maximum(np.arange(NLEVEL, dtype=np.int64) - cofs, 0), NCTX - 1) * NI_GRP) >> 4
     first = groups * (NI_PAT * NI_CLS)
-    return pattern_bits(alt, first, tab, nb, np.int64(n0), np.int64(n1))
+    return pattern_bits(alt, first, tab, nb, np.int64(n0), np.int64(n1), False)
 
 
 @njit(cache=True, nogil=True)

@@ -20,12 +20,13 @@ predictions above it):
 - error feedback (lossless mode): the W and N neighbours' prediction errors, weighted by the
   band's least-squares weights (:func:`feedback_weights`, coded in sixteenths), are added to
   the prediction -- the sub-pixel decoder's errors are correlated along the stripes;
-- the coding context (one of :data:`NCTX` rANS tables) is the local activity: the sizes of
-  the W, N, NW, NE prediction errors and the curvature of the row above, in half-octave steps;
-  in a band running the weighted predictor, half that plus twice the predictor's largest
-  neighbour error (:func:`_wp_activity`); a small band merges neighbouring contexts (2 or 4 to
-  a table) where its stored tables would cost more than the contexts save, and every band
-  slides its tables along the activity levels to where its samples are (:func:`context_choice`);
+- the coding context is the local activity: the sizes of the W, N, NW, NE prediction errors
+  and the curvature of the row above, in :data:`NLEVEL` half-octave levels; in a band running
+  the weighted predictor, half that plus twice the predictor's largest neighbour error
+  (:func:`_wp_activity`); in raster order each band partitions its levels into runs, one rANS
+  table a run, that code its residuals in the fewest bits, stored tables counted
+  (:func:`level_partition`: quiet levels of a few dozen residuals share a table); the
+  interpolation order slides and merges its tables (:func:`context_choice`);
 - bias cancellation (LOCO-I/CALIC), per band where it pays (bounded mode): per context of
   gradient signs and activity, the running mean of the prediction's error is added.
 
@@ -43,8 +44,9 @@ from numba import njit
 from numba.cpython.unsafe.numbers import leading_zeros
 
 from shared.compress._ls import ls_predict
-from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
+from shared.compress._rans import NSYM, at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
 from shared.compress._rows import F_SHIFT, FINE, MINB, fill_row, first_row, row_prediction, target_row
+from shared.compress._tables import table_bits
 from shared.compress._wp import wp_hole, wp_predict, wp_update
 
 #: Residual predictors a leaf may choose (see :func:`local_pred`; :data:`K_WP` is the weighted
@@ -309,7 +311,9 @@ def feedback_weights(t, valid, cells, leaves, lcoef, pw, pls):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def _context(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
+def _activity(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
+    """A sample's activity (fine units): the curvature of the row above and its neighbours'
+    prediction errors ``ew``, ``en``, ``enw``, ``ene``; with ``wp`` :func:`_wp_activity`."""
     act = 0
     if grad:
         act += min(abs(d - 2 * b + c), E_LIM)
@@ -317,7 +321,21 @@ def _context(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
         act += 2 * ew + en + ((enw + ene) >> 1)
     if wp:
         act = _wp_activity(act, me)
-    return _level_of(act)
+    return act
+
+
+@njit(cache=True, nogil=True, inline="always")
+def _context(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
+    """A sample's activity level (:func:`_activity`, :func:`_level_of`)."""
+    return _level_of(_activity(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me))
+
+
+def activity_tables(lut: np.ndarray) -> np.ndarray:
+    """The table (4097,) int64 of each activity (fine units) >> 2, the last for all above, from
+    the levels' tables ``lut`` (NLEVEL,): the decoder's one look-up a residual where the level
+    itself is not wanted (no bias cancellation, no sign contexts), off its critical path's
+    second load (the 15 MP bench image decoded 8 % slower with two)."""
+    return np.append(lut[LEVEL_LUT], lut[NLEVEL - 1]).astype(np.int64)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -505,12 +523,13 @@ def _bias_update(bsum, bcnt, bcor, q, err):
 
 
 @njit(cache=True, nogil=True)
-def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, cofs, cshift,
+def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, cofs, lut,
                      wp, sc, scale, t_res, out, lsw):
     """Inverse of :func:`encode_residuals` (with every option on) into ``out`` (H, W) float32,
     NaN where invalid, running the weighted predictor along when ``wp``, with sign contexts
-    when ``sc``, the least-squares weights ``lsw`` (NLS,) int64 for the leaves that take them;
-    returns (xa, xb, pos)."""
+    when ``sc`` (their groups of levels slid by ``cofs``), else the tables ``lut`` (4097,) int64
+    of the activities (:func:`activity_tables` of :func:`partition_tables`), the least-squares
+    weights ``lsw`` (NLS,) int64 for the leaves that take them; returns (xa, xb, pos)."""
     H, W = valid.shape
     pf = np.zeros(W, np.int64)
     kr = np.zeros(W, np.int64)
@@ -564,7 +583,8 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
             me = 0
             if wp:
                 pw, me = wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub)
-            lev = _context(a, b, c, d, at(eb, x), at(ea, x + 1), at(ea, x), at(ea, x + 2), True, True, wp, me)
+            act = _activity(a, b, c, d, at(eb, x), at(ea, x + 1), at(ea, x), at(ea, x + 2), True, True, wp, me)
+            lev = _level_of(act) if bias or sc else 0
             if k == K_WP:
                 pl = pw
             elif k == K_LS:
@@ -577,13 +597,12 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
             if bias:
                 q = _bias_context(a, b, c, d, lev)
                 p += at(bcor, q)
-            ctx = min(max(lev - cofs, 0), NCTX - 1)
             flip = 0
             if sc:
                 pat, flip = _sign_context(p, at(qa, x + 1), lossless)
-                tb = (ctx >> 2) * NSUB + pat
+                tb = (min(max(lev - cofs, 0), NCTX - 1) >> 2) * NSUB + pat
             else:
-                tb = ctx >> cshift
+                tb = at(lut, min(act >> 2, 4096))
             u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + tb, L_RES)
             r = unzigzag(u)
             r = (r ^ flip) - flip
@@ -615,14 +634,14 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
 
 @njit(cache=True, nogil=True)
 def _tables_bits(counts, nt):
-    """Estimated bits of coding the symbols counted in ``counts`` (>= nt, 512) int64, tables 0..nt-1,
+    """Estimated bits of coding the symbols counted in ``counts`` (>= nt, symbols) int64, tables 0..nt-1,
     with static tables: their code lengths and the stored tables (:mod:`shared.compress._tables`:
     about 4 bits a symbol used, 2 a symbol absent, up to the last used)."""
     bits = 0.0
     for t in range(nt):
         tot = 0
         last = -1
-        for s in range(512):
+        for s in range(counts.shape[1]):
             tot += counts[t, s]
             if counts[t, s] > 0:
                 last = s
@@ -646,15 +665,29 @@ def context_choice(tab, val, nb, n0, n1, t0):
     16, the old byte-wise tables' cost, on the dragon scans 5.089 -> 5.068 and 4.892 -> 4.880
     bits per valid sample, lossless). Noisy depth fills the top levels (a fixed offset 0 put
     30 % of the bunny's samples at 1:1 in the last table); the offset follows the band's noise."""
-    counts = np.zeros((NLEVEL, 512), np.int64)
-    raw = 0.0  # the escapes' raw bits (the same whatever the tables)
+    counts, raw = level_counts(tab, val, nb, n0, n1, t0)
+    return choice_of(counts, raw)
+
+
+@njit(cache=True, nogil=True)
+def level_counts(tab, val, nb, n0, n1, t0):
+    """The symbol counts (NLEVEL, NSYM) int64 of the residual events n0..n1-1 by activity level
+    (their tables ``t0 + level``), and the escapes' raw bits (the same whatever the tables)."""
+    counts = np.zeros((NLEVEL, NSYM), np.int64)
+    raw = 0.0
     for i in range(n0, n1):
         t = tab[i] - t0
         if 0 <= t < NLEVEL:
             counts[t, val[i]] += 1
         elif tab[i] < 0:
             raw += nb[i]
-    merged = np.zeros((NCTX, 512), np.int64)
+    return counts, raw
+
+
+@njit(cache=True, nogil=True)
+def choice_of(counts, raw):
+    """:func:`context_choice` of the residuals counted by :func:`level_counts`."""
+    merged = np.zeros((NCTX, NSYM), np.int64)
     best = 1e300
     best_o = 0
     best_s = 0
@@ -662,11 +695,11 @@ def context_choice(tab, val, nb, n0, n1, t0):
         for shift in range(3):
             # scalar loops (slice arithmetic costs seconds of compilation)
             for t in range(NCTX):
-                for s in range(512):
+                for s in range(NSYM):
                     merged[t, s] = 0
             for lev in range(NLEVEL):
                 t = min(max(lev - cofs, 0), NCTX - 1) >> shift
-                for s in range(512):
+                for s in range(NSYM):
                     merged[t, s] += counts[lev, s]
             bits = raw + _tables_bits(merged, NCTX >> shift)
             if bits < best:
@@ -677,14 +710,16 @@ def context_choice(tab, val, nb, n0, n1, t0):
 
 
 @njit(cache=True, nogil=True)
-def pattern_bits(alt, first, tab, nb, n0, n1):
+def pattern_bits(alt, first, tab, nb, n0, n1, exact):
     """Estimated bits of a band's residuals (events n0..n1-1, coded without sign contexts) had
     they been coded in sign contexts: from the counts ``alt`` (NLEVEL * m, NSYM) of their
     symbols so coded by activity level and pattern (m patterns), each level's patterns in the
-    tables from ``first`` (NLEVEL,) int64 on; as :func:`context_choice` counts bits, the
-    escapes' raw bits taken as they are (a residual's sign changes them by at most one bit)."""
+    tables from ``first`` (NLEVEL,) int64 on; as :func:`context_choice` counts bits, or with
+    ``exact`` as the coder spends them (:func:`shared.compress._tables.table_bits`, as
+    :func:`level_partition` counts them); the escapes' raw bits taken as they are (a residual's
+    sign changes them by at most one bit)."""
     m = alt.shape[0] // NLEVEL
-    counts = np.zeros((NRES, 512), np.int64)
+    counts = np.zeros((NRES, NSYM), np.int64)
     bits = 0.0
     for i in range(n0, n1):
         if tab[i] < 0:
@@ -693,19 +728,112 @@ def pattern_bits(alt, first, tab, nb, n0, n1):
         for k in range(m):
             for s in range(alt.shape[1]):
                 counts[first[lev] + k, s] += alt[lev * m + k, s]
-    return bits + _tables_bits(counts, NRES)
+    if not exact:
+        return bits + _tables_bits(counts, NRES)
+    row = np.zeros((1, NSYM), np.int64)
+    for t in range(NRES):
+        for s in range(NSYM):
+            row[0, s] = counts[t, s]
+        bits += table_bits(row)
+    return bits
 
 
 def sign_bits(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n0: int, n1: int) -> float:
     """:func:`pattern_bits` of the raster order's sign contexts (:func:`_sign_context`; ``alt``
-    from :func:`encode_residuals`), the levels slid by ``cofs``."""
+    from :func:`encode_residuals`), the levels slid by ``cofs``, as the coder spends them (beside
+    :func:`level_partition`'s bits)."""
     first = (np.minimum(np.maximum(np.arange(NLEVEL) - cofs, 0), NCTX - 1) >> 2) * NSUB
-    return pattern_bits(alt, first.astype(np.int64), tab, nb, np.int64(n0), np.int64(n1))
+    return pattern_bits(alt, first.astype(np.int64), tab, nb, np.int64(n0), np.int64(n1), True)
 
 
 @njit(cache=True, nogil=True)
 def apply_contexts(tab, n0, n1, t0, cofs, cshift):
     """Turn the levels of the residual events n0..n1-1 into their tables (:func:`context_choice`)."""
+    apply_levels(tab, n0, n1, t0, level_tables(cofs, cshift))
+
+
+@njit(cache=True, nogil=True)
+def apply_levels(tab, n0, n1, t0, lut):
+    """Turn the levels of the residual events n0..n1-1 into their tables ``lut`` (NLEVEL,) int64."""
     for i in range(n0, n1):
         if tab[i] >= t0:
-            tab[i] = t0 + (min(max(tab[i] - t0 - cofs, 0), NCTX - 1) >> cshift)
+            tab[i] = t0 + lut[tab[i] - t0]
+
+
+@njit(cache=True, nogil=True)
+def level_tables(cofs, cshift):
+    """The table (NLEVEL,) int64 of each activity level: slid by ``cofs`` and merged by
+    ``cshift`` (0..2, :func:`context_choice`)."""
+    lut = np.empty(NLEVEL, np.int64)
+    for lev in range(NLEVEL):
+        lut[lev] = min(max(lev - cofs, 0), NCTX - 1) >> cshift
+    return lut
+
+
+@njit(cache=True, nogil=True)
+def partition_tables(starts):
+    """The table (NLEVEL,) int64 of each level from the flags ``starts`` (NLEVEL - 1,) of 0 or 1
+    (1: level k + 1 starts a new table; the decoder checks them, as it reads them)."""
+    lut = np.zeros(NLEVEL, np.int64)
+    for k in range(NLEVEL - 1):
+        lut[k + 1] = lut[k] + starts[k]
+    return lut
+
+
+@njit(cache=True, nogil=True)
+def level_partition(counts, raw):
+    """The partition of the activity levels into runs of neighbouring levels, one table a run,
+    that codes the residuals counted by :func:`level_counts` (``counts``, escapes' ``raw`` bits)
+    in the fewest bits as the coder would spend them (:func:`shared.compress._tables.table_bits`:
+    code lengths and stored tables), by dynamic programming over the runs of the levels holding
+    residuals (a level holding none joins the next). Returns (bits with the raw bits, not the
+    header's flags, coded either way; lut (NLEVEL,) int64). Where the
+    sliding and merging of :func:`context_choice` keeps tables of a few hundred samples (a real
+    capture's quiet levels: each stored at some hundreds of bits), neighbouring levels share one."""
+    used = np.zeros(NLEVEL, np.int64)  # the levels holding residuals
+    nu = 0
+    for lev in range(NLEVEL):
+        for s in range(NSYM):
+            if counts[lev, s] > 0:
+                used[nu] = lev
+                nu += 1
+                break
+    lut = np.zeros(NLEVEL, np.int64)
+    if nu == 0:
+        return raw, lut
+    # cost[i, j]: the used levels i..j in one table
+    cost = np.zeros((nu, nu))
+    acc = np.zeros((1, NSYM), np.int64)
+    for i in range(nu):
+        for s in range(NSYM):
+            acc[0, s] = 0
+        for j in range(i, nu):
+            for s in range(NSYM):
+                acc[0, s] += counts[used[j], s]
+            cost[i, j] = table_bits(acc)
+    best = np.full(nu + 1, 1e300)
+    first = np.zeros(nu + 1, np.int64)  # where the last run of used levels 0..j-1 starts
+    best[0] = 0.0
+    for j in range(1, nu + 1):
+        for i in range(j):
+            b = best[i] + cost[i, j - 1]
+            if b < best[j]:
+                best[j] = b
+                first[j] = i
+    # the runs from the top down, then each level's table counted from the bottom: a level
+    # holding no residual takes the table of the next used level above it (the last, past them)
+    run_of = np.zeros(nu, np.int64)
+    j = nu
+    runs = 0
+    while j > 0:
+        i = first[j]
+        for k in range(i, j):
+            run_of[k] = runs
+        runs += 1
+        j = i
+    k = 0
+    for lev in range(NLEVEL):
+        while k < nu - 1 and used[k] < lev:
+            k += 1
+        lut[lev] = runs - 1 - run_of[k]
+    return raw + best[nu], lut

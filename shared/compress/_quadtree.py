@@ -72,6 +72,14 @@ NTABLES = T_EDGE + 2
 #: hierarchical interpolation (:mod:`shared.compress._interp`; bounded mode).
 MODE_RASTER = 0
 MODE_INTERP = 1
+#: The raster order's header after the tree: :data:`N_FLAGS` flags (bias cancellation, the sign
+#: contexts' offset, the weighted predictor, the two feedback weights, sign contexts, the
+#: least-squares predictor), then the activity levels' tables as NLEVEL - 1 flags
+#: (:func:`shared.compress._lpred.partition_tables`), then, with the least-squares predictor,
+#: its weights' bytes (from :data:`HEAD_N` on).
+N_FLAGS = 7
+HEAD_N = N_FLAGS + lp.NLEVEL - 1
+F_SIGNS = 5  # the flag of sign contexts
 
 L_SPLIT = 1
 L_MODEL = 2
@@ -606,10 +614,11 @@ def _cell_integral(valid):
 @njit(cache=True, nogil=True)
 def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef, head):
     """A band's quadtree, its mask ``valid`` decoded: the leaves into ``leaves`` (n, 5) (x0, y0,
-    B, model, predictor) and ``lcoef`` (n, 6) int64, then the eight flags and weights into ``head``
-    (8 + 2 NLS tiles,) int64 (:mod:`shared.compress._ls`) and, where the eighth flag says the
-    least-squares predictor runs, its weights' bytes after them (as :func:`_put_predictors` put
-    them). Returns (leaves, xa, xb, pos), -1 leaves for a corrupt stream."""
+    B, model, predictor) and ``lcoef`` (n, 6) int64, then the header (:data:`HEAD_N`) into
+    ``head`` (HEAD_N + 2 NLS tiles,) int64 (:mod:`shared.compress._ls`) and, where its last flag
+    says the least-squares predictor runs, its weights' bytes after it (as
+    :func:`_put_predictors` put them). Returns (leaves, xa, xb, pos), -1 leaves for a corrupt
+    stream."""
     H, W = valid.shape
     ii = _cell_integral(valid)
     nleaf = 0
@@ -677,21 +686,25 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
                 pB = B
     if pos > nw:
         return -1, xa, xb, pos
-    # the flags and weights (8 symbols), then with the least-squares predictor its weights' bytes
-    nh = 8
+    # the flags and the levels' tables (HEAD_N symbols), then with the least-squares predictor
+    # its weights' bytes
+    nh = HEAD_N
     i = 0
     while i < nh:
         v, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
         head[i] = v
-        if i == 7 and v == 1:
+        if i == N_FLAGS - 1 and v == 1:
             nh = head.shape[0]
         i += 1
-    bias, cofs, cshift, wp, aw, an, sc, ls = head[0], head[1], head[2], head[3], head[4], head[5], head[6], head[7]
+    bias, cofs, wp, aw, an, sc, ls = head[0], head[1], head[2], head[3], head[4], head[5], head[6]
     # the weighted and least-squares predictors run in lossless bands only (the encoder's choice)
-    if (bias > 1 or cofs > lp.MAX_COFS or cshift > 2 or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX
+    if (bias > 1 or cofs > lp.MAX_COFS or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX
             or an > 2 * lp.FB_MAX or sc > 1 or ls > (1 if lossless else 0)):
         return -1, xa, xb, pos
-    for i in range(8, nh):
+    for i in range(N_FLAGS, HEAD_N):
+        if head[i] > 1:
+            return -1, xa, xb, pos
+    for i in range(HEAD_N, nh):
         if head[i] > 255:
             return -1, xa, xb, pos
     for i in range(nleaf):

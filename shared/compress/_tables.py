@@ -131,3 +131,39 @@ def unpack_codes(buf, ntables):
             return np.zeros((ntables, NSYM), np.int32), -1
         nbit += 1
     return normalise(w), nbytes
+
+
+@njit(cache=True, nogil=True)
+def _gamma_bits(u):
+    """The length of the Elias-gamma code of u >= 0 (:func:`_put_gamma`)."""
+    n = 0
+    while ((u + 1) >> n) > 1:
+        n += 1
+    return 2 * n + 1
+
+
+@njit(cache=True, nogil=True)
+def table_bits(counts):
+    """The bits of coding the symbols counted in ``counts`` (1, NSYM) int64 with one table as
+    the coder would: their code lengths under the frequencies the decoder rebuilds
+    (:func:`quantise_tables`), and the table's stored codes (:func:`pack_codes`)."""
+    total = 0
+    for s in range(counts.shape[1]):
+        total += counts[0, s]
+    if total == 0:
+        return 0.0
+    codes, freq = quantise_tables(normalise(counts))
+    last = -1
+    for s in range(counts.shape[1]):
+        if codes[0, s] > 0:
+            last = s
+    bits = float(_gamma_bits(last + 1))
+    prev = 0
+    for s in range(last + 1):
+        c = counts[0, s]
+        if c > 0:
+            bits += c * (PROB_BITS - math.log2(freq[0, s]))
+        d = codes[0, s] - prev
+        bits += _gamma_bits(2 * d if d >= 0 else -2 * d - 1)
+        prev = codes[0, s]
+    return bits

@@ -313,7 +313,8 @@ def _raster_events(z: np.ndarray, lossless: bool) -> tuple[np.ndarray, np.ndarra
     t, valid = qt.quantise(z, scale, lossless)
     tab, val, nb = buffers(z.size)
     n, _ = band._encode_events(t, valid, lossless, WITH, float(qt.SPLIT_LOSSLESS[0]), 0.0, tab, val, nb)
-    # after the mask's coder: the mode, the eight flags, the weights' bytes, the leaves'
+    # after the mask's coder: the mode, the seven flags, the levels' tables, the weights' bytes,
+    # the leaves'
     head = np.flatnonzero(tab[:n] == qt.T_PRED)[1:]
     assert val[head[0]] == qt.MODE_RASTER
     return tab, val, nb, n, head
@@ -326,12 +327,16 @@ def _decodes(z: np.ndarray, tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n:
     return band.decode_band(*band._pack(tab, val, nb, n), z.shape[0], z.shape[1], lossless, scale, out) == 0
 
 
-@pytest.mark.parametrize("what, at, value", [("flag 2", 8, 2), ("a weight's byte beyond 255", 9, 256),
-                                             ("the last weight's byte beyond 255", 8 + 2 * ls.NLS, 300)])
+LS_FLAG = qt.N_FLAGS  # the least-squares predictor's flag among the header's events (after the mode)
+
+
+@pytest.mark.parametrize("what, at, value", [("flag 2", LS_FLAG, 2), ("a weight's byte beyond 255", qt.HEAD_N + 1, 256),
+                                             ("the last weight's byte beyond 255", qt.HEAD_N + 2 * ls.NLS, 300),
+                                             ("a level's table flag 2", qt.N_FLAGS + 3, 2)])
 def test_a_damaged_least_squares_header_is_refused(what: str, at: int, value: int) -> None:
     z = smooth_relief(64, 64)
     tab, val, nb, n, head = _raster_events(z, True)
-    assert val[head[8]] == 1 and _decodes(z, tab, val, nb, n, True)  # the band runs the predictor
+    assert val[head[LS_FLAG]] == 1 and _decodes(z, tab, val, nb, n, True)  # the band runs the predictor
     val[head[at]] = value
     assert not _decodes(z, tab, val, nb, n, True)
 
@@ -339,15 +344,15 @@ def test_a_damaged_least_squares_header_is_refused(what: str, at: int, value: in
 def test_a_leaf_taking_the_predictor_in_a_band_without_it_is_refused() -> None:
     z = smooth_relief(64, 64)
     tab, val, nb, n, head = _raster_events(z, True)
-    leaves = head[9 + 2 * ls.NLS:]
+    leaves = head[qt.HEAD_N + 1 + 2 * ls.NLS:]
     assert np.any(val[leaves] == lp.K_LS)
-    val[head[8]] = 0  # the flag off: the weights' bytes now read as leaves' predictors
+    val[head[LS_FLAG]] = 0  # the flag off: the weights' bytes now read as leaves' predictors
     assert not _decodes(z, tab, val, nb, n, True)
 
 
 def test_the_predictor_in_a_bounded_band_is_refused() -> None:
     z = smooth_relief(64, 64)
     tab, val, nb, n, head = _raster_events(z, False)
-    assert val[head[8]] == 0 and _decodes(z, tab, val, nb, n, False)
-    val[head[8]] = 1
+    assert val[head[LS_FLAG]] == 0 and _decodes(z, tab, val, nb, n, False)
+    val[head[LS_FLAG]] = 1
     assert not _decodes(z, tab, val, nb, n, False)

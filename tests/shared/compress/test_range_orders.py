@@ -200,16 +200,23 @@ def test_an_interpolation_stream_in_a_lossless_band_is_refused() -> None:
 
 
 @pytest.mark.parametrize("lossless", [True, False])
-def test_sign_contexts_pay_on_oversampled_depth_and_round_trip(lossless: bool) -> None:
+def test_sign_contexts_are_taken_where_smaller_and_round_trip(lossless: bool, monkeypatch: pytest.MonkeyPatch) -> None:
     # sub-pixel errors held along a stripe (4 rows) leave the N neighbour's residual sign
-    # telling: the band takes sign contexts and codes smaller
+    # telling: lossless, the band takes sign contexts and codes smaller; within 0.1 mm the
+    # levels' tables partitioned code smaller than sign contexts (measured 54048 against 54128
+    # bits), and the band keeps them
     z = relief(hold=(4, 1))
     scale = 0.02 if lossless else _plan(z, None, 0.1).scale
     t, valid = qt.quantise(z, scale, lossless)
     keep = lp.OPT_ALL & ~lp.OPT_INTERP  # the raster order, with and without sign contexts
     a = band.encode_band(t, valid, lossless, keep)
     b = band.encode_band(t, valid, lossless, keep & ~lp.OPT_SIGN)
-    assert band_bits(*a) < band_bits(*b), (band_bits(*a), band_bits(*b))
+    with monkeypatch.context() as mp:
+        mp.setattr(lp, "sign_bits", lambda *args: 0.0)  # sign contexts estimated free: taken
+        forced = band.encode_band(t, valid, lossless, keep)
+    assert band_bits(*a) == min(band_bits(*b), band_bits(*forced))
+    if lossless:
+        assert band_bits(*a) < band_bits(*b), (band_bits(*a), band_bits(*b))
     out = decoded(*a, z.shape, lossless, scale)
     if lossless:
         mask = ~np.isnan(z)

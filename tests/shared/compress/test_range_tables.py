@@ -1,0 +1,72 @@
+"""The range codec's residual tables (``quadtree-lp-7``): the activity levels partitioned into
+runs, one table a run, by the bits the coder spends (code lengths and stored tables), which the
+estimate matches; the partition never costs more than the tables' sliding and merging."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from shared.compress import _lpred as lp
+from shared.compress._rans import NSYM, count_symbols, encode_events, normalise
+from shared.compress._tables import pack_codes, quantise_tables, table_bits
+
+
+def laplacian(n: int, scale: float, rng: np.random.Generator) -> np.ndarray:
+    """Zigzagged residuals of ``n`` samples, Laplacian of ``scale`` quanta, as direct symbols."""
+    r = np.round(rng.laplace(0.0, scale, n)).astype(np.int64)
+    u = np.where(r >= 0, 2 * r, -2 * r - 1)
+    return np.minimum(u, 255)
+
+
+def coded_bits(symbols: np.ndarray) -> int:
+    """The bits of a stream of ``symbols`` in one table: its rANS words and its stored table."""
+    n = symbols.size
+    tab, val, nb = np.zeros(n, np.int8), symbols.astype(np.int16), np.zeros(n, np.int8)
+    codes, freq = quantise_tables(normalise(count_symbols(tab, val, np.int64(n), np.int64(1))))
+    return 16 * encode_events(tab, val, nb, np.int64(n), freq).size + 8 * pack_codes(codes).size
+
+
+@pytest.mark.parametrize("n, scale", [(30, 20.0), (2000, 3.0), (200000, 40.0)])
+def test_a_tables_bits_are_what_the_coder_spends(n: int, scale: float) -> None:
+    symbols = laplacian(n, scale, np.random.default_rng(n))
+    counts = np.bincount(symbols, minlength=NSYM)[None, :].astype(np.int64)
+    est = table_bits(counts)
+    assert abs(coded_bits(symbols) - est) <= 0.002 * est + 72  # the stream's start and end, bytes' padding
+
+
+def _counts(levels: dict[int, tuple[int, float]], seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    counts = np.zeros((lp.NLEVEL, NSYM), np.int64)
+    for lev, (n, scale) in levels.items():
+        counts[lev] = np.bincount(laplacian(n, scale, rng), minlength=NSYM)
+    return counts
+
+
+def _exact_bits(counts: np.ndarray, lut: np.ndarray) -> float:
+    merged = np.zeros((lp.NLEVEL, NSYM), np.int64)
+    np.add.at(merged, lut, counts)
+    return sum(table_bits(merged[k : k + 1]) for k in range(lp.NLEVEL))
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_partition_is_a_valid_one_and_never_costs_more_than_sliding_and_merging(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    levels = {lev: (int(rng.integers(0, 3000)) if rng.random() < 0.7 else 0, 0.5 * 1.41 ** (lev / 2))
+              for lev in range(lp.NLEVEL)}
+    counts = _counts(levels, seed)
+    bits, lut = lp.level_partition(counts, 0.0)
+    np.testing.assert_array_equal(lp.partition_tables(np.diff(lut)), lut)  # what the decoder rebuilds
+    assert bits == pytest.approx(_exact_bits(counts, lut))
+    for cofs in range(lp.MAX_COFS + 1):
+        for cshift in range(3):
+            assert bits <= _exact_bits(counts, lp.level_tables(np.int64(cofs), np.int64(cshift))) + 1e-6
+
+
+def test_quiet_levels_share_a_table_and_busy_ones_keep_their_own() -> None:
+    # a real capture's quiet levels hold a few dozen residuals each, spread over a hundred
+    # symbols: each table stored would cost more than the levels' distributions differ
+    counts = _counts({12: (30, 20.0), 13: (40, 25.0), 14: (35, 30.0), 20: (100000, 4.0), 21: (100000, 8.0)})
+    lut = lp.level_partition(counts, 0.0)[1]
+    assert lut[12] == lut[13] == lut[14]
+    assert len({lut[14], lut[20], lut[21]}) == 3
