@@ -398,7 +398,7 @@ def _compress_inputs(work: Path) -> tuple[list[Path], Path]:
     """Scan-like inputs of the compress workload, made without scanning (so that it can run
     beside the scan in a process of its own): range images as a scan writes them (``z``
     float32 with NaN holes, ``K`` and ``dist`` float64, ``units``) of a tilted plane, a sphere
-    and a step edge with sub-quantum noise (one with speckled holes), and a cloud with every field a scan writes (xyz,
+    and a step edge with sub-quantum noise (one with speckled holes) and a wide view of a plane, and a cloud with every field a scan writes (xyz,
     colour, normals, size, albedo). Returns (scan folders, cloud)."""
     import numpy as np
 
@@ -424,6 +424,14 @@ def _compress_inputs(work: Path) -> tuple[list[Path], Path]:
         folder.mkdir()
         save_range_npz(folder / "range.npz", RangeImage(z.astype(np.float32), K, np.zeros(5), "mm"))
         folders.append(folder)
+    # a wide view whose only holes are a silhouette's: its mask coded as runs (a small view's
+    # masks all code fewer bits in context, their runs' tables weighing)
+    zw = 480.0 + 0.01 * np.arange(1024)[None, :] + rng.normal(0.0, 0.02, (h, 1024))
+    zw[:, :40] = np.nan
+    folder = work / "range_input_wide"
+    folder.mkdir()
+    save_range_npz(folder / "range.npz", RangeImage(zw.astype(np.float32), K, np.zeros(5), "mm"))
+    folders.append(folder)
     n = 4000
     xyz = np.column_stack([rng.uniform(-40, 40, n), rng.uniform(-30, 30, n), 480 + rng.normal(0, 3, n)])
     normals = rng.normal(size=(n, 3))

@@ -55,6 +55,7 @@ from shared.compress._lpred import (
     FINE,
     L_RES,
     LEVEL_LUT,
+    M_RES,
     NCTX,
     NI_CLS,
     NI_GRP,
@@ -181,7 +182,7 @@ def _neighbour_residuals(rr, ym, xm, yp, xp, H, W):
 def _count_alt(alt, act, rprev, rnb, cls, r):
     """Count residual ``r``'s symbol in sign contexts (:func:`interp_events`' ``alt``)."""
     pat, flip = _pattern(rprev, rnb)
-    alt[(_level_of(act) * NI_PAT + pat) * NI_CLS + cls, symbol_of(np.int64(zigzag((r ^ flip) - flip)), L_RES)] += 1
+    alt[(_level_of(act) * NI_PAT + pat) * NI_CLS + cls, symbol_of(np.int64(zigzag((r ^ flip) - flip)), L_RES, M_RES)] += 1
 
 
 def sign_estimate(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n0: int, n1: int) -> float:
@@ -228,7 +229,7 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt):
             r = (t[y, x] - p + half) >> F_SHIFT
             v = p + (r << F_SHIFT)
             tb, flip = _table(t_res, act + 2 * eprev, sgn, cofs, rprev, 0, 2)
-            n = put_value(tab, val, nb, n, tb, zigzag((r ^ flip) - flip), L_RES)
+            n = put_value(tab, val, nb, n, tb, zigzag((r ^ flip) - flip), L_RES, M_RES)
             if count:
                 _count_alt(alt, act + 2 * eprev, rprev, 0, 2, r)
             rec[y, x] = v
@@ -274,7 +275,7 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt):
                             hist[lv, k, c, g, hb] += 1
                     rnb = _neighbour_residuals(rr, y - dy, x - dx, y + dy, x + dx, H, W)
                     tb, flip = _table(t_res, act, sgn, cofs, rprev, rnb, cls)
-                    n = put_value(tab, val, nb, n, tb, zigzag((r ^ flip) - flip), L_RES)
+                    n = put_value(tab, val, nb, n, tb, zigzag((r ^ flip) - flip), L_RES, M_RES)
                     if count:
                         _count_alt(alt, act, rprev, rnb, cls, r)
                     rec[y, x] = v
@@ -294,7 +295,7 @@ def _get(xa, xb, pos, words, nw, sym, fb, t_res, act, cofs, cshift, sgn, rprev, 
     """A residual coded by :func:`_table` (level mode: levels merged by ``cshift``)."""
     tb, flip = _table(t_res, act, sgn, cofs, rprev, rnb, cls)
     lt = t_res + (min(max(tb - t_res - cofs, 0), NCTX - 1) >> cshift)  # level mode's table
-    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, sgn * tb + (1 - sgn) * lt, L_RES)
+    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, sgn * tb + (1 - sgn) * lt, L_RES, M_RES)
     r = unzigzag(u)
     return (r ^ flip) - flip, xa, xb, pos
 

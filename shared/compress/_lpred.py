@@ -58,6 +58,10 @@ K_LS = 9
 #: Coding contexts of the residuals (activity levels).
 NCTX = 16
 L_RES = 8
+#: The bits below a large residual's top bit coded in its escape symbol, not raw (the symbol
+#: the bit length and these): a noisy real capture's residuals spread over hundreds of quanta,
+#: and a bit length's lower values are the likelier ones.
+M_RES = 2
 #: Sign contexts (a band's choice, :func:`_sign_context`): the residual tables are then
 #: :data:`NGRP` groups of four activity levels times :data:`NSUB` patterns of the rounding
 #: offset and the N neighbour's residual sign.
@@ -421,10 +425,12 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
     predictor's predictions where a leaf takes it (lossless mode). Without sign contexts (``sc`` 0)
     each event's table is ``t_res`` plus its activity level (:func:`context_choice` then
     :func:`apply_contexts` make them tables); with them (``sc`` 1) it is its final table, the
-    levels slid by ``cofs`` (:func:`_sign_context`); without them, ``alt`` (NLEVEL * NSUB, NSYM)
-    int32, zero on entry (a (1, 1) array where the caller does not count), receives the symbol
-    counts the residuals would have with them, by level and pattern (:func:`sign_bits`: the
-    encoder runs the second way only where it pays).
+    levels slid by ``cofs`` (:func:`_sign_context`); without them, ``alt`` (NLEVEL * (NSUB + 1),
+    NSYM) int32, zero on entry (a (1, 1) array where the caller does not count), receives the
+    symbol counts the residuals would have with them, by level and pattern (:func:`sign_bits`:
+    the encoder runs the second way only where it pays), and in NLEVEL rows more where it has
+    them, with the curvature in the activity (``opts`` :data:`OPT_GRAD`), their counts by the
+    level without it (:func:`grad_counts`: a noisy band's curvature is noise).
     Returns the count (or -1 when the buffers are full)."""
     H, W = t.shape
     pf = np.zeros(W, np.int64)
@@ -443,6 +449,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
     grad = (opts & OPT_GRAD) != 0
     errs = (opts & OPT_ERR) != 0
     count_alt = sc == 0 and alt.shape[0] > 1
+    count_g = count_alt and grad and alt.shape[0] > NLEVEL * NSUB
     half = FINE >> 1
     for y in range(H):
         row_prediction(y, W, cells, leaves, lcoef, pf, kr)
@@ -465,6 +472,9 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
             c = ra[x]
             d = ra[x + 2]
             lev = _context(a, b, c, d, eb[x], ea[x + 1], ea[x], ea[x + 2], grad, errs, wp, at(pe_row, x))
+            lev_g = 0
+            if count_g:
+                lev_g = _context(a, b, c, d, eb[x], ea[x + 1], ea[x], ea[x + 2], False, errs, wp, at(pe_row, x))
             k = kr[x]
             if k == K_WP:
                 pl = at(pw_row, x)
@@ -487,12 +497,14 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
             if sc:
                 pat, flip = _sign_context(p, qa[x + 1], lossless)
                 g = min(max(lev - cofs, 0), NCTX - 1) >> 2
-                n = put_value(tab, val, nb, n, t_res + g * NSUB + pat, zigzag((r ^ flip) - flip), L_RES)
+                n = put_value(tab, val, nb, n, t_res + g * NSUB + pat, zigzag((r ^ flip) - flip), L_RES, M_RES)
             else:
-                n = put_value(tab, val, nb, n, t_res + lev, zigzag(r), L_RES)  # a level: see context_choice
+                n = put_value(tab, val, nb, n, t_res + lev, zigzag(r), L_RES, M_RES)  # a level: see context_choice
                 if count_alt:
                     pat, flip = _sign_context(p, qa[x + 1], lossless)
-                    alt[lev * NSUB + pat, symbol_of(np.int64(zigzag((r ^ flip) - flip)), L_RES)] += 1
+                    alt[lev * NSUB + pat, symbol_of(np.int64(zigzag((r ^ flip) - flip)), L_RES, M_RES)] += 1
+                    if count_g:
+                        alt[NLEVEL * NSUB + lev_g, symbol_of(np.int64(zigzag(r)), L_RES, M_RES)] += 1
             qb[x + 1] = r
             rb[x + 1] = rec
             eb[x + 1] = min(abs(rec - p), E_LIM)
@@ -524,12 +536,13 @@ def _bias_update(bsum, bcnt, bcor, q, err):
 
 @njit(cache=True, nogil=True)
 def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, cofs, lut,
-                     wp, sc, scale, t_res, out, lsw):
+                     wp, sc, scale, t_res, out, lsw, grad):
     """Inverse of :func:`encode_residuals` (with every option on) into ``out`` (H, W) float32,
     NaN where invalid, running the weighted predictor along when ``wp``, with sign contexts
     when ``sc`` (their groups of levels slid by ``cofs``), else the tables ``lut`` (4097,) int64
     of the activities (:func:`activity_tables` of :func:`partition_tables`), the least-squares
-    weights ``lsw`` (NLS,) int64 for the leaves that take them; returns (xa, xb, pos)."""
+    weights ``lsw`` (NLS,) int64 for the leaves that take them, the curvature in the activity
+    when ``grad``; returns (xa, xb, pos)."""
     H, W = valid.shape
     pf = np.zeros(W, np.int64)
     kr = np.zeros(W, np.int64)
@@ -583,7 +596,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
             me = 0
             if wp:
                 pw, me = wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub)
-            act = _activity(a, b, c, d, at(eb, x), at(ea, x + 1), at(ea, x), at(ea, x + 2), True, True, wp, me)
+            act = _activity(a, b, c, d, at(eb, x), at(ea, x + 1), at(ea, x), at(ea, x + 2), grad, True, wp, me)
             lev = _level_of(act) if bias or sc else 0
             if k == K_WP:
                 pl = pw
@@ -603,7 +616,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
                 tb = (min(max(lev - cofs, 0), NCTX - 1) >> 2) * NSUB + pat
             else:
                 tb = at(lut, min(act >> 2, 4096))
-            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + tb, L_RES)
+            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + tb, L_RES, M_RES)
             r = unzigzag(u)
             r = (r ^ flip) - flip
             set_at(qb, x + 1, r)
@@ -743,7 +756,13 @@ def sign_bits(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n0: i
     from :func:`encode_residuals`), the levels slid by ``cofs``, as the coder spends them (beside
     :func:`level_partition`'s bits)."""
     first = (np.minimum(np.maximum(np.arange(NLEVEL) - cofs, 0), NCTX - 1) >> 2) * NSUB
-    return pattern_bits(alt, first.astype(np.int64), tab, nb, np.int64(n0), np.int64(n1), True)
+    return pattern_bits(alt[: NLEVEL * NSUB], first.astype(np.int64), tab, nb, np.int64(n0), np.int64(n1), True)
+
+
+def grad_counts(alt: np.ndarray) -> np.ndarray:
+    """The symbol counts (NLEVEL, NSYM) int64 of a band's residuals by their level without the
+    curvature in the activity (``alt`` from :func:`encode_residuals`)."""
+    return alt[NLEVEL * NSUB :].astype(np.int64)
 
 
 @njit(cache=True, nogil=True)

@@ -101,7 +101,7 @@ def encode_mask(valid, tab, val, nb, n, t_edge):
                 n = put(tab, val, nb, n, t_edge + s, e - b + VERT, 0)
             else:
                 n = put(tab, val, nb, n, t_edge + s, EXPLICIT, 0)
-                n = put_value(tab, val, nb, n, T_RUN + s, e - x, L_RUN)
+                n = put_value(tab, val, nb, n, T_RUN + s, e - x, L_RUN, 0)
             if s == 0:
                 cur[0, n0] = e  # the row's runs' starts, for the next row
                 n0 += 1
@@ -142,7 +142,7 @@ def decode_mask(xa, xb, pos, words, nw, sym, fb, valid, t_edge):
             if c == END:
                 e = W
             elif c == EXPLICIT:
-                u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_RUN + s, L_RUN)
+                u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_RUN + s, L_RUN, 0)
                 if u >= np.uint64(W):
                     return False, xa, xb, pos
                 e = x + np.int64(u)

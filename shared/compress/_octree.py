@@ -300,12 +300,12 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
     if dup:
         prev = 1
         for i in range(nv):
-            n = put_value(tab, val, nb, n, T_DUP + min(prev, 4) - 1, counts[i] - 1, L_DUP)
+            n = put_value(tab, val, nb, n, T_DUP + min(prev, 4) - 1, counts[i] - 1, L_DUP, 0)
             prev = counts[i]
     npts, nch = chan.shape
     for c in range(nch):
         for i in range(npts):
-            n = put_value(tab, val, nb, n, T_ATTR + c, zigzag(chan[i, c]), log2d[c])
+            n = put_value(tab, val, nb, n, T_ATTR + c, zigzag(chan[i, c]), log2d[c], 0)
     return n
 
 
@@ -544,7 +544,7 @@ def _decode_tail(words, nw, xa, xb, pos, sym, fb, vox, nvox, npts, log2d, codes_
     if dup == 1:
         prev = 1
         for i in range(nvox):
-            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_DUP + min(prev, 4) - 1, L_DUP)
+            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_DUP + min(prev, 4) - 1, L_DUP, 0)
             c = np.int64(u) + 1
             if k + c > npts or c < 1:
                 return -1
@@ -565,7 +565,7 @@ def _decode_tail(words, nw, xa, xb, pos, sym, fb, vox, nvox, npts, log2d, codes_
     nch = chan_out.shape[1]
     for c in range(nch):
         for i in range(npts):
-            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_ATTR + c, log2d[c])
+            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_ATTR + c, log2d[c], 0)
             chan_out[i, c] = unzigzag(u)
         if pos > nw:
             return -1

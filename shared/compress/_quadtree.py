@@ -73,13 +73,13 @@ NTABLES = T_EDGE + 2
 MODE_RASTER = 0
 MODE_INTERP = 1
 #: The raster order's header after the tree: :data:`N_FLAGS` flags (bias cancellation, the sign
-#: contexts' offset, the weighted predictor, the two feedback weights, sign contexts, the
-#: least-squares predictor), then the activity levels' tables as NLEVEL - 1 flags
-#: (:func:`shared.compress._lpred.partition_tables`), then, with the least-squares predictor,
-#: its weights' bytes (from :data:`HEAD_N` on).
-N_FLAGS = 7
+#: contexts' offset, the weighted predictor, the two feedback weights, the curvature in the
+#: activity, sign contexts, the least-squares predictor), then the activity levels' tables as
+#: NLEVEL - 1 flags (:func:`shared.compress._lpred.partition_tables`), then, with the
+#: least-squares predictor, its weights' bytes (from :data:`HEAD_N` on).
+N_FLAGS = 8
 HEAD_N = N_FLAGS + lp.NLEVEL - 1
-F_SIGNS = 5  # the flag of sign contexts
+F_SIGNS = 6  # the flag of sign contexts
 
 L_SPLIT = 1
 L_MODEL = 2
@@ -92,7 +92,7 @@ WS_SIZE = 96
 MODEL_BITS = np.array([8.0, 24.0, 32.0, 48.0])
 TWO_PI_E = 2.0 * math.pi * math.e
 
-assert NSYM >= (1 << L_RES) + 64 and NTABLES <= 64 and T_RES + lp.NLEVEL < 128 and lp.NK <= NSYM and 2 * lp.FB_MAX < NSYM
+assert NSYM >= (1 << L_RES) + (64 << lp.M_RES) and NTABLES <= 64 and T_RES + lp.NLEVEL < 128 and lp.NK <= NSYM and 2 * lp.FB_MAX < NSYM
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -339,7 +339,7 @@ def _predict_coefs(pm, pc, px, py, pB, x0, y0, B, out):
 def _put_coef(tab, val, nb, n, t, u):
     # A leaf's coefficients, a few a leaf: called, not the coder's IR inlined at six sites of
     # the tree's kernel (numba copies an inlined function's IR at every call site).
-    return put_value(tab, val, nb, n, t, u, L_COEF)
+    return put_value(tab, val, nb, n, t, u, L_COEF, 0)
 
 
 #: Levels of the quadtree: blocks of TOP, TOP / 2, ... MINB samples.
@@ -671,7 +671,7 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
                 # the K_OF[m] coefficients: one inlined value decoder, not six (numba copies its IR per site)
                 for i in range(K_OF[m]):
                     tc = T_C0 if i == 0 else (T_C12 if i < 3 else T_C345)
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, tc, L_COEF)
+                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, tc, L_COEF, 0)
                     c[i] = pred[i] + unzigzag(u)
                 leaves[nleaf, 0] = x0
                 leaves[nleaf, 1] = y0
@@ -696,10 +696,10 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
         if i == N_FLAGS - 1 and v == 1:
             nh = head.shape[0]
         i += 1
-    bias, cofs, wp, aw, an, sc, ls = head[0], head[1], head[2], head[3], head[4], head[5], head[6]
+    bias, cofs, wp, aw, an, grad, sc, ls = head[0], head[1], head[2], head[3], head[4], head[5], head[6], head[7]
     # the weighted and least-squares predictors run in lossless bands only (the encoder's choice)
     if (bias > 1 or cofs > lp.MAX_COFS or wp > (1 if lossless else 0) or aw > 2 * lp.FB_MAX
-            or an > 2 * lp.FB_MAX or sc > 1 or ls > (1 if lossless else 0)):
+            or an > 2 * lp.FB_MAX or grad > 1 or sc > 1 or ls > (1 if lossless else 0)):
         return -1, xa, xb, pos
     for i in range(N_FLAGS, HEAD_N):
         if head[i] > 1:

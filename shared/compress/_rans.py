@@ -15,8 +15,9 @@ one multiply and a shift per symbol.
 
 Values are binarised by :func:`put_value`: a value below the table's *direct* size ``D`` (a
 power of two) is its own symbol; a larger one is the symbol ``D + (bit length - log2 D - 1)``
-followed by its low bits raw (an Elias-gamma-like escape), so every table holds at most
-``D + 64`` symbols and any unsigned 64-bit value can be coded.
+followed by its low bits raw (an Elias-gamma-like escape; the symbol may carry the ``m`` bits
+below the top, their values' lower bits raw), so every table holds at most ``D + 64 * 2**m``
+symbols and any unsigned 64-bit value can be coded.
 """
 
 from __future__ import annotations
@@ -32,8 +33,9 @@ RANS_L = 1 << 16
 #: Raw bits are coded in pieces of at most this many bits (a uniform "table").
 RAW_PIECE = PROB_BITS
 MAX_TABLES = 32
-#: Symbols per table: a direct part of at most 256 and 64 escape classes.
-NSYM = 256 + 64
+#: Symbols per table: a direct part of at most 256 and 64 escape classes, each in up to four
+#: (:func:`put_value`'s bits below the top).
+NSYM = 256 + 4 * 64
 #: ``tab`` value of a raw-bits event.
 RAW = -1
 #: ``tab`` value of a binary event with its own probability: ``val = p << 1 | bit`` where
@@ -79,22 +81,24 @@ def put(tab, val, nb, n, t, v, bits):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def put_value(tab, val, nb, n, t, u, log2d):
-    """Append unsigned value ``u`` in table ``t`` whose direct part is ``2**log2d`` symbols."""
+def put_value(tab, val, nb, n, t, u, log2d, m):
+    """Append unsigned value ``u`` in table ``t`` whose direct part is ``2**log2d`` symbols, an
+    escape carrying the ``m`` bits below a value's top bit (:func:`symbol_of`)."""
     d = np.uint64(1) << np.uint64(log2d)
     u = np.uint64(u)
     if u < d:
         return put(tab, val, nb, n, t, np.int64(u), 0)
     # int64 arguments: constants would each type (and compile) a signature of their own
-    return _put_escape(tab, val, nb, np.int64(n), np.int64(t), u, np.int64(log2d), d)
+    return _put_escape(tab, val, nb, np.int64(n), np.int64(t), u, np.int64(log2d), d, np.int64(m))
 
 
 @njit(cache=True, nogil=True)
-def _put_escape(tab, val, nb, n, t, u, log2d, d):
+def _put_escape(tab, val, nb, n, t, u, log2d, d, m):
     nbits = bitlen(u)
-    n = put(tab, val, nb, n, t, np.int64(d) + nbits - log2d - 1, 0)
-    rem = nbits - 1
-    low = u - (np.uint64(1) << np.uint64(rem))
+    rem = nbits - 1 - m  # the raw bits below the top bit and the m bits in the symbol
+    top = np.int64((u >> np.uint64(rem)) & np.uint64((1 << m) - 1))
+    n = put(tab, val, nb, n, t, np.int64(d) + ((nbits - log2d - 1) << m) + top, 0)
+    low = u & ((np.uint64(1) << np.uint64(rem)) - np.uint64(1))
     while rem > 0:
         k = min(rem, RAW_PIECE)
         n = put(tab, val, nb, n, RAW, np.int64(low & ((np.uint64(1) << np.uint64(k)) - np.uint64(1))), k)
@@ -104,11 +108,15 @@ def _put_escape(tab, val, nb, n, t, u, log2d, d):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def symbol_of(u, log2d):
+def symbol_of(u, log2d, m):
     """The symbol :func:`put_value` codes unsigned value ``u`` (int64 >= 0) with (its raw bits
-    aside): the value below ``2**log2d``, else the escape of its bit length."""
+    aside): the value below ``2**log2d``, else the escape of its bit length and the ``m`` bits
+    below its top bit (``m <= log2d``)."""
     d = np.int64(1) << log2d
-    return u if u < d else d + np.int64(bitlen(np.uint64(u))) - log2d - 1
+    if u < d:
+        return u
+    nbits = np.int64(bitlen(np.uint64(u)))
+    return d + ((nbits - log2d - 1) << m) + ((u >> (nbits - 1 - m)) & ((1 << m) - 1))
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -362,12 +370,12 @@ def model_update(models, ctx, bit):
 
 
 @njit(cache=True, nogil=True)
-def _get_escape(xa, xb, pos, words, nw, s, d, log2d):
-    nbits = s - d + log2d + 1
-    rem = nbits - 1
-    if rem > 63:
+def _get_escape(xa, xb, pos, words, nw, s, d, log2d, m):
+    nbits = ((s - d) >> m) + log2d + 1
+    rem = nbits - 1 - m
+    if nbits > 64:
         return np.uint64(0), xa, xb, nw + 1  # corrupt: position beyond the end
-    u = np.uint64(1) << np.uint64(rem)
+    u = (np.uint64(1) << np.uint64(nbits - 1)) | (np.uint64((s - d) & ((1 << m) - 1)) << np.uint64(rem))
     shift = 0
     while rem > 0:
         k = min(rem, RAW_PIECE)
@@ -379,13 +387,13 @@ def _get_escape(xa, xb, pos, words, nw, s, d, log2d):
 
 
 @njit(cache=True, nogil=True, inline="always")
-def get_value(xa, xb, pos, words, nw, sym, fb, t, log2d):
+def get_value(xa, xb, pos, words, nw, sym, fb, t, log2d, m):
     """Decode a value put by :func:`put_value`: returns (value uint64, xa, xb, pos)."""
     s, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, t)
     d = np.int64(1) << log2d
     if s < d:
         return np.uint64(s), xa, xb, pos
-    return _get_escape(xa, xb, np.int64(pos), words, np.int64(nw), s, np.int64(d), np.int64(log2d))
+    return _get_escape(xa, xb, np.int64(pos), words, np.int64(nw), s, np.int64(d), np.int64(log2d), np.int64(m))
 
 
 @njit(cache=True, nogil=True)

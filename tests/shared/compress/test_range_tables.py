@@ -1,6 +1,7 @@
 """The range codec's residual tables (``quadtree-lp-7``): the activity levels partitioned into
 runs, one table a run, by the bits the coder spends (code lengths and stored tables), which the
-estimate matches; the partition never costs more than the tables' sliding and merging."""
+estimate matches; the partition never costs more than the tables' sliding and merging; values
+whose escape symbol carries the bits below their top bit round-trip at every bit length."""
 
 from __future__ import annotations
 
@@ -8,7 +9,17 @@ import numpy as np
 import pytest
 
 from shared.compress import _lpred as lp
-from shared.compress._rans import NSYM, count_symbols, encode_events, normalise
+from shared.compress._rans import (
+    NSYM,
+    count_symbols,
+    dec_init,
+    decode_tables,
+    encode_events,
+    get_value,
+    normalise,
+    put_value,
+    symbol_of,
+)
 from shared.compress._tables import pack_codes, quantise_tables, table_bits
 
 
@@ -70,3 +81,36 @@ def test_quiet_levels_share_a_table_and_busy_ones_keep_their_own() -> None:
     lut = lp.level_partition(counts, 0.0)[1]
     assert lut[12] == lut[13] == lut[14]
     assert len({lut[14], lut[20], lut[21]}) == 3
+
+
+def _coded_values(values: np.ndarray, log2d: int, m: int) -> np.ndarray:
+    """``values`` put by ``put_value`` in one table and decoded back."""
+    cap = 8 * values.size + 64
+    tab, val, nb = np.zeros(cap, np.int8), np.zeros(cap, np.int16), np.zeros(cap, np.int8)
+    n = np.int64(0)
+    for u in values:
+        n = put_value(tab, val, nb, n, np.int64(0), np.uint64(u), np.int64(log2d), np.int64(m))
+    freq = quantise_tables(normalise(count_symbols(tab, val, n, np.int64(1))))[1]
+    words = encode_events(tab, val, nb, n, freq)
+    sym, fb = decode_tables(freq)
+    xa, xb, pos = dec_init(words)
+    out = np.zeros(values.size, np.uint64)
+    for i in range(values.size):
+        out[i], xa, xb, pos = get_value(xa, xb, pos, words, np.int64(words.size), sym, fb, np.int64(0), np.int64(log2d),
+                                        np.int64(m))
+    assert pos == words.size
+    return out
+
+
+@pytest.mark.parametrize("log2d, m", [(8, 2), (8, 0), (4, 0), (2, 2)])
+def test_values_with_bits_in_their_escape_symbol_round_trip(log2d: int, m: int) -> None:
+    # the residuals' escapes carry the two bits below a value's top bit (M_RES); every bit
+    # length up to 64 bits, and the values either side of each power of two
+    edges = [v for k in range(1, 64) for v in ((1 << k) - 1, 1 << k, (1 << k) + 1, (1 << k) + (1 << (k - 1)))]
+    values = np.array([0, 1, 2, 3, *edges, (1 << 64) - 1], np.uint64)
+    np.testing.assert_array_equal(_coded_values(values, log2d, m), values)
+    # the symbols counted for the sign contexts' estimate are the ones put
+    tab, val, nb = np.zeros(8, np.int8), np.zeros(8, np.int16), np.zeros(8, np.int8)
+    for u in values[values < (1 << 62)]:
+        put_value(tab, val, nb, np.int64(0), np.int64(0), np.uint64(u), np.int64(log2d), np.int64(m))
+        assert symbol_of(np.int64(u), np.int64(log2d), np.int64(m)) == val[0]
