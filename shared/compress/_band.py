@@ -115,6 +115,8 @@ TR = np.int64(T_RES)
 #: No candidate counts (:func:`shared.compress._interp.interp_events`).
 NO_HIST = np.zeros((1, 1, 1, 1, 1), np.int64)
 NO_ALT = np.zeros((1, 1), np.int32)
+#: No leaf's costs known (:func:`shared.compress._lpred.choose_predictors`).
+NO_KNOWN = np.zeros(0, np.bool_)
 
 
 def _save(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, a: int, b: int) -> tuple[np.ndarray, ...]:
@@ -142,9 +144,39 @@ class _Margins:
     grad: bool | None = None  # the curvature in the activity, once a margin chose (GRAD_MIN_GAIN)
     mask: int = MASK_RUNS  # the mask's coder (shared.compress._quadtree.put_mask)
 
+    costs: tuple[np.ndarray, np.ndarray] | None = None  # a margin's leaves (keys) and their local predictors' costs
+
     def seen(self, leaves: np.ndarray, lcoef: np.ndarray) -> bool:
         """Whether this tree was coded already: then its stream would be the same."""
         return any(np.array_equal(lv, leaves) and np.array_equal(cf, lcoef) for lv, cf in self.trees)
+
+    @staticmethod
+    def _keys(leaves: np.ndarray, W: int) -> np.ndarray:
+        # a block's place and size; a block's fit is the same in every margin (tree_memo)
+        return (leaves[:, 1] * W + leaves[:, 0]) * 128 + leaves[:, 2]
+
+    def keep_costs(self, leaves: np.ndarray, cost: np.ndarray, W: int) -> None:
+        """Keep the leaves' local predictors' costs (the first margin's) for the next margin."""
+        if self.costs is None:
+            keys = self._keys(leaves, W)
+            order = np.argsort(keys)
+            self.costs = keys[order], cost[: leaves.shape[0], : lp.K_WP][order].copy()
+
+    def known_costs(self, leaves: np.ndarray, cost: np.ndarray, valid: np.ndarray, W: int) -> np.ndarray:
+        """Which leaves' local predictors' costs a previous margin counted (their rows of
+        ``cost`` filled): the same blocks, below the rows whose neighbours depend on the tree
+        (the first, and down to the first row that starts with a sample: holes at a row's
+        start are filled from the row above, the first row's from the tree's virtual row)."""
+        if self.costs is None or self.costs[0].size == 0:
+            return NO_KNOWN
+        keys, rows = self.costs
+        mine = self._keys(leaves, W)
+        at = np.minimum(np.searchsorted(keys, mine), keys.size - 1)
+        starts = np.flatnonzero(valid[:, 0])
+        free = (int(starts[0]) if starts.size else valid.shape[0]) + 1  # the first row not depending on the tree
+        known = (keys[at] == mine) & (leaves[:, 1] >= free)
+        cost[: leaves.shape[0], : lp.K_WP][known] = rows[at[known]]
+        return known
 
 
 #: :func:`_encode_events`' count where a band's tree margin built a tree another had built.
@@ -195,7 +227,9 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     alt = np.zeros((lp.NLEVEL * (lp.NSUB + choose_grad), NSYM) if count else (1, 1), np.int32)
     alt_b = np.zeros_like(alt)
     cost = np.empty((nleaf, lp.NK), np.int64)  # the leaves' summed costs by predictor
-    lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ONE)
+    known = shared.known_costs(leaves[:nleaf], cost, valid, W)
+    lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ONE, known)
+    shared.keep_costs(leaves[:nleaf], cost, W)
     # the least-squares predictor (lossless mode), where the leaves do not keep their fitted
     # surface (white noise): one more choice of every leaf, its weights in the header
     pls, lsw = none, None
@@ -209,14 +243,16 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             # the predictions of the rows that do not depend on the tree are made once (ls_band)
             pls = ls_band(t, valid, cells, leaves, lcoef, lsw, shared.pls)
             shared.pls = pls
-            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, pls, ONE, cost, ZERO)
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, pls, ONE, cost, ZERO,
+                                 NO_KNOWN)
             # tried where the leaves' summed costs fall by LS_MIN_GAIN
             k = leaves[:nleaf, 4]
             with_ls = float(cost[np.arange(nleaf), k].sum())
             c0 = cost[:nleaf, : lp.K_WP]
             without = float(c0.min(axis=1).sum())
             if with_ls > (1.0 - LS_MIN_GAIN) * without:
-                lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ZERO)
+                lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost,
+                                     ZERO, NO_KNOWN)
                 pls, lsw = none, None
             sure = with_ls < LS_SURE * without
     ls = ZERO if lsw is None else ONE
@@ -265,7 +301,8 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             with_ls = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
             keep = _save(tab, val, nb, n_res, n_end)
             keep_k = leaves[:nleaf, 4].copy()
-            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ZERO)
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ZERO,
+                                 NO_KNOWN)
             aw0, an0 = lp.feedback_weights(t, valid, cells, leaves, lcoef, none, none) if opts & lp.OPT_FEEDBACK else (0, 0)
             n_res0 = np.int64(n + HEAD_N + nleaf)  # the header without the weights
             n0 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, np.int64(aw0), np.int64(an0),
@@ -288,7 +325,8 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             keep = _save(tab, val, nb, n_res, n_end)
             keep_k = leaves[:nleaf, 4].copy()
             pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
-            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, ONE, pls, ls, cost, ZERO)
+            lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, ONE, pls, ls, cost, ZERO,
+                                 NO_KNOWN)
             aw1, an1 = 0, 0
             if opts & lp.OPT_FEEDBACK:
                 aw1, an1 = lp.feedback_weights(t, valid, cells, leaves, lcoef, pw, pls)

@@ -199,7 +199,7 @@ def local_bits(S, y0, x0, B, n):
 
 
 @njit(cache=True, nogil=True)
-def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, wp, pls, ls, cost, local):
+def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, wp, pls, ls, cost, local, known):
     """Each leaf's predictor (``leaves[:, 4]``: 0 its model, else :func:`local_pred`'s): the one
     of least summed cost over the leaf, predicted from the targets ``t`` (exact in lossless mode,
     within half a quantum of the reconstruction in bounded mode): in lossless mode
@@ -208,8 +208,11 @@ def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw,
     the weighted predictor's predictions ``pw`` (H, W) int64 (:func:`wp_band`) are a choice too,
     with ``ls`` the least-squares predictor's ``pls`` (H, W) int64
     (:func:`shared.compress._ls.ls_band`). ``cost`` (>= nleaf, NK) int64 holds the leaves'
-    summed costs: with ``local`` they are counted for the local predictors, without they are
-    a previous call's (another predictor tried beside them)."""
+    summed costs: with ``local`` they are counted for the local predictors, but for the leaves
+    ``known`` (nleaf,) bool (empty: none) marks, whose rows the caller filled (the same leaf's
+    under another tree margin: leaves below the rows that depend on the tree, whose neighbours
+    are targets); without ``local`` they are a previous call's (another predictor tried beside
+    them)."""
     H, W = t.shape
     leaves[:nleaf, 4] = 0
     if not (opts & OPT_PRED):
@@ -217,7 +220,11 @@ def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw,
     cost[:nleaf, K_WP] = 0
     cost[:nleaf, K_LS] = 0
     if local:
-        cost[:nleaf, :K_WP] = 0
+        some = known.shape[0] > 0
+        for i in range(nleaf):
+            if not (some and known[i]):
+                for k in range(K_WP):
+                    cost[i, k] = 0
         pf = np.zeros(W, np.int64)
         kr = np.zeros(W, np.int64)
         ra = np.zeros(W + 3, np.int64)
@@ -234,6 +241,8 @@ def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw,
                 c = ra[x]
                 d = ra[x + 2]
                 i = cells[cy, x // MINB]
+                if some and known[i]:
+                    continue
                 for k in range(K_WP):
                     cost[i, k] += _err_cost(v - local_pred(k, a, b, c, d, pf[x]), lossless)
             ra, rb = rb, ra
@@ -471,10 +480,16 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
             b = ra[x + 1]
             c = ra[x]
             d = ra[x + 2]
-            lev = _context(a, b, c, d, eb[x], ea[x + 1], ea[x], ea[x + 2], grad, errs, wp, at(pe_row, x))
+            # the activity of the neighbours' errors, then with the curvature (one level each)
+            act_e = _activity(a, b, c, d, eb[x], ea[x + 1], ea[x], ea[x + 2], False, errs, False, 0)
+            act = act_e + min(abs(d - 2 * b + c), E_LIM) if grad else act_e
+            if wp:
+                lev = _level_of(_wp_activity(act, at(pe_row, x)))
+            else:
+                lev = _level_of(act)
             lev_g = 0
             if count_g:
-                lev_g = _context(a, b, c, d, eb[x], ea[x + 1], ea[x], ea[x + 2], False, errs, wp, at(pe_row, x))
+                lev_g = _level_of(_wp_activity(act_e, at(pe_row, x)) if wp else act_e)
             k = kr[x]
             if k == K_WP:
                 pl = at(pw_row, x)

@@ -369,3 +369,47 @@ def test_a_real_captures_activity_leaves_the_curvature_out(real_range_files: dic
     z = load_range_npz(real_range_files["capture_0"]).z[:256]
     chosen, with_it, without = _grad_ways(z, monkeypatch)
     assert chosen == without < 0.997 * with_it
+
+
+@pytest.mark.parametrize("lead", ["none", "the first 40 rows"])
+def test_a_margins_costs_taken_from_another_are_the_costs_counted_afresh(lead: str) -> None:
+    # the second tree margin takes the first's costs of the leaves both trees hold, below the
+    # rows whose neighbours depend on the tree (rows starting with holes are filled from the
+    # row above, the first from the tree's virtual row): the costs and the predictors chosen
+    # are the ones counted afresh
+    z = relief(250, 333, hold=(1, 1))
+    if lead == "the first 40 rows":
+        z[:40, :3] = np.nan
+    t, valid = qt.quantise(z, 0.02, True)
+    memo = qt.tree_memo(t, valid, True, lp.OPT_ALL)
+    shared = band._Margins()
+    none = np.zeros((1, t.shape[1]), np.int64)
+    out = []
+    for margin in qt.SPLIT_LOSSLESS:
+        _, _, _, lv, cf = _tree_events(t, valid, True, margin, 0.0, memo)
+        leaves = np.zeros((lv.shape[0], 5), np.int64)
+        leaves[:, :4] = lv[:, :4]
+        cells = band._leaf_cells(np.int64(t.shape[0]), np.int64(t.shape[1]), leaves, np.int64(lv.shape[0]))
+        runs = []
+        for reuse in (False, True):
+            cost = np.zeros((lv.shape[0], lp.NK), np.int64)
+            known = shared.known_costs(leaves, cost, valid, t.shape[1]) if reuse else band.NO_KNOWN
+            lp.choose_predictors(t, valid, cells, leaves, cf, np.int64(lv.shape[0]), True, np.int64(lp.OPT_ALL), none,
+                                 band.ZERO, none, band.ZERO, cost, band.ONE, known)
+            runs.append((cost.copy(), leaves[:, 4].copy(), int(np.count_nonzero(known))))
+        np.testing.assert_array_equal(runs[0][0], runs[1][0])
+        np.testing.assert_array_equal(runs[0][1], runs[1][1])
+        out.append(runs[1][2])
+        shared.keep_costs(leaves, runs[0][0], t.shape[1])
+    assert out[0] == 0 and out[1] > 0  # the second margin took some of the first's
+
+
+def test_no_leaf_above_the_first_row_starting_with_a_sample_takes_anothers_costs() -> None:
+    # their neighbours are filled from the tree's virtual row: another tree's costs are not theirs
+    valid = np.ones((256, 256), bool)
+    valid[:70, 0] = False  # rows 0-69 start with holes
+    leaves = np.array([[x, y, 32, 0, 0] for y in range(0, 256, 32) for x in range(0, 256, 32)], np.int64)
+    shared = band._Margins()
+    shared.keep_costs(leaves, np.ones((leaves.shape[0], lp.NK), np.int64), 256)
+    known = shared.known_costs(leaves, np.zeros((leaves.shape[0], lp.NK), np.int64), valid, 256)
+    np.testing.assert_array_equal(known, leaves[:, 1] >= 96)  # rows 0-70 depend on the tree: leaves from y 96 on
