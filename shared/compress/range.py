@@ -21,10 +21,11 @@ Files of the earlier codecs (:data:`OLD_CODECS`) are refused by name (re-encode 
 
 Measured (``tests/bench/bench_compress.py``, bits per valid sample, lossless at 0.02 mm / within
 0.1 mm, effort 1): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768
-projector 1.977 / 0.379 (``quadtree-lp-5`` 2.085 / 0.379; JPEG-XL effort 7 2.16, JPEG-LS 2.44,
-JPEG-LS NEAR 1.29, SZ3 0.51); the bunny at 2:1 2.746 / 0.742 (``-lp-5`` 2.952; JPEG-XL 2.93,
-SZ3 0.86); the Cyberware dragon scan 4.86 / 1.94 (``-lp-5`` 4.95; JPEG-XL 4.55, JPEG-LS NEAR
-3.00); a synthetic image with 0.2 mm white noise 5.51 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
+projector 1.971 / 0.379 (``quadtree-lp-6`` 1.977 / 0.379; JPEG-XL effort 7 2.16, JPEG-LS 2.44,
+JPEG-LS NEAR 1.29, SZ3 0.51); the bunny at 2:1 2.722 / 0.742 (``-lp-6`` 2.746; JPEG-XL 2.93,
+SZ3 0.86); a real kamino410 capture 8.78 / 5.67 (``-lp-6`` 8.94 / 5.68; JPEG-XL 9.29, JPEG-LS
+NEAR 7.20); the Cyberware dragon scan 4.77 / 1.90 (``-lp-6`` 4.86 / 1.94; JPEG-XL 4.55, JPEG-LS
+NEAR 3.00); a synthetic image with 0.2 mm white noise 5.49 / 2.25 (JPEG-XL 5.73, SZ3 2.72).
 """
 
 from __future__ import annotations
