@@ -41,8 +41,6 @@ from shared.compress._mask import (
     MASK_RUNS,
     decode_mask,
     decode_mask_ctx,
-    encode_mask,
-    mask_ctx_bits,
 )
 from shared.compress._quadtree import (
     F_SIGNS,
@@ -62,12 +60,14 @@ from shared.compress._quadtree import (
     _leaf_cells,
     _put_predictors,
     _stream_bits,
+    put_events,
     put_mask,
     tree_memo,
 )
 from shared.compress._rans import (
     NSYM,
     RANS_L,
+    binary_bits,
     count_symbols,
     dec_init,
     decode_tables,
@@ -142,7 +142,7 @@ class _Margins:
     trees: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     memo: tuple[np.ndarray, ...] = ()  # the blocks' fits (shared.compress._quadtree.tree_memo)
     grad: bool | None = None  # the curvature in the activity, once a margin chose (GRAD_MIN_GAIN)
-    mask: int = MASK_RUNS  # the mask's coder (shared.compress._quadtree.put_mask)
+    mask: tuple[np.ndarray, ...] = ()  # the mask's events (mask_events)
 
     costs: tuple[np.ndarray, np.ndarray] | None = None  # a margin's leaves (keys) and their local predictors' costs
 
@@ -203,8 +203,10 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     lcoef = np.empty((nleaf_max, 6), np.int64)
     if not shared.memo:
         shared.memo = tree_memo(t, valid, lossless, int(opts))
+    if not shared.mask:
+        shared.mask = _mask_coded(valid)[1]
     n, nleaf = _encode_tree(t, valid, lossless, opts, float(margin), float(share), tab, val, nb, leaves, lcoef,
-                            *shared.memo, np.int64(shared.mask))
+                            *shared.memo, *shared.mask)
     if n < 0:
         return -1, None
     if shared.seen(leaves[:nleaf, :4], lcoef[:nleaf]):
@@ -460,16 +462,35 @@ def _model_share(leaves: np.ndarray) -> float:
 MASK_CTX_MIN = 0.01
 
 
-def _mask_coder(valid: np.ndarray) -> int:
-    """The coder of a band's mask ``valid`` (H, W) bool of fewer bits
-    (:data:`shared.compress._mask.MASK_RUNS` or ``MASK_CTX``), its runs' bits as
-    :func:`_stream_bits` counts them (their tables with them)."""
+Events = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def mask_events(valid: np.ndarray, coder: int) -> Events:
+    """A band's mask ``valid`` (H, W) bool as events (tables, values, raw bit counts) by the
+    coder ``coder`` (:func:`shared.compress._quadtree.put_mask`): coded once, copied into each
+    way the band is coded. Sized to the mask: a sample a binary event in context; as runs, at
+    most a few events a run's end."""
+    if coder == MASK_CTX:
+        cap = valid.size + 64
+    else:
+        cap = 3 * int(np.count_nonzero(valid[:, 1:] != valid[:, :-1])) + 3 * valid.shape[0] + 4096
+    _, (tab, val, nb), (n,) = _coded(cap, lambda tb, vl, nbt: (put_mask(valid, tb, vl, nbt, ZERO, np.int64(coder)),))
+    return tab[:n], val[:n], nb[:n]
+
+
+def _mask_coded(valid: np.ndarray) -> tuple[int, Events]:
+    """A band's mask ``valid`` (H, W) bool by the coder of fewer bits
+    (:data:`shared.compress._mask.MASK_RUNS` or ``MASK_CTX``) and its events
+    (:func:`mask_events`): the runs' bits as :func:`_stream_bits` counts them (their tables with
+    them), the binary events' as the rANS coder spends them
+    (:func:`shared.compress._rans.binary_bits`)."""
     H, W = valid.shape
-    _, bufs, (n,) = _coded(4 * H + 4096, lambda tb, vl, nbt: (encode_mask(valid, tb, vl, nbt, ZERO, np.int64(T_EDGE)),))
-    runs = _stream_bits(*bufs, np.int64(n))
-    if runs < MASK_CTX_MIN * H * W:
-        return MASK_RUNS
-    return MASK_CTX if mask_ctx_bits(valid) < runs else MASK_RUNS
+    runs = mask_events(valid, MASK_RUNS)
+    bits = _stream_bits(*(a[1:] for a in runs), np.int64(runs[0].size - 1))  # after the coder's symbol
+    if bits < MASK_CTX_MIN * H * W:
+        return MASK_RUNS, runs
+    ctx = mask_events(valid, MASK_CTX)
+    return (MASK_CTX, ctx) if binary_bits(ctx[0], ctx[1]) < bits else (MASK_RUNS, runs)
 
 
 def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> tuple[np.ndarray, np.ndarray]:
@@ -486,10 +507,10 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
     best = np.inf
     tab = val = nb = None
     n = 0
-    shared = _Margins(mask=_mask_coder(valid))
-    # about one event a valid sample (and one a sample for a mask in context), a few a leaf and
-    # a row; rarely escapes (retried when short)
-    cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096 + (H * W if shared.mask == MASK_CTX else 0)
+    shared = _Margins(mask=_mask_coded(valid)[1])
+    # about one event a valid sample, a few a leaf and a row, the mask's; rarely escapes
+    # (retried when short)
+    cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096 + shared.mask[0].size
     signs = None
     interp = not lossless and bool(opts & lp.OPT_INTERP)
     compare = len(margins) > 1 or interp  # streams' bits wanted
@@ -563,9 +584,9 @@ _OCTAVE_BITS = np.array([0.0] * 8 + [3.0 + j for j in range(HB - 8)])
 
 def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndarray, nb: np.ndarray,
                  rival: float = np.inf, opts: int = lp.OPT_ALL, force: int | None = None,
-                 mask: int = MASK_RUNS) -> tuple[int, float]:
-    """Every event of one band in interpolation order (bounded mode): the mask (its coder
-    ``mask``, :func:`shared.compress._quadtree.put_mask`), the mode, the
+                 mask: tuple[np.ndarray, ...] = ()) -> tuple[int, float]:
+    """Every event of one band in interpolation order (bounded mode): the mask (its events
+    ``mask``, :func:`mask_events`; as runs where not given), the mode, the
     residual tables' offset and merging, whether they are sign contexts, the error feedback's
     weights, the residuals. ``opts``: without :data:`shared.compress._lpred.OPT_FEEDBACK` no
     feedback, without :data:`shared.compress._lpred.OPT_SIGN` level tables only (ablation);
@@ -573,7 +594,7 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
     tables). Returns (the count, the stream's bits as :func:`_stream_bits` counts them); the count
     -1 when the event buffers are too small, or -2 when the first pass's estimate of the stream is
     more than :data:`INTERP_GIVE_UP` times ``rival`` bits (the raster order's stream)."""
-    n = put_mask(valid, tab, val, nb, ZERO, np.int64(mask))
+    n = put_events(tab, val, nb, ZERO, *(mask or mask_events(valid, MASK_RUNS)))
     no_leaves = np.zeros((0, 5), np.int64)
     head = np.zeros(3 + 2 * NLV, np.int64)
     n = _put_predictors(tab, val, nb, np.int64(n), np.array([MODE_INTERP], np.int64), no_leaves, ZERO)

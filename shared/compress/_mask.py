@@ -16,7 +16,7 @@ A real structured-light capture's holes are speckle, not silhouettes: where the 
 is low, pixels fail to decode at random, in streaks along the stripes. There each sample is a
 binary event with the adaptive probability of its context (as JBIG's generic region coding:
 the 10 samples of a three-line template, above the band and past its sides holes), which the
-encoder takes where it codes fewer bits than the runs (:func:`mask_ctx_bits`). Measured per band
+encoder takes where it codes fewer bits than the runs. Measured per band
 of 256 rows, bits per valid sample: the five kamino410 captures 0.203 / 0.349 / 0.276 / 0.419 /
 0.410 as runs, 0.151 / 0.239 / 0.200 / 0.301 / 0.292 in context; the Cyberware dragons 0.148 /
 0.193 and 0.115 / 0.149; the simulated relief and bunny (silhouettes) 0.001 and 0.006 as runs,
@@ -31,7 +31,6 @@ from numba import njit
 from shared.compress._rans import (
     BIN,
     MODEL_INIT,
-    PROB_SCALE,
     get_bit,
     get_symbol,
     get_value,
@@ -54,8 +53,6 @@ MASK_RUNS = 0
 MASK_CTX = 1
 #: The context coder's models: JBIG's three-line template of 10 decoded samples.
 NCTX_MASK = 1 << 10
-#: -log2(p / PROB_SCALE): the bits of a binary event of probability p (:func:`mask_ctx_bits`).
-BIN_BITS = -np.log2(np.maximum(np.arange(PROB_SCALE + 1), 0.5) / PROB_SCALE)
 
 
 @njit(cache=True, nogil=True, inline="always")
@@ -179,29 +176,6 @@ def _template(r0, r1, r2, i):
     0/1: W, WW in its row ``r0``; NWW, NW, N, NE, NEE in ``r1``; NNW, NN, NNE in ``r2``."""
     return (r0[i - 1] | (r0[i - 2] << 1) | (r1[i - 2] << 2) | (r1[i - 1] << 3) | (r1[i] << 4) | (r1[i + 1] << 5)
             | (r1[i + 2] << 6) | (r2[i - 1] << 7) | (r2[i] << 8) | (r2[i + 1] << 9))
-
-
-@njit(cache=True, nogil=True)
-def mask_ctx_bits(valid):
-    """The bits of the mask ``valid`` (H, W) bool in context (:func:`encode_mask_ctx`), as the
-    rANS coder would spend them, without events."""
-    H, W = valid.shape
-    models = np.full(NCTX_MASK, MODEL_INIT, np.uint32)
-    r0 = np.zeros(W + 4, np.int64)
-    r1 = np.zeros(W + 4, np.int64)
-    r2 = np.zeros(W + 4, np.int64)
-    bits = 0.0
-    for y in range(H):
-        for x in range(W):
-            i = x + 2
-            c = _template(r0, r1, r2, i)
-            p = model_p(models, c)
-            bit = 1 if valid[y, x] else 0
-            bits += BIN_BITS[p if bit else PROB_SCALE - p]
-            model_update(models, c, bit)
-            r0[i] = bit
-        r0, r1, r2 = r2, r0, r1
-    return bits
 
 
 @njit(cache=True, nogil=True)

@@ -399,17 +399,32 @@ def put_mask(valid, tab, val, nb, n, mask):
 
 
 @njit(cache=True, nogil=True)
-def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, lcoef, S, memo, memo_c, mask):
+def put_events(tab, val, nb, n, stab, sval, snb):
+    """Append the events ``stab``, ``sval``, ``snb`` after event ``n``; returns the count (-1:
+    the buffers are full)."""
+    m = stab.shape[0]
+    if n < 0 or n + m > tab.shape[0]:
+        return -1
+    for i in range(m):
+        tab[n + i] = stab[i]
+        val[n + i] = sval[i]
+        nb[n + i] = snb[i]
+    return n + m
+
+
+@njit(cache=True, nogil=True)
+def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, lcoef, S, memo, memo_c, mtab, mval,
+                 mnb):
     """The mask's and the quadtree's events of one band (its leaves into ``leaves`` (n, 5) and
     ``lcoef`` (n, 6) int64); returns (events, leaves), events -1 when the buffers are too small.
-    ``S``, ``memo`` and ``memo_c`` from :func:`tree_memo`, shared by the band's margins;
-    ``mask`` the mask's coder (:func:`put_mask`).
+    ``S``, ``memo`` and ``memo_c`` from :func:`tree_memo`, and the mask's events ``mtab``,
+    ``mval``, ``mnb`` (:func:`put_mask`), shared by the band's margins.
     (Arrays copied by loops, not ``a[:] = b``: numba links a shape mismatch's error message into
     every kernel holding one, 0.2 s more compilation each, 2.4 s once a process.)"""
     H, W = t.shape
     n = 0
     # 1. the mask
-    n = put_mask(valid, tab, val, nb, n, mask)
+    n = put_events(tab, val, nb, n, mtab, mval, mnb)
     n = put(tab, val, nb, n, T_PRED, MODE_RASTER, 0)
     # 2. the quadtree with its leaves' models
     local = (opts & lp.OPT_PRED) != 0

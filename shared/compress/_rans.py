@@ -296,6 +296,21 @@ def get_raw(xa, xb, pos, words, nw, k):
     return v, xb, xa, pos
 
 
+#: -log2(p / PROB_SCALE): the bits of a binary event of probability p (:func:`binary_bits`).
+BIN_BITS = -np.log2(np.maximum(np.arange(PROB_SCALE + 1), 0.5) / PROB_SCALE)
+
+
+@njit(cache=True, nogil=True)
+def binary_bits(tab, val):
+    """The bits the coder spends on the :data:`BIN` events among ``tab``, ``val``."""
+    bits = 0.0
+    for i in range(tab.shape[0]):
+        if tab[i] == BIN:
+            p = np.int64(val[i]) >> 1
+            bits += BIN_BITS[p if val[i] & 1 else PROB_SCALE - p]
+    return bits
+
+
 @njit(cache=True, nogil=True)
 def get_bit(xa, xb, pos, words, nw, p):
     """Decode a :data:`BIN` event of probability ``p / PROB_SCALE`` of a one: returns (bit, xa, xb, pos)."""

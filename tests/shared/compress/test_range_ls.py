@@ -183,7 +183,7 @@ def _tree(t: np.ndarray, valid: np.ndarray, margin: float) -> tuple[np.ndarray, 
     leaves = np.zeros((t.size // 16 + 64, 5), np.int64)
     lcoef = np.zeros((t.size // 16 + 64, 6), np.int64)
     n, nleaf = band._encode_tree(t, valid, True, np.int64(WITH), float(margin), 0.0, tab, val, nb, leaves, lcoef,
-                                 *band.tree_memo(t, valid, True, WITH), np.int64(band.MASK_RUNS))
+                                 *band.tree_memo(t, valid, True, WITH), *band.mask_events(valid, band.MASK_RUNS))
     assert n > 0
     cells = band._leaf_cells(np.int64(t.shape[0]), np.int64(t.shape[1]), leaves, np.int64(nleaf))
     return cells, leaves, lcoef

@@ -268,7 +268,7 @@ def _tree_events(t: np.ndarray, valid: np.ndarray, lossless: bool, margin: float
     leaves = np.zeros((t.size // 16 + 64, 5), np.int64)
     lcoef = np.zeros((t.size // 16 + 64, 6), np.int64)
     n, nleaf = band._encode_tree(t, valid, lossless, np.int64(lp.OPT_ALL), float(margin), float(share), tab, val, nb,
-                                 leaves, lcoef, *memo, np.int64(band.MASK_RUNS))
+                                 leaves, lcoef, *memo, *band.mask_events(valid, band.MASK_RUNS))
     assert n > 0
     return tab[:n], val[:n], nb[:n], leaves[:nleaf], lcoef[:nleaf]
 
