@@ -132,9 +132,10 @@ def _restore(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, a: int, saved: tu
 
 @dataclass
 class _Margins:
-    """What a band's tree margins share (:func:`_encode_events`): the blocks' fits, the
-    least-squares weights once fitted (:func:`shared.compress._ls.ls_weights`: they do not
-    depend on the tree) and their predictions, and the trees (leaves and models) already coded."""
+    """What a band's tree margins share (:func:`_encode_events`): the mask's events, the blocks'
+    fits, the least-squares weights once fitted (:func:`shared.compress._ls.ls_weights`: they do
+    not depend on the tree) and their predictions, the first margin's leaves' costs and its
+    choice of the activity, and the trees (leaves and models) already coded."""
 
     fitted: bool = False
     lsw: np.ndarray | None = None
@@ -143,8 +144,7 @@ class _Margins:
     memo: tuple[np.ndarray, ...] = ()  # the blocks' fits (shared.compress._quadtree.tree_memo)
     grad: bool | None = None  # the curvature in the activity, once a margin chose (GRAD_MIN_GAIN)
     mask: tuple[np.ndarray, ...] = ()  # the mask's events (mask_events)
-
-    costs: tuple[np.ndarray, np.ndarray] | None = None  # a margin's leaves (keys) and their local predictors' costs
+    costs: tuple[np.ndarray, np.ndarray] | None = None  # the first margin's leaves (keys), local predictors' costs
 
     def seen(self, leaves: np.ndarray, lcoef: np.ndarray) -> bool:
         """Whether this tree was coded already: then its stream would be the same."""
@@ -347,9 +347,8 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             else:
                 _restore(tab, val, nb, n_res, keep)
                 leaves[:nleaf, 4] = keep_k
-    # the residual tables: where along the activity levels, and fewer in a small band where the
-    # tables cost more than the contexts save
-    # the activity without the curvature where the residuals' counts say it codes smaller
+    # the residual tables, one a run of activity levels (level_partition), and the activity
+    # without the curvature where the residuals' counts say it codes smaller
     counts, raw = lp.level_counts(tab, val, nb, n_res, np.int64(n_end), TR)
     bits, lut = lp.level_partition(counts, raw)  # the levels' tables: bits as the coder spends them
     if choose_grad and lp.level_partition(lp.grad_counts(alt), raw)[0] < (1.0 - GRAD_MIN_GAIN) * bits:

@@ -178,16 +178,21 @@ def _template(r0, r1, r2, i):
             | (r1[i + 2] << 6) | (r2[i - 1] << 7) | (r2[i] << 8) | (r2[i + 1] << 9))
 
 
+@njit(cache=True, nogil=True, inline="always")
+def _ctx_state(W):
+    """The context coder's state at a band's start: its models, and its three padded rows
+    (W + 4,) int64 (the current one and the two above; holes above the band and past its sides)."""
+    return (np.full(NCTX_MASK, MODEL_INIT, np.uint32), np.zeros(W + 4, np.int64), np.zeros(W + 4, np.int64),
+            np.zeros(W + 4, np.int64))
+
+
 @njit(cache=True, nogil=True)
 def encode_mask_ctx(valid, tab, val, nb, n):
     """Append the mask ``valid`` (H, W) bool as a binary event a sample, in the context of its
     template (:func:`_template`), after event ``n``; returns the count (or -1 when the buffers
     are full)."""
     H, W = valid.shape
-    models = np.full(NCTX_MASK, MODEL_INIT, np.uint32)
-    r0 = np.zeros(W + 4, np.int64)
-    r1 = np.zeros(W + 4, np.int64)
-    r2 = np.zeros(W + 4, np.int64)
+    models, r0, r1, r2 = _ctx_state(W)
     for y in range(H):
         for x in range(W):
             i = x + 2
@@ -204,10 +209,7 @@ def encode_mask_ctx(valid, tab, val, nb, n):
 def decode_mask_ctx(xa, xb, pos, words, nw, valid):
     """Inverse of :func:`encode_mask_ctx` into ``valid`` (H, W) bool; returns (ok, xa, xb, pos)."""
     H, W = valid.shape
-    models = np.full(NCTX_MASK, MODEL_INIT, np.uint32)
-    r0 = np.zeros(W + 4, np.int64)
-    r1 = np.zeros(W + 4, np.int64)
-    r2 = np.zeros(W + 4, np.int64)
+    models, r0, r1, r2 = _ctx_state(W)
     for y in range(H):
         row = valid[y]
         for x in range(W):
