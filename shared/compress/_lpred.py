@@ -760,11 +760,8 @@ def pattern_bits(alt, first, tab, nb, n0, n1, exact):
                 counts[first[lev] + k, s] += alt[lev * m + k, s]
     if not exact:
         return bits + _tables_bits(counts, NRES)
-    row = np.zeros((1, NSYM), np.int64)
     for t in range(NRES):
-        for s in range(NSYM):
-            row[0, s] = counts[t, s]
-        bits += table_bits(row)
+        bits += table_bits(counts[t : t + 1])
     return bits
 
 

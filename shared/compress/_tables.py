@@ -18,7 +18,7 @@ import math
 import numpy as np
 from numba import njit
 
-from shared.compress._rans import NSYM, PROB_BITS, normalise
+from shared.compress._rans import NSYM, PROB_BITS, bitlen, normalise
 
 #: Codes per octave of frequency.
 LQ = 8
@@ -136,10 +136,7 @@ def unpack_codes(buf, ntables):
 @njit(cache=True, nogil=True)
 def _gamma_bits(u):
     """The length of the Elias-gamma code of u >= 0 (:func:`_put_gamma`)."""
-    n = 0
-    while ((u + 1) >> n) > 1:
-        n += 1
-    return 2 * n + 1
+    return 2 * bitlen(np.uint64(u + 1)) - 1
 
 
 @njit(cache=True, nogil=True)
