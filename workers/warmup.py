@@ -51,7 +51,7 @@ KERNEL_MODULES: dict[str, tuple[str, ...]] = {
     "scan": ("shared.scan._decode_kernels", "shared.scan.decode", "shared.scan.triangulate", "shared.formats._png"),  # _png: frame reading
     "render": ("shared.render._octree_kernels", "shared.render.octree", "shared.render.raster", "shared.render._shading", "shared.render._neighbours",
                "shared.render._match", "shared.compress.tilenode"),  # tilenode: the tiles' octree-coded nodes
-    "compress": ("shared.compress._rans", "shared.compress._tables", "shared.compress._mask", "shared.compress._wp",
+    "compress": ("shared.compress._rans", "shared.compress._tables", "shared.compress._check", "shared.compress._mask", "shared.compress._wp",
                  "shared.compress._rows", "shared.compress._ls",
                  "shared.compress._lpred", "shared.compress._interp", "shared.compress._quadtree",
                  "shared.compress._octree_ctx", "shared.compress._octree"),

@@ -1,7 +1,8 @@
 """Range images (depth on the camera grid) coded by a quadtree of surface models, local
 prediction (LOCO-I/CALIC-style, a least-squares predictor fitted per band, JPEG-XL's weighted
 predictor) or, error-bounded, hierarchical interpolation (SZ3's order), and rANS: codec
-``quadtree-lp-7``.
+``quadtree-lp-8`` (``quadtree-lp-7``'s streams, each lossless band with the check of the samples
+it decodes to, :mod:`shared.compress._check`).
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -11,7 +12,10 @@ A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (
 - **error-bounded** ``max_error`` E: every valid sample decodes within E of the input
   (``|z' - z| <= E``, float32 rounding included).
 
-The validity mask (the non-NaN samples) is always coded exactly. The image is cut into
+The validity mask (the non-NaN samples) is always coded exactly. A damaged chunk is refused by
+its CRC-32; one rewritten with a fresh CRC by the rANS stream's end state, and in lossless mode
+also by the 32-bit check of its decoded samples (the end state alone let 4 % of single-bit flips
+through on a real capture: the error-bounded mode still does). The image is cut into
 bands of :data:`BAND_ROWS` rows, each an independent chunk of the container
 (:mod:`shared.formats.container`, kind ``range``), coded and decoded on a thread pool by
 ``nogil`` kernels (:mod:`shared.compress._band` over :mod:`shared.compress._quadtree`, :mod:`shared.compress._lpred`,
@@ -19,7 +23,8 @@ bands of :data:`BAND_ROWS` rows, each an independent chunk of the container
 Files of the earlier codecs (:data:`OLD_CODECS`) are refused by name (re-encode them from the
 ``range.npz``).
 
-Measured (``tests/bench/bench_compress.py``, bits per valid sample, lossless at 0.02 mm / within
+Measured with ``quadtree-lp-7`` (the check adds 4 bytes a lossless band of 256 rows)
+(``tests/bench/bench_compress.py``, bits per valid sample, lossless at 0.02 mm / within
 0.1 mm, effort 1): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768
 projector 1.971 / 0.379 (``quadtree-lp-6`` 1.977 / 0.379; JPEG-XL effort 7 2.16, JPEG-LS 2.44,
 JPEG-LS NEAR 1.29, SZ3 0.51); the bunny at 2:1 2.722 / 0.742 (``-lp-6`` 2.746; JPEG-XL 2.93,
@@ -46,6 +51,7 @@ import numpy as np
 from shared.compress import _lpred as lp
 from shared.compress import _quadtree as qt
 from shared.compress._band import decode_band, encode_band
+from shared.compress._check import lossless_check, output_check
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
 from shared.core.threads import cpu_budget
@@ -55,9 +61,10 @@ log = logging.getLogger(__name__)
 
 #: Rows per chunk (a multiple of the quadtree's top block).
 BAND_ROWS = 256
-CODEC = "quadtree-lp-7"
+CODEC = "quadtree-lp-8"
 #: Range codecs of earlier releases, refused by name (their streams are not read any more).
-OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3", "quadtree-lp-4", "quadtree-lp-5", "quadtree-lp-6")
+OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3", "quadtree-lp-4", "quadtree-lp-5", "quadtree-lp-6",
+              "quadtree-lp-7")
 #: The encoder's options per effort. 1 (the default): every tool but JPEG-XL's weighted
 #: predictor (the least-squares predictor included: its bands encode about half as fast,
 #: 5 MP per CPU second against 9-10 on the relief and the bunny); 2: the weighted predictor
@@ -155,7 +162,9 @@ def check_range(z: np.ndarray, where: str = "z") -> np.ndarray:
 def _encode_band(zb: np.ndarray, plan: _Plan) -> bytes:
     t, valid = qt.quantise(zb, plan.scale, plan.lossless)
     tables, words = encode_band(t, valid, plan.lossless, plan.opts)
-    return _U32.pack(len(tables)) + tables.tobytes() + words.astype("<u2").tobytes()
+    # a lossless band carries the check of the samples it decodes to (:mod:`._check`)
+    check = _U32.pack(lossless_check(t, valid, plan.scale, np.int64(qt.F_SHIFT))) if plan.lossless else b""
+    return _U32.pack(len(tables)) + check + tables.tobytes() + words.astype("<u2").tobytes()
 
 
 def _bands(h: int) -> list[tuple[int, int]]:
@@ -249,12 +258,15 @@ def read_range(source: str | os.PathLike[str] | bytes) -> RangeImage:
         if len(payload) < 4:
             raise InputError(where, f"corrupt chunk {i} (too short)")
         (nt,) = _U32.unpack_from(payload)
-        if 4 + nt > len(payload) or (len(payload) - 4 - nt) % 2:
+        start = 8 if lossless else 4  # a lossless band's check after the tables' length
+        if start + nt > len(payload) or (len(payload) - start - nt) % 2:
             raise InputError(where, f"corrupt chunk {i} (bad table length)")
-        tables = np.frombuffer(payload, np.uint8, nt, 4)
-        words = np.frombuffer(payload, "<u2", (len(payload) - 4 - nt) // 2, 4 + nt).astype(np.uint16)
+        tables = np.frombuffer(payload, np.uint8, nt, start)
+        words = np.frombuffer(payload, "<u2", (len(payload) - start - nt) // 2, start + nt).astype(np.uint16)
         if decode_band(tables, words, b - a, w, lossless, scale, z[a:b]) != 0:
             raise InputError(where, f"corrupt chunk {i} (the coded stream does not decode)")
+        if lossless and output_check(z[a:b].view(np.uint32)) != _U32.unpack_from(payload, 4)[0]:
+            raise InputError(where, f"corrupt chunk {i} (its decoded samples fail their check)")
 
     with ThreadPoolExecutor(_threads()) as pool:
         futures = []

@@ -66,32 +66,36 @@ def relief_scene(seed: int = 0):  # -> shared.sim.scenes.Scene
     return Scene(name="relief", surfaces=[obj], description="a carved relief panel (0.1-6 mm detail)")
 
 
-def bench_range(scene: str, ratio: int, seed: int = 0) -> Path:
-    """``range.npz`` of ``scene`` (``relief`` or a named scene) scanned by a 2048x1536 camera over a
-    projector of (2048 / ratio) x (1536 / ratio); made once, kept in :data:`CACHE`."""
+def render_bench_range(scene: str, ratio: int, out: Path, seed: int = 0) -> Path:
+    """Render and scan ``scene`` (``relief`` or a named scene) with a 2048x1536 camera over a
+    projector of (2048 / ratio) x (1536 / ratio), as ``graylight simulate`` + ``graylight scan``
+    would; its ``range.npz`` written to ``out`` (a temporary name renamed), the capture and the
+    scan's other files removed. Returns ``out``."""
     from shared.scan.pipeline import scan
     from shared.sim.rigs import make_rig
     from shared.sim.scenes import build_scene
     from shared.sim.simulate import simulate_capture
 
-    folder = CACHE / f"{scene}-{ratio}to1-s{seed}"
-    out = folder / "range.npz"
-    if out.is_file():
-        return out
-    CACHE.mkdir(parents=True, exist_ok=True)
+    out.parent.mkdir(parents=True, exist_ok=True)
     sc = relief_scene(seed) if scene == "relief" else build_scene(scene, seed=seed)
     rig = make_rig(camera_size=CAMERA, projector_size=(CAMERA[0] // ratio, CAMERA[1] // ratio), seed=seed)
-    work = Path(tempfile.mkdtemp(prefix=f"{scene}-{ratio}-", dir=CACHE))
+    work = Path(tempfile.mkdtemp(prefix=f"{scene}-{ratio}-", dir=out.parent))
     try:
         simulate_capture(sc, rig, work / "capture", seed=seed, write_truth=False)
         scan(work / "capture", work / "scan")
-        folder.mkdir(exist_ok=True)
-        tmp = folder / "range.tmp.npz"
+        tmp = out.with_name(out.stem + ".tmp.npz")
         shutil.copyfile(work / "scan" / "range.npz", tmp)
         tmp.rename(out)
     finally:
         shutil.rmtree(work, ignore_errors=True)
     return out
+
+
+def bench_range(scene: str, ratio: int, seed: int = 0) -> Path:
+    """:func:`render_bench_range`'s ``range.npz``, made once and kept in :data:`CACHE` for the
+    bench's later runs (the tests render theirs afresh)."""
+    out = CACHE / f"{scene}-{ratio}to1-s{seed}" / "range.npz"
+    return out if out.is_file() else render_bench_range(scene, ratio, out, seed)
 
 
 def dragon_range(k: int = 0) -> tuple[str, np.ndarray]:

@@ -23,6 +23,7 @@ from shared.compress import (
 from shared.compress.range import CODEC, OLD_CODECS
 from shared.core.errors import InputError
 from shared.formats.container import MAGIC, open_container, write_stream
+from tests.support.range_checks import check_bounded, check_damage_refused, check_lossless, lossless_blob
 
 
 def piecewise(h: int = 300, w: int = 420, sigma: float = 0.2, seed: int = 0) -> np.ndarray:
@@ -38,27 +39,6 @@ def piecewise(h: int = 300, w: int = 420, sigma: float = 0.2, seed: int = 0) -> 
     z[:, : 5 + rng.integers(0, 9, h)[:, None].clip(0, 8).max()] = np.nan
     z[rng.random(z.shape) < 0.01] = np.nan  # speckle of failed decodes
     return z.astype(np.float32)
-
-
-def check_lossless(z: np.ndarray, q: float) -> float:
-    blob = encode_range(RangeImage(z), quantum=q)
-    out = read_range(blob).z
-    mask = ~np.isnan(z)
-    np.testing.assert_array_equal(np.isnan(out), ~mask)
-    np.testing.assert_array_equal(out[mask], expected_lossless(z, q)[mask])
-    assert np.abs(out[mask].astype(np.float64) - z[mask]).max() <= q / 2 + np.spacing(np.float32(np.nanmax(np.abs(z))))
-    return len(blob) * 8 / mask.sum()
-
-
-def check_bounded(z: np.ndarray, e: float) -> float:
-    blob = encode_range(RangeImage(z), max_error=e)
-    out = read_range(blob).z
-    mask = ~np.isnan(z)
-    np.testing.assert_array_equal(np.isnan(out), ~mask)
-    err = np.abs(out[mask].astype(np.float64) - z[mask].astype(np.float64))
-    print(f"max error {err.max():.6g} <= {e}")
-    assert err.max() <= e
-    return len(blob) * 8 / mask.sum()
 
 
 @pytest.mark.parametrize("q", [0.02, 0.1, 1.0])
@@ -131,7 +111,7 @@ def test_real_captures(real_range_files: dict[str, Path]) -> None:
     for name, path in real_range_files.items():
         img = load_range_npz(path)
         assert (~np.isnan(img.z)).mean() > 0.3, name
-        check_lossless(img.z, 0.02)
+        check_damage_refused(lossless_blob(img.z, 0.02))
         for e in (0.1, 1.0):
             check_bounded(img.z, e)
 
@@ -303,7 +283,7 @@ def test_wrong_magic_version_kind_and_trailing_bytes(tmp_path: Path, good_file: 
 
 def test_damaged_payload_with_a_matching_checksum_is_still_caught() -> None:
     # A payload rewritten and re-checksummed (a buggy writer, not line noise) must not decode
-    # to a wrong image: the stream's own end check catches it.
+    # to a wrong image: the stream's own end check, or the lossless band's check, catches it.
     import zlib
 
     z = piecewise(64, 64)
@@ -317,6 +297,44 @@ def test_damaged_payload_with_a_matching_checksum_is_still_caught() -> None:
     struct.pack_into("<I", blob, hdr_end + 4, zlib.crc32(bytes(payload)))
     with pytest.raises(InputError, match="corrupt chunk 0"):
         read_range(bytes(blob))
+
+
+def test_damage_the_stream_heals_is_refused_by_the_lossless_check() -> None:
+    """On flat residual tables (noise of many quanta, as a real capture's) a corrupted rANS state
+    often heals: the stream ends where and as it should, yet some samples decode wrong. Search a
+    noisy band for such a flip (decoded past the stream's own checks, another image), then check
+    the file with it is refused by the band's check of its decoded samples."""
+    import zlib
+
+    from shared.compress._band import decode_band
+
+    rng = np.random.default_rng(3)
+    z = (600 + rng.normal(0, 2.0, (256, 256))).astype(np.float32)  # about 100 quanta of noise
+    z[rng.random(z.shape) < 0.1] = np.nan
+    blob = encode_range(RangeImage(z), quantum=0.02)
+    good = read_range(blob).z
+    hdr_end = len(MAGIC) + 12 + struct.unpack_from("<I", blob, len(MAGIC) + 4)[0]
+    length = struct.unpack_from("<I", blob, hdr_end)[0]
+    start = hdr_end + 8
+    payload = blob[start : start + length]
+    nt = struct.unpack_from("<I", payload)[0]
+    tables = np.frombuffer(payload, np.uint8, nt, 8)
+    words0 = np.frombuffer(payload, "<u2", (length - 8 - nt) // 2, 8 + nt)
+    healed = None
+    for k in rng.permutation(words0.size)[:2000]:
+        words = words0.copy()
+        words[k] ^= np.uint16(1 << int(rng.integers(0, 16)))
+        out = np.empty_like(good)
+        if decode_band(tables, words, 256, 256, True, 0.02, out) == 0 and not np.array_equal(out, good, equal_nan=True):
+            healed = (k, words)
+            break
+    assert healed is not None, "no flip of 2000 healed: the search no longer finds what this test needs"
+    k, words = healed
+    bad = bytearray(blob)
+    bad[start + 8 + nt : start + length] = words.astype("<u2").tobytes()
+    struct.pack_into("<I", bad, hdr_end + 4, zlib.crc32(bytes(bad[start : start + length])))
+    with pytest.raises(InputError, match=r"corrupt chunk 0 \(its decoded samples fail their check\)"):
+        read_range(bytes(bad))
 
 
 def test_weighted_predictor_is_chosen_where_it_pays_and_round_trips() -> None:
