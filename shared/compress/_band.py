@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from shared.compress import _lpred as lp
+from shared.compress._check import fold, lossless_check
 from shared.compress._interp import (
     FB_CAND,
     FB_MAX,
@@ -43,6 +44,7 @@ from shared.compress._mask import (
     decode_mask_ctx,
 )
 from shared.compress._quadtree import (
+    F_SHIFT,
     F_SIGNS,
     HEAD_N,
     MINB,
@@ -117,6 +119,8 @@ NO_HIST = np.zeros((1, 1, 1, 1, 1), np.int64)
 NO_ALT = np.zeros((1, 1), np.int32)
 #: No leaf's costs known (:func:`shared.compress._lpred.choose_predictors`).
 NO_KNOWN = np.zeros(0, np.bool_)
+#: No check wanted of a residual pass (lossless mode, or a way not kept).
+NO_CHK = np.zeros(0, np.uint64)
 
 
 def _save(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, a: int, b: int) -> tuple[np.ndarray, ...]:
@@ -185,11 +189,12 @@ SAME_TREE = -2
 
 def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, margin: float, share: float,
                    tab: np.ndarray, val: np.ndarray, nb: np.ndarray,
-                   shared: _Margins | None = None) -> tuple[int, _SignPass | None]:
+                   shared: _Margins | None = None, scale: float = 1.0) -> tuple[int, _SignPass | None]:
     """Every event of one band, the residuals without sign contexts; returns the count (or -1
     when the event buffers are too small, :data:`SAME_TREE` when ``shared`` holds the tree
-    already) and what coding them with sign contexts needs. ``shared`` is what the band's tree
-    margins share.
+    already) and what coding them with sign contexts needs, with the band's check before it is
+    folded (bounded mode, ``scale`` the fine unit; lossless bands' come from their targets).
+    ``shared`` is what the band's tree margins share.
 
     Plain Python over the kernels (the tree's, the predictors', the residuals'), each compiled
     once on its own: as one kernel it spent 4.7 s of numba's time linking and optimising them
@@ -228,6 +233,10 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
         opts = np.int64(opts & ~lp.OPT_GRAD)
     alt = np.zeros((lp.NLEVEL * (lp.NSUB + choose_grad), NSYM) if count else (1, 1), np.int32)
     alt_b = np.zeros_like(alt)
+    # the reconstruction's check of the way kept (chk) and of the way tried beside it (chk_b)
+    chk = NO_CHK if lossless else np.zeros(1, np.uint64)
+    chk_b = NO_CHK if lossless else np.zeros(1, np.uint64)
+    scale = float(scale)
     cost = np.empty((nleaf, lp.NK), np.int64)  # the leaves' summed costs by predictor
     known = shared.known_costs(leaves[:nleaf], cost, valid, W)
     lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ONE, known)
@@ -278,21 +287,22 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
         # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on
         # noise: both ways, the smaller kept
         n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ONE, aw, an, TR,
-                                 tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt_b, pls)
+                                 tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt_b, pls, scale, chk_b)
         if n1 < 0:
             return -1, None
         with_bias = lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0]
         keep = _save(tab, val, nb, n_res, n1)
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
-                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt, pls)
+                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt, pls, scale, chk)
         if n_end < 0 or with_bias < lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]:
             bias = 1
             _restore(tab, val, nb, n_res, keep)
             n_end = n1
             alt, alt_b = alt_b, alt
+            chk, chk_b = chk_b, chk
     else:
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
-                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt, pls)
+                                    TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt, pls, scale, chk)
         if n_end < 0:
             return -1, None
         if ls and not sure:
@@ -308,7 +318,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             aw0, an0 = lp.feedback_weights(t, valid, cells, leaves, lcoef, none, none) if opts & lp.OPT_FEEDBACK else (0, 0)
             n_res0 = np.int64(n + HEAD_N + nleaf)  # the header without the weights
             n0 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, np.int64(aw0), np.int64(an0),
-                                     TR, tab, val, nb, n_res0, none, none, ZERO, ZERO, ZERO, alt_b, none)
+                                     TR, tab, val, nb, n_res0, none, none, ZERO, ZERO, ZERO, alt_b, none, scale, NO_CHK)
             if n0 < 0:
                 return -1, None
             if lp.context_choice(tab, val, nb, n_res0, np.int64(n0), TR)[0] <= with_ls + LS_HEAD_BITS * n_tiles(W):
@@ -335,7 +345,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             aw1 = np.int64(aw1)
             an1 = np.int64(an1)
             n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw1, an1,
-                                     TR, tab, val, nb, n_res, pw, pe, ONE, ZERO, ZERO, alt_b, pls)
+                                     TR, tab, val, nb, n_res, pw, pe, ONE, ZERO, ZERO, alt_b, pls, scale, NO_CHK)
             if n1 < 0:
                 return -1, None
             if lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0] < (1.0 - WP_MIN_GAIN) * without:
@@ -355,7 +365,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
         opts = np.int64(opts & ~lp.OPT_GRAD)
         alt = np.zeros((lp.NLEVEL * lp.NSUB, NSYM), np.int32)
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, TR,
-                                    tab, val, nb, n_res, pw, pe, np.int64(wp), ZERO, ZERO, alt, pls)
+                                    tab, val, nb, n_res, pw, pe, np.int64(wp), ZERO, ZERO, alt, pls, scale, chk)
         if n_end < 0:
             return -1, None
         counts, raw = lp.level_counts(tab, val, nb, n_res, np.int64(n_end), TR)
@@ -376,7 +386,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     if opts & lp.OPT_SIGN:
         gain = bits - lp.sign_bits(alt, np.int64(cofs), tab, nb, n_res, np.int64(n_end))
     signs = _SignPass(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, pw, pe, np.int64(wp),
-                      np.int64(cofs), alt, n + F_SIGNS, n_res, gain, pls)
+                      np.int64(cofs), alt, n + F_SIGNS, n_res, gain, pls, scale, int(chk[0]) if chk.size else 0)
     # kept once coded: a margin whose buffers were too small codes its tree again
     shared.trees.append((leaves[:nleaf, :4].copy(), lcoef[:nleaf].copy()))
     if choose_grad:
@@ -408,6 +418,8 @@ class _SignPass:
     n_res: np.int64
     gain: float
     pls: np.ndarray
+    scale: float
+    check: int  # the reconstruction's check before it is folded (bounded mode; else 0)
 
 
 def _with_signs(p: _SignPass, tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n_end: int) -> int:
@@ -415,7 +427,7 @@ def _with_signs(p: _SignPass, tab: np.ndarray, val: np.ndarray, nb: np.ndarray, 
     returns the new count, or ``n_end`` with the events unchanged when the buffers are too small."""
     keep = _save(tab, val, nb, p.n_res, n_end)
     n1 = lp.encode_residuals(p.t, p.valid, p.cells, p.leaves, p.lcoef, p.lossless, p.opts, p.bias, p.aw, p.an, TR,
-                             tab, val, nb, p.n_res, p.pw, p.pe, p.wp, ONE, p.cofs, p.alt, p.pls)
+                             tab, val, nb, p.n_res, p.pw, p.pe, p.wp, ONE, p.cofs, p.alt, p.pls, p.scale, NO_CHK)
     if n1 < 0:
         _restore(tab, val, nb, p.n_res, keep)
         return n_end
@@ -492,10 +504,13 @@ def _mask_coded(valid: np.ndarray) -> tuple[int, Events]:
     return (MASK_CTX, ctx) if binary_bits(ctx[0], ctx[1]) < bits else (MASK_RUNS, runs)
 
 
-def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> tuple[np.ndarray, np.ndarray]:
+def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int,
+                scale: float) -> tuple[np.ndarray, np.ndarray, int]:
     """Code one band: ``t`` (H, W) int64 fine-unit targets, ``valid`` (H, W) bool; ``opts`` the
     encoder's options (:data:`shared.compress._lpred.OPT_ALL` for a decodable stream; fewer for
-    ablation). Returns (packed tables uint8, rANS words uint16).
+    ablation); ``scale`` the quantum (lossless) or the fine unit (bounded), as the decoder is
+    given it. Returns (packed tables uint8, rANS words uint16, the check of the samples they
+    decode to: :func:`shared.compress._check.output_check`).
 
     Plain Python over the kernels (each releases the GIL, so bands still code in parallel
     threads): as a kernel of its own it cost numba 2.2 s to compile, its module linking and
@@ -511,12 +526,13 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
     # (retried when short)
     cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096 + shared.mask[0].size
     signs = None
+    check = 0
     interp = not lossless and bool(opts & lp.OPT_INTERP)
     compare = len(margins) > 1 or interp  # streams' bits wanted
     for margin in margins:
         cap, (tab_i, val_i, nb_i), (n_i, signs_i) = _coded(
             cap, lambda tb, vl, nbt, m=margin: _encode_events(t, valid, bool(lossless), np.int64(opts), float(m),
-                                                             float(share), tb, vl, nbt, shared))
+                                                             float(share), tb, vl, nbt, shared, scale))
         if n_i == SAME_TREE:
             continue
         # each margin's stream without sign contexts, less what they would save: the residuals
@@ -528,13 +544,20 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> 
     if interp and _model_share(signs.leaves) < INTERP_MODEL_MAX:
         # hierarchical interpolation (smooth detailed depth within a bound): both ways, the
         # smaller kept
-        cap, (tab_i, val_i, nb_i), (n_i, bits_i) = _coded(
-            cap, lambda tb, vl, nbt: _interp_band(t, valid, tb, vl, nbt, best, opts, mask=shared.mask))
+        cap, (tab_i, val_i, nb_i), (n_i, bits_i, check_i) = _coded(
+            cap, lambda tb, vl, nbt: _interp_band(t, valid, tb, vl, nbt, best, opts, mask=shared.mask, scale=scale))
         if n_i >= 0 and bits_i < best:
             tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, None
-    if signs is not None and signs.gain > 0:
-        n = _with_signs(signs, tab, val, nb, n)
-    return _pack(tab, val, nb, n)
+            check = check_i
+    if signs is not None:
+        check = signs.check
+        if signs.gain > 0:  # sign contexts flip what is coded, not what is decoded
+            n = _with_signs(signs, tab, val, nb, n)
+    if lossless:
+        check = lossless_check(t, valid, float(scale), np.int64(F_SHIFT))
+    else:
+        check = fold(np.uint64(check))
+    return (*_pack(tab, val, nb, n), int(check))
 
 
 def _pack(tab: np.ndarray, val: np.ndarray, nb: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -583,23 +606,24 @@ _OCTAVE_BITS = np.array([0.0] * 8 + [3.0 + j for j in range(HB - 8)])
 
 def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndarray, nb: np.ndarray,
                  rival: float = np.inf, opts: int = lp.OPT_ALL, force: int | None = None,
-                 mask: tuple[np.ndarray, ...] = ()) -> tuple[int, float]:
+                 mask: tuple[np.ndarray, ...] = (), scale: float = 1.0) -> tuple[int, float, int]:
     """Every event of one band in interpolation order (bounded mode): the mask (its events
     ``mask``, :func:`mask_events`; as runs where not given), the mode, the
     residual tables' offset and merging, whether they are sign contexts, the error feedback's
     weights, the residuals. ``opts``: without :data:`shared.compress._lpred.OPT_FEEDBACK` no
     feedback, without :data:`shared.compress._lpred.OPT_SIGN` level tables only (ablation);
     ``force`` (tests): the second pass's way kept whatever its size (1 sign contexts, 0 level
-    tables). Returns (the count, the stream's bits as :func:`_stream_bits` counts them); the count
-    -1 when the event buffers are too small, or -2 when the first pass's estimate of the stream is
-    more than :data:`INTERP_GIVE_UP` times ``rival`` bits (the raster order's stream)."""
+    tables). Returns (the count, the stream's bits as :func:`_stream_bits` counts them, the
+    band's check before it is folded, ``scale`` the fine unit); the count -1 when the event
+    buffers are too small, or -2 when the first pass's estimate of the stream is more than
+    :data:`INTERP_GIVE_UP` times ``rival`` bits (the raster order's stream)."""
     n = put_events(tab, val, nb, ZERO, *(mask or mask_events(valid, MASK_RUNS)))
     no_leaves = np.zeros((0, 5), np.int64)
     head = np.zeros(3 + 2 * NLV, np.int64)
     n = _put_predictors(tab, val, nb, np.int64(n), np.array([MODE_INTERP], np.int64), no_leaves, ZERO)
     n_res = np.int64(n + head.shape[0])
     if n < 0 or n_res > tab.shape[0]:
-        return -1, np.inf
+        return -1, np.inf, 0
 
     def put_head(cofs: int, cshift: int, sgn: int, fbw: np.ndarray) -> None:
         """The header's events (in place before a stream's bits are counted)."""
@@ -617,9 +641,11 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
     signs = bool(opts & lp.OPT_SIGN)
     hist = np.zeros((NLV, 2, NCAND, HG, HB), np.int64)
     alt = np.zeros((lp.NLEVEL * lp.NI_PAT * lp.NI_CLS, NSYM), np.int32)
-    n_end = interp_events(t, valid, tab, val, nb, n_res, TR, fbw, ZERO, ZERO, hist, alt)
+    chk, chk_w = np.zeros(1, np.uint64), np.zeros(1, np.uint64)
+    scale = float(scale)
+    n_end = interp_events(t, valid, tab, val, nb, n_res, TR, fbw, ZERO, ZERO, hist, alt, scale, chk)
     if n_end < 0:
-        return -1, np.inf
+        return -1, np.inf, 0
     bits, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
     # the second pass's estimate: the weights chosen (their share of the first pass's bits
     # from the candidates' counts) in level or in sign tables, whichever the first pass's
@@ -632,7 +658,7 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
         # estimate, against the raster order's stream
         estimate = _stream_bits(tab, val, nb, np.int64(n)) + min(bits, share * min(bits, sign_bits))
         if estimate > INTERP_GIVE_UP * rival:
-            return -2, np.inf
+            return -2, np.inf, 0
     lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
     put_head(cofs, cshift, 0, fbw)
     stream = _stream_bits(tab, val, nb, np.int64(n_end))
@@ -643,9 +669,9 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
         # are wide, the real captures)
         keep = _save(tab, val, nb, n_res, n_end)
         n_w = interp_events(t, valid, tab, val, nb, n_res, TR, chosen, np.int64(way), np.int64(cofs), NO_HIST,
-                            NO_ALT)
+                            NO_ALT, scale, chk_w)
         if n_w < 0:
-            return -1, np.inf
+            return -1, np.inf, 0
         cofs_w, cshift_w = cofs, 0
         if way == 0:
             cofs_w, cshift_w = lp.context_choice(tab, val, nb, n_res, np.int64(n_w), TR)[1:]
@@ -653,11 +679,11 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
         put_head(cofs_w, cshift_w, way, chosen)
         stream_w = _stream_bits(tab, val, nb, np.int64(n_w))
         if force is not None or stream_w < stream:
-            n_end, stream = n_w, stream_w
+            n_end, stream, chk = n_w, stream_w, chk_w
         else:
             _restore(tab, val, nb, n_res, keep)
             put_head(cofs, cshift, 0, fbw)
-    return int(n_end), float(stream)
+    return int(n_end), float(stream), int(chk[0])
 
 
 def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless: bool, scale: float,

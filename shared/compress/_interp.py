@@ -49,6 +49,7 @@ from __future__ import annotations
 import numpy as np
 from numba import njit
 
+from shared.compress._check import add_row, scratch
 from shared.compress._lpred import (
     E_LIM,
     F_SHIFT,
@@ -196,7 +197,7 @@ def sign_estimate(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n
 
 
 @njit(cache=True, nogil=True)
-def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt):
+def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt, scale, chk):
     """Append the residual events of a band in interpolation order (bounded mode: ``t`` (H, W)
     int64 fine-unit targets) after event ``n``, each in table ``t_res`` plus its activity level
     (:func:`shared.compress._lpred.context_choice` then makes them tables), with the error
@@ -207,8 +208,10 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt):
     pass's row beside the weight used (the neighbours and the activity those of the weight
     used): the encoder's estimate of each weight's bits without coding the band again; and to
     ``alt`` (NLEVEL * NI_PAT * NI_CLS, NSYM) int32 the symbols the residuals would have in sign
-    contexts, by level, pattern and class (:func:`sign_estimate`). Returns the count (or -1 when
-    the buffers are full)."""
+    contexts, by level, pattern and class (:func:`sign_estimate`). Where ``chk`` (uint64) has an
+    element (else empty), it receives the sum of :func:`shared.compress._check.add_row` over
+    the reconstruction (``scale`` the fine unit), the band's check before it is folded.
+    Returns the count (or -1 when the buffers are full)."""
     H, W = t.shape
     rec = np.zeros((H, W), np.int64)
     # the errors and residuals of the samples coded, int16 (clamped: a quarter of the memory
@@ -287,6 +290,12 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt):
                     rr[y, x] = min(max(r, -I16), I16)
         s >>= 1
         lv -= 1
+    if chk.shape[0] > 0:
+        f32, u32 = scratch(W)
+        h = np.uint64(0)
+        for y in range(H):
+            h = add_row(h, rec[y], 0, 0, valid[y], y, W, scale, f32, u32)
+        chk[0] = h
     return n
 
 

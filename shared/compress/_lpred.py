@@ -43,6 +43,7 @@ import numpy as np
 from numba import njit
 from numba.cpython.unsafe.numbers import leading_zeros
 
+from shared.compress._check import add_row, scratch
 from shared.compress._ls import ls_predict
 from shared.compress._rans import NSYM, at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
 from shared.compress._rows import F_SHIFT, FINE, MINB, fill_row, first_row, row_prediction, target_row
@@ -428,7 +429,7 @@ def wp_band(t, valid, cells, leaves, lcoef):
 
 @njit(cache=True, nogil=True)
 def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, an, t_res, tab, val, nb, n, pw, pe, wp,
-                     sc, cofs, alt, pls):
+                     sc, cofs, alt, pls, scale, chk):
     """Append the residual events of a band (raster order) after event ``n``, with bias
     cancellation when ``bias`` and error feedback ``aw``, ``an`` (:func:`feedback_weights`);
     with ``wp`` (lossless mode), ``pw`` and ``pe`` (H, W) are the weighted predictor's
@@ -441,7 +442,10 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
     symbol counts the residuals would have with them, by level and pattern (:func:`sign_bits`:
     the encoder runs the second way only where it pays), and in NLEVEL rows more where it has
     them, with the curvature in the activity (``opts`` :data:`OPT_GRAD`), their counts by the
-    level without it (:func:`grad_counts`: a noisy band's curvature is noise).
+    level without it (:func:`grad_counts`: a noisy band's curvature is noise). Where ``chk``
+    (uint64) has an element (bounded mode; else empty), it receives the sum of
+    :func:`shared.compress._check.add_row` over the reconstruction, which ``scale`` (the fine
+    unit) makes the decoder's samples: the band's check before it is folded.
     Returns the count (or -1 when the buffers are full)."""
     H, W = t.shape
     pf = np.zeros(W, np.int64)
@@ -462,6 +466,9 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
     count_alt = sc == 0 and alt.shape[0] > 1
     count_g = count_alt and grad and alt.shape[0] > NLEVEL * NSUB
     half = FINE >> 1
+    check = chk.shape[0] > 0
+    f32, u32 = scratch(W)
+    h = np.uint64(0)
     for y in range(H):
         row_prediction(y, W, cells, leaves, lcoef, pf, kr)
         pw_row = pw[y] if wp else pw[0]
@@ -528,6 +535,8 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
             sb[x + 1] = min(max(rec - pl, -E_LIM), E_LIM)
             if bias:
                 _bias_update(bsum, bcnt, bcor, q, rec - p0)
+        if check:
+            h = add_row(h, rb, 1, 0, valid[y], y, W, scale, f32, u32)
         rb[0] = rb[1]
         rb[W + 1] = rb[W]
         rb[W + 2] = rb[W]
@@ -536,6 +545,8 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
         sa, sb = sb, sa
         qa, qb = qb, qa
         sb[0] = 0
+    if check:
+        chk[0] = h
     return n
 
 

@@ -1,8 +1,8 @@
 """Range images (depth on the camera grid) coded by a quadtree of surface models, local
 prediction (LOCO-I/CALIC-style, a least-squares predictor fitted per band, JPEG-XL's weighted
 predictor) or, error-bounded, hierarchical interpolation (SZ3's order), and rANS: codec
-``quadtree-lp-8`` (``quadtree-lp-7``'s streams, each lossless band with the check of the samples
-it decodes to, :mod:`shared.compress._check`).
+``quadtree-lp-8`` (``quadtree-lp-7``'s streams, each band with the check of the samples it
+decodes to, :mod:`shared.compress._check`).
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -13,9 +13,9 @@ A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (
   (``|z' - z| <= E``, float32 rounding included).
 
 The validity mask (the non-NaN samples) is always coded exactly. A damaged chunk is refused by
-its CRC-32; one rewritten with a fresh CRC by the rANS stream's end state, and in lossless mode
-also by the 32-bit check of its decoded samples (the end state alone let 4 % of single-bit flips
-through on a real capture: the error-bounded mode still does). The image is cut into
+its CRC-32; one rewritten with a fresh CRC by the rANS stream's end state and the 32-bit check
+of its decoded samples (the end state alone let 4 % of single-bit flips through on a real
+capture). The image is cut into
 bands of :data:`BAND_ROWS` rows, each an independent chunk of the container
 (:mod:`shared.formats.container`, kind ``range``), coded and decoded on a thread pool by
 ``nogil`` kernels (:mod:`shared.compress._band` over :mod:`shared.compress._quadtree`, :mod:`shared.compress._lpred`,
@@ -23,7 +23,7 @@ bands of :data:`BAND_ROWS` rows, each an independent chunk of the container
 Files of the earlier codecs (:data:`OLD_CODECS`) are refused by name (re-encode them from the
 ``range.npz``).
 
-Measured with ``quadtree-lp-7`` (the check adds 4 bytes a lossless band of 256 rows)
+Measured with ``quadtree-lp-7`` (the check adds 4 bytes a band of 256 rows)
 (``tests/bench/bench_compress.py``, bits per valid sample, lossless at 0.02 mm / within
 0.1 mm, effort 1): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768
 projector 1.971 / 0.379 (``quadtree-lp-6`` 1.977 / 0.379; JPEG-XL effort 7 2.16, JPEG-LS 2.44,
@@ -51,7 +51,7 @@ import numpy as np
 from shared.compress import _lpred as lp
 from shared.compress import _quadtree as qt
 from shared.compress._band import decode_band, encode_band
-from shared.compress._check import lossless_check, output_check
+from shared.compress._check import output_check
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
 from shared.core.threads import cpu_budget
@@ -76,7 +76,8 @@ OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3", "quadtree-lp-
 #: 100 MP/s decoding on two cores, hold at effort 1 only). Fewer options than these are for the
 #: bench's ablation alone (such streams do not decode).
 EFFORTS: dict[int, int] = {1: lp.OPT_ALL & ~lp.OPT_WP, 2: lp.OPT_ALL}
-_U32 = struct.Struct("<I")
+#: A band's chunk starts with its packed tables' length and its check.
+_BAND_HEAD = struct.Struct("<II")
 #: Largest |z / quantum|: fine units (32 per quantum) must stay well inside int64.
 _MAX_QUANTA = 2.0**55
 
@@ -161,10 +162,9 @@ def check_range(z: np.ndarray, where: str = "z") -> np.ndarray:
 
 def _encode_band(zb: np.ndarray, plan: _Plan) -> bytes:
     t, valid = qt.quantise(zb, plan.scale, plan.lossless)
-    tables, words = encode_band(t, valid, plan.lossless, plan.opts)
-    # a lossless band carries the check of the samples it decodes to (:mod:`._check`)
-    check = _U32.pack(lossless_check(t, valid, plan.scale, np.int64(qt.F_SHIFT))) if plan.lossless else b""
-    return _U32.pack(len(tables)) + check + tables.tobytes() + words.astype("<u2").tobytes()
+    tables, words, check = encode_band(t, valid, plan.lossless, plan.opts, plan.scale)
+    # the check of the samples the band decodes to (:mod:`._check`) after the tables' length
+    return _BAND_HEAD.pack(len(tables), check) + tables.tobytes() + words.astype("<u2").tobytes()
 
 
 def _bands(h: int) -> list[tuple[int, int]]:
@@ -255,17 +255,17 @@ def read_range(source: str | os.PathLike[str] | bytes) -> RangeImage:
 
     def decode(i: int, payload: bytes) -> None:
         a, b = i * band, min((i + 1) * band, h)
-        if len(payload) < 4:
+        if len(payload) < 8:
             raise InputError(where, f"corrupt chunk {i} (too short)")
-        (nt,) = _U32.unpack_from(payload)
-        start = 8 if lossless else 4  # a lossless band's check after the tables' length
+        nt, check = _BAND_HEAD.unpack_from(payload)
+        start = 8  # after the tables' length and the band's check
         if start + nt > len(payload) or (len(payload) - start - nt) % 2:
             raise InputError(where, f"corrupt chunk {i} (bad table length)")
         tables = np.frombuffer(payload, np.uint8, nt, start)
         words = np.frombuffer(payload, "<u2", (len(payload) - start - nt) // 2, start + nt).astype(np.uint16)
         if decode_band(tables, words, b - a, w, lossless, scale, z[a:b]) != 0:
             raise InputError(where, f"corrupt chunk {i} (the coded stream does not decode)")
-        if lossless and output_check(z[a:b].view(np.uint32)) != _U32.unpack_from(payload, 4)[0]:
+        if output_check(z[a:b].view(np.uint32)) != check:
             raise InputError(where, f"corrupt chunk {i} (its decoded samples fail their check)")
 
     with ThreadPoolExecutor(_threads()) as pool:

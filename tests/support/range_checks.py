@@ -37,6 +37,11 @@ def lossless_blob(z: np.ndarray, q: float) -> bytes:
 def check_bounded(z: np.ndarray, e: float) -> float:
     """Encode ``z`` within ``e``, decode it, check every sample and the mask; returns bits per
     valid sample."""
+    return len(bounded_blob(z, e)) * 8 / np.count_nonzero(~np.isnan(z))
+
+
+def bounded_blob(z: np.ndarray, e: float) -> bytes:
+    """:func:`check_bounded`'s stream, checked."""
     blob = encode_range(RangeImage(z), max_error=e)
     out = read_range(blob).z
     mask = ~np.isnan(z)
@@ -44,7 +49,7 @@ def check_bounded(z: np.ndarray, e: float) -> float:
     err = np.abs(out[mask].astype(np.float64) - z[mask].astype(np.float64))
     print(f"max error {err.max():.6g} <= {e}")
     assert err.max() <= e
-    return len(blob) * 8 / mask.sum()
+    return blob
 
 
 def chunk_spans(blob: bytes) -> list[tuple[int, int]]:
@@ -64,8 +69,8 @@ def check_damage_refused(blob: bytes, seed: int = 0) -> int:
     damaged copy is refused with a clear error, or (a byte the decoder never reads) decodes to
     exactly the image the intact stream gives: cut short at three places; in every chunk, a byte
     flipped (its checksum catches it) and another flipped with the checksum rewritten (only the
-    stream's own checks can catch it). Returns how many damaged copies the stream's own checks
-    refused (at least one a chunk is asserted)."""
+    stream's own checks, its end state and the check of the band's decoded samples, can catch
+    it). Returns how many damaged copies those refused (at least one a chunk is asserted)."""
     good = read_range(blob).z
     for cut in (len(blob) // 3, len(blob) // 2, len(blob) - 1):
         with pytest.raises(InputError, match="truncated"):

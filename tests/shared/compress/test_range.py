@@ -23,7 +23,13 @@ from shared.compress import (
 from shared.compress.range import CODEC, OLD_CODECS
 from shared.core.errors import InputError
 from shared.formats.container import MAGIC, open_container, write_stream
-from tests.support.range_checks import check_bounded, check_damage_refused, check_lossless, lossless_blob
+from tests.support.range_checks import (
+    bounded_blob,
+    check_bounded,
+    check_damage_refused,
+    check_lossless,
+    lossless_blob,
+)
 
 
 def piecewise(h: int = 300, w: int = 420, sigma: float = 0.2, seed: int = 0) -> np.ndarray:
@@ -112,8 +118,8 @@ def test_real_captures(real_range_files: dict[str, Path]) -> None:
         img = load_range_npz(path)
         assert (~np.isnan(img.z)).mean() > 0.3, name
         check_damage_refused(lossless_blob(img.z, 0.02))
-        for e in (0.1, 1.0):
-            check_bounded(img.z, e)
+        check_damage_refused(bounded_blob(img.z, 0.1), seed=1)
+        check_bounded(img.z, 1.0)
 
 
 def oversampled(h: int = 200, w: int = 260, seed: int = 0) -> np.ndarray:
@@ -299,7 +305,8 @@ def test_damaged_payload_with_a_matching_checksum_is_still_caught() -> None:
         read_range(bytes(blob))
 
 
-def test_damage_the_stream_heals_is_refused_by_the_lossless_check() -> None:
+@pytest.mark.parametrize("kw", [{"quantum": 0.02}, {"max_error": 0.1}], ids=["lossless", "bounded"])
+def test_damage_the_stream_heals_is_refused_by_the_bands_check(kw: dict) -> None:
     """On flat residual tables (noise of many quanta, as a real capture's) a corrupted rANS state
     often heals: the stream ends where and as it should, yet some samples decode wrong. Search a
     noisy band for such a flip (decoded past the stream's own checks, another image), then check
@@ -311,8 +318,10 @@ def test_damage_the_stream_heals_is_refused_by_the_lossless_check() -> None:
     rng = np.random.default_rng(3)
     z = (600 + rng.normal(0, 2.0, (256, 256))).astype(np.float32)  # about 100 quanta of noise
     z[rng.random(z.shape) < 0.1] = np.nan
-    blob = encode_range(RangeImage(z), quantum=0.02)
+    blob = encode_range(RangeImage(z), **kw)
     good = read_range(blob).z
+    meta = open_container(blob, kind="range")[0].meta
+    lossless, scale = meta["mode"] == "lossless", float(meta["scale"])
     hdr_end = len(MAGIC) + 12 + struct.unpack_from("<I", blob, len(MAGIC) + 4)[0]
     length = struct.unpack_from("<I", blob, hdr_end)[0]
     start = hdr_end + 8
@@ -325,7 +334,7 @@ def test_damage_the_stream_heals_is_refused_by_the_lossless_check() -> None:
         words = words0.copy()
         words[k] ^= np.uint16(1 << int(rng.integers(0, 16)))
         out = np.empty_like(good)
-        if decode_band(tables, words, 256, 256, True, 0.02, out) == 0 and not np.array_equal(out, good, equal_nan=True):
+        if decode_band(tables, words, 256, 256, lossless, scale, out) == 0 and not np.array_equal(out, good, equal_nan=True):
             healed = (k, words)
             break
     assert healed is not None, "no flip of 2000 healed: the search no longer finds what this test needs"
@@ -356,8 +365,8 @@ def test_weighted_predictor_is_chosen_where_it_pays_and_round_trips() -> None:
     z = z.astype(np.float32)
     t, valid = qt.quantise(z, 0.02, True)
     # the least-squares predictor off both ways: it takes these leaves where it runs
-    tables, words = band.encode_band(t, valid, True, lp.OPT_ALL & ~lp.OPT_LS)
-    tables0, words0 = band.encode_band(t, valid, True, lp.OPT_ALL & ~lp.OPT_WP & ~lp.OPT_LS)
+    tables, words, _ = band.encode_band(t, valid, True, lp.OPT_ALL & ~lp.OPT_LS, 0.02)
+    tables0, words0, _ = band.encode_band(t, valid, True, lp.OPT_ALL & ~lp.OPT_WP & ~lp.OPT_LS, 0.02)
     assert tables.size + 2 * words.size < tables0.size + 2 * words0.size
     out = np.empty(z.shape, np.float32)
     assert band.decode_band(tables, words, z.shape[0], z.shape[1], True, 0.02, out) == 0

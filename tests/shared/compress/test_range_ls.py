@@ -25,8 +25,8 @@ WITHOUT = WITH & ~lp.OPT_LS
 
 def bits(z: np.ndarray, opts: int) -> int:
     t, valid = qt.quantise(z, Q, True)
-    tables, words = band.encode_band(t, valid, True, opts)
-    out = decoded(tables, words, z.shape, True, Q) if opts == WITH else None
+    tables, words, check = band.encode_band(t, valid, True, opts, Q)
+    out = decoded(tables, words, check, z.shape, True, Q) if opts == WITH else None
     if out is not None:
         check_exact(z, out)
     return int(tables.size * 8 + words.size * 16)
@@ -155,8 +155,8 @@ def test_streams_with_the_predictor_forced_on_decode_exactly_on_hostile_masks(
     monkeypatch.setattr(band, "LS_MIN_GAIN", -1.0)
     monkeypatch.setattr(band, "LS_HEAD_BITS", -np.inf)
     t, valid = qt.quantise(z, Q, True)
-    tables, words = band.encode_band(t, valid, True, WITH)
-    check_exact(z, decoded(tables, words, z.shape, True, Q))
+    tables, words, check = band.encode_band(t, valid, True, WITH, Q)
+    check_exact(z, decoded(tables, words, check, z.shape, True, Q))
     if name in ("256x320 0 % holes", "256x320 30 % holes", "leading holes", "leading holes in the first rows",
                 "three tiles", "a tile of holes"):
         assert ls_leaves(z) > 0.3

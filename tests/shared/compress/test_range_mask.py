@@ -164,7 +164,7 @@ def test_a_band_of_speckle_cut_short_is_refused() -> None:
     z = speckle(64, 80)
     t, valid = qt.quantise(z, 0.02, True)
     assert band._mask_coded(valid)[0] == mk.MASK_CTX
-    tables, words = band.encode_band(t, valid, True, lp.OPT_ALL)
+    tables, words, _ = band.encode_band(t, valid, True, lp.OPT_ALL, 0.02)
     out = np.empty(z.shape, np.float32)
     assert band.decode_band(tables, words, 64, 80, True, 0.02, out) == 0
     np.testing.assert_array_equal(np.isnan(out), np.isnan(z))

@@ -14,6 +14,7 @@ from shared.compress import _band as band
 from shared.compress import _lpred as lp
 from shared.compress import _quadtree as qt
 from shared.compress import expected_lossless
+from shared.compress._check import fold, output_check
 from shared.compress.range import _plan
 
 
@@ -37,13 +38,17 @@ def buffers(size: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     return np.empty(cap, np.int8), np.empty(cap, np.int16), np.empty(cap, np.int8)
 
 
-def band_bits(tables: np.ndarray, words: np.ndarray) -> int:
+def band_bits(tables: np.ndarray, words: np.ndarray, check: int = 0) -> int:
+    """A band's stream's bits (``check``, stored beside it in every band alike, left out)."""
     return int(tables.size * 8 + words.size * 16)
 
 
-def decoded(tables: np.ndarray, words: np.ndarray, shape: tuple[int, int], lossless: bool, scale: float) -> np.ndarray:
+def decoded(tables: np.ndarray, words: np.ndarray, check: int, shape: tuple[int, int], lossless: bool,
+            scale: float) -> np.ndarray:
+    """The band decoded, its samples passing the check the encoder gave them."""
     out = np.empty(shape, np.float32)
     assert band.decode_band(tables, words, shape[0], shape[1], lossless, scale, out) == 0
+    assert output_check(out.view(np.uint32)) == check
     return out
 
 
@@ -58,8 +63,8 @@ def test_interpolation_is_taken_on_smooth_oversampled_depth_within_the_bound() -
     z = relief()
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
-    with_interp = band.encode_band(t, valid, False, lp.OPT_ALL)
-    without = band.encode_band(t, valid, False, lp.OPT_ALL & ~lp.OPT_INTERP)
+    with_interp = band.encode_band(t, valid, False, lp.OPT_ALL, plan.scale)
+    without = band.encode_band(t, valid, False, lp.OPT_ALL & ~lp.OPT_INTERP, plan.scale)
     # interpolation predicts each sample from both sides: smaller here by a clear margin
     assert band_bits(*with_interp) < 0.95 * band_bits(*without), (band_bits(*with_interp), band_bits(*without))
     check_bound(z, decoded(*with_interp, z.shape, False, plan.scale), 0.1)
@@ -73,8 +78,8 @@ def test_noise_keeps_the_raster_order() -> None:
     z = (800.0 + rng.normal(0.0, 0.5, (128, 200))).astype(np.float32)
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
-    a = band.encode_band(t, valid, False, lp.OPT_ALL)
-    b = band.encode_band(t, valid, False, lp.OPT_ALL & ~lp.OPT_INTERP)
+    a = band.encode_band(t, valid, False, lp.OPT_ALL, plan.scale)
+    b = band.encode_band(t, valid, False, lp.OPT_ALL & ~lp.OPT_INTERP, plan.scale)
     assert band_bits(*a) == band_bits(*b)
     check_bound(z, decoded(*a, z.shape, False, plan.scale), 0.1)
 
@@ -110,19 +115,19 @@ def test_interpolation_streams_decode_within_the_bound_on_hostile_masks(name: st
     plan = _plan(np.nan_to_num(z, nan=0.0) if np.isnan(z).all() else z, None, e)
     t, valid = qt.quantise(z, plan.scale, False)
     tab, val, nb = buffers(z.size)
-    n, _ = band._interp_band(t, valid, tab, val, nb, force=way)
+    n, _, h = band._interp_band(t, valid, tab, val, nb, force=way, scale=plan.scale)
     assert n >= 0
-    check_bound(z, decoded(*band._pack(tab, val, nb, n), z.shape, False, plan.scale), e)
+    check_bound(z, decoded(*band._pack(tab, val, nb, n), int(fold(np.uint64(h))), z.shape, False, plan.scale), e)
 
 
 def _interp_stream(z: np.ndarray, opts: int = lp.OPT_ALL, force: int | None = None) -> tuple[np.ndarray, np.ndarray]:
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
     tab, val, nb = buffers(z.size)
-    n, _ = band._interp_band(t, valid, tab, val, nb, opts=opts, force=force)
+    n, _, h = band._interp_band(t, valid, tab, val, nb, opts=opts, force=force, scale=plan.scale)
     assert n >= 0
     tables, words = band._pack(tab, val, nb, n)
-    check_bound(z, decoded(tables, words, z.shape, False, plan.scale), 0.1)
+    check_bound(z, decoded(tables, words, int(fold(np.uint64(h))), z.shape, False, plan.scale), 0.1)
     return tables, words
 
 
@@ -180,7 +185,7 @@ def test_a_damaged_interpolation_header_is_refused(at: int) -> None:
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
     tab, val, nb = buffers(z.size)
-    n, _ = band._interp_band(t, valid, tab, val, nb)
+    n, _, _ = band._interp_band(t, valid, tab, val, nb)
     head = np.flatnonzero(tab[:n] == qt.T_PRED)[1:]  # after the mask's coder: the mode, then the header
     assert head.shape[0] == 12 and val[head[0]] == qt.MODE_INTERP
     val[head[at]] = 200
@@ -193,7 +198,7 @@ def test_an_interpolation_stream_in_a_lossless_band_is_refused() -> None:
     z = relief(64, 64)
     t, valid = qt.quantise(z, 0.02, True)
     tab, val, nb = buffers(z.size)
-    n, _ = band._interp_band(t, valid, tab, val, nb)
+    n, _, _ = band._interp_band(t, valid, tab, val, nb)
     tables, words = band._pack(tab, val, nb, n)
     out = np.empty(z.shape, np.float32)
     assert band.decode_band(tables, words, 64, 64, True, 0.02, out) == -1
@@ -209,11 +214,11 @@ def test_sign_contexts_are_taken_where_smaller_and_round_trip(lossless: bool, mo
     scale = 0.02 if lossless else _plan(z, None, 0.1).scale
     t, valid = qt.quantise(z, scale, lossless)
     keep = lp.OPT_ALL & ~lp.OPT_INTERP  # the raster order, with and without sign contexts
-    a = band.encode_band(t, valid, lossless, keep)
-    b = band.encode_band(t, valid, lossless, keep & ~lp.OPT_SIGN)
+    a = band.encode_band(t, valid, lossless, keep, scale)
+    b = band.encode_band(t, valid, lossless, keep & ~lp.OPT_SIGN, scale)
     with monkeypatch.context() as mp:
         mp.setattr(lp, "sign_bits", lambda *args: 0.0)  # sign contexts estimated free: taken
-        forced = band.encode_band(t, valid, lossless, keep)
+        forced = band.encode_band(t, valid, lossless, keep, scale)
     assert band_bits(*a) == min(band_bits(*b), band_bits(*forced))
     if lossless:
         assert band_bits(*a) < band_bits(*b), (band_bits(*a), band_bits(*b))
@@ -233,7 +238,7 @@ def test_interpolation_is_given_up_early_against_a_much_smaller_raster_stream() 
     plan = _plan(z, None, 0.1)
     t, valid = qt.quantise(z, plan.scale, False)
     tab, val, nb = buffers(z.size)
-    full, stream = band._interp_band(t, valid, tab, val, nb)
+    full, stream, _ = band._interp_band(t, valid, tab, val, nb)
     assert full >= 0
     bits = float(band._stream_bits(tab, val, nb, np.int64(full)))
     assert stream == bits  # the bits it answers are its stream's, header included
@@ -312,9 +317,9 @@ def test_a_margin_that_builds_a_tree_built_already_is_not_coded_again(monkeypatc
     assert n0 > 0
     n1, _ = band._encode_events(t, valid, True, lp.OPT_ALL, qt.SPLIT_LOSSLESS[1], 0.0, tab, val, nb, shared)
     assert n1 == band.SAME_TREE
-    skipped = band.encode_band(t, valid, True, lp.OPT_ALL)
+    skipped = band.encode_band(t, valid, True, lp.OPT_ALL, 0.02)
     monkeypatch.setattr(band._Margins, "seen", lambda self, leaves, lcoef: False)
-    coded = band.encode_band(t, valid, True, lp.OPT_ALL)
+    coded = band.encode_band(t, valid, True, lp.OPT_ALL, 0.02)
     for x, y in zip(skipped, coded, strict=True):
         np.testing.assert_array_equal(x, y)
 
@@ -336,12 +341,12 @@ def _grad_ways(z: np.ndarray, monkeypatch: pytest.MonkeyPatch) -> tuple[int, int
     """A lossless band's bits as chosen, with the curvature in the activity and without; the
     chosen stream decodes exactly."""
     t, valid = qt.quantise(z, 0.02, True)
-    chosen = band.encode_band(t, valid, True, lp.OPT_ALL)
+    chosen = band.encode_band(t, valid, True, lp.OPT_ALL, 0.02)
     ways = []
     for gain in (np.inf, -np.inf):  # never, always left out
         with monkeypatch.context() as mp:
             mp.setattr(band, "GRAD_MIN_GAIN", gain)
-            ways.append(band_bits(*band.encode_band(t, valid, True, lp.OPT_ALL)))
+            ways.append(band_bits(*band.encode_band(t, valid, True, lp.OPT_ALL, 0.02)))
     out = decoded(*chosen, z.shape, True, 0.02)
     np.testing.assert_array_equal(np.isnan(out), ~valid)
     np.testing.assert_array_equal(out[valid], expected_lossless(z, 0.02)[valid])
