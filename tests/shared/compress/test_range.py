@@ -289,7 +289,7 @@ def test_wrong_magic_version_kind_and_trailing_bytes(tmp_path: Path, good_file: 
 
 def test_damaged_payload_with_a_matching_checksum_is_still_caught() -> None:
     # A payload rewritten and re-checksummed (a buggy writer, not line noise) must not decode
-    # to a wrong image: the stream's own end check, or the lossless band's check, catches it.
+    # to a wrong image: the stream's own end check, or the band's check of its decoded samples, catches it.
     import zlib
 
     z = piecewise(64, 64)
