@@ -526,7 +526,7 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int,
     # (retried when short)
     cap = H * W + (H * W >> 2) + 64 * (H + 1) + 4096 + shared.mask[0].size
     signs = None
-    check = 0
+    check = 0  # the interpolation order's sum, where it is kept
     interp = not lossless and bool(opts & lp.OPT_INTERP)
     compare = len(margins) > 1 or interp  # streams' bits wanted
     for margin in margins:
@@ -549,14 +549,13 @@ def encode_band(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int,
         if n_i >= 0 and bits_i < best:
             tab, val, nb, n, signs = tab_i, val_i, nb_i, n_i, None
             check = check_i
-    if signs is not None:
-        check = signs.check
-        if signs.gain > 0:  # sign contexts flip what is coded, not what is decoded
-            n = _with_signs(signs, tab, val, nb, n)
-    if lossless:
+    if signs is not None and signs.gain > 0:
+        n = _with_signs(signs, tab, val, nb, n)
+    if lossless:  # the samples are the targets
         check = lossless_check(t, valid, float(scale), np.int64(F_SHIFT))
-    else:
-        check = fold(np.uint64(check))
+    else:  # the sum of the way kept: the raster order's (sign contexts flip what is coded, not
+        # what is decoded) or the interpolation order's
+        check = fold(np.uint64(signs.check if signs is not None else check))
     return (*_pack(tab, val, nb, n), int(check))
 
 

@@ -255,10 +255,10 @@ def read_range(source: str | os.PathLike[str] | bytes) -> RangeImage:
 
     def decode(i: int, payload: bytes) -> None:
         a, b = i * band, min((i + 1) * band, h)
-        if len(payload) < 8:
+        start = _BAND_HEAD.size  # the tables' length and the band's check come first
+        if len(payload) < start:
             raise InputError(where, f"corrupt chunk {i} (too short)")
         nt, check = _BAND_HEAD.unpack_from(payload)
-        start = 8  # after the tables' length and the band's check
         if start + nt > len(payload) or (len(payload) - start - nt) % 2:
             raise InputError(where, f"corrupt chunk {i} (bad table length)")
         tables = np.frombuffer(payload, np.uint8, nt, start)
