@@ -63,7 +63,9 @@ def _source_lookup(cloud_ply: Path, tiles, extras: tuple[tuple[str, str, str], .
 
     def lookup(ixyz: np.ndarray) -> dict[str, np.ndarray]:
         idx = np.empty(ixyz.shape[0], np.int64)
-        missing = match_points(sorted_q, order, np.ascontiguousarray(ixyz, np.int32), used, idx)
+        # Contiguous and writable always: a one-point node's positions come contiguous and
+        # read-only from the tiles, and the kernel would compile a signature for them alone.
+        missing = match_points(sorted_q, order, np.require(ixyz, np.int32, ("C", "W")), used, idx)
         if missing:
             raise RuntimeError(f"{missing} tile points have no source point in {cloud_ply}")
         return {las: np.asarray(source[src][idx]) for las, src, _t in extras}

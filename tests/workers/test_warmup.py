@@ -94,21 +94,25 @@ def test_first_use_of_the_stages_compiles_nothing(tmp_path: Path) -> None:
     assert not compiled, f"compiled on first use (missing from the warm-up or the cache): {compiled}"
 
 
-def test_compress_workload_inputs_have_a_scans_types(tmp_path: Path) -> None:
-    """The compress warm-up runs beside the scan on inputs of its own: they must carry the
-    types a scan writes (numba compiles one signature per argument type), field for field."""
+def test_side_workloads_inputs_have_a_scans_types(tmp_path: Path) -> None:
+    """The compress and render warm-ups run beside the scan on inputs of their own: they must
+    carry the types a scan writes (numba compiles one signature per argument type), field for
+    field."""
     import numpy as np
 
     from shared.formats.ply import read_header
     from shared.scan.pipeline import scan
     from shared.sim.simulate import simulate_named
-    from workers.warmup import _compress_inputs
+    from workers.warmup import _compress_inputs, _render_inputs
 
     simulate_named("spheres", tmp_path / "cap", size=(64, 48), projector=(64, 48), seed=3)
     scan(tmp_path / "cap", tmp_path / "scan")
     (tmp_path / "own").mkdir()
     folders, cloud = _compress_inputs(tmp_path / "own")
-    assert read_header(cloud).dtype == read_header(tmp_path / "scan" / "cloud.ply").dtype
+    scan_dtype = read_header(tmp_path / "scan" / "cloud.ply").dtype
+    assert read_header(cloud).dtype == scan_dtype
+    for ply in _render_inputs(tmp_path / "own"):
+        assert read_header(ply).dtype == scan_dtype
     with np.load(tmp_path / "scan" / "range.npz") as real:
         for folder in folders:
             with np.load(folder / "range.npz") as own:
