@@ -80,6 +80,12 @@ EFFORTS: dict[int, int] = {1: lp.OPT_ALL & ~lp.OPT_WP, 2: lp.OPT_ALL}
 _BAND_HEAD = struct.Struct("<II")
 #: Largest |z / quantum|: fine units (32 per quantum) must stay well inside int64.
 _MAX_QUANTA = 2.0**55
+#: Most samples a range image may hold (1 GiB as float32; a 150 MP camera's is 151 M): a header
+#: claiming more is refused before anything is allocated. A constant band codes in a few
+#: bytes, so without it a kilobyte file could claim, and make a worker fill, tens of gigabytes
+#: (a decompression bomb); the encoder refuses such images too, so that nothing it writes is
+#: refused on reading.
+MAX_SAMPLES = 1 << 28
 
 
 @dataclass
@@ -150,6 +156,9 @@ def check_range(z: np.ndarray, where: str = "z") -> np.ndarray:
     z = np.asarray(z)
     if z.ndim != 2 or z.shape[0] < 1 or z.shape[1] < 1:
         raise InputError(where, f"a range image must be a 2-D array, got shape {z.shape}")
+    if z.size > MAX_SAMPLES:
+        raise InputError(where, f"a {z.shape[1]} x {z.shape[0]} range image holds {z.size / 1e6:.0f} M samples, more "
+                                f"than the codec's {MAX_SAMPLES / 1e6:.0f} M")
     if not np.issubdtype(z.dtype, np.floating):
         raise InputError(where, f"a range image must be floating point, got {z.dtype}")
     z = np.ascontiguousarray(z, np.float32)
@@ -243,6 +252,9 @@ def _check_meta(meta: dict[str, Any], where: str) -> tuple[int, int, int, bool, 
         ok = False
     if not ok:
         raise InputError(where, "corrupt or unsupported range header")
+    if w * h > MAX_SAMPLES:
+        raise InputError(where, f"corrupt or hostile range header: it claims a {w} x {h} image ({w * h / 1e6:.0f} M "
+                                f"samples), more than the codec's {MAX_SAMPLES / 1e6:.0f} M")
     return w, h, band, lossless, scale
 
 

@@ -20,7 +20,7 @@ from shared.compress import (
     save_range_npz,
     write_range,
 )
-from shared.compress.range import CODEC, OLD_CODECS
+from shared.compress.range import CODEC, MAX_SAMPLES, OLD_CODECS
 from shared.core.errors import InputError
 from shared.formats.container import MAGIC, open_container, write_stream
 from tests.support.range_checks import (
@@ -199,6 +199,26 @@ def test_old_codec_name_is_refused_by_name(good_file: bytes) -> None:
         write_stream(buf, "range", {**header.meta, "codec": old}, chunks)
         with pytest.raises(InputError, match=rf"^<bytes>: range codec '{old}' is not supported \(this build reads '{CODEC}'"):
             read_range(buf.getvalue())
+
+
+def test_a_header_claiming_a_huge_image_is_refused_before_allocating() -> None:
+    """A decompression bomb: a constant band codes in a few bytes, so a small file could claim
+    (and make a worker fill) tens of gigabytes; such a header is refused by name, before the
+    image is allocated (a bare MemoryError before), and the encoder refuses such images alike."""
+    blob = encode_range(RangeImage(np.full((64, 64), 500.0, np.float32)), quantum=0.02)
+    header, chunks = open_container(blob, kind="range")
+    chunk = list(chunks)[0]
+    for w, h in ((1 << 31, 64), (1 << 40, 64), (200_000, 2_000)):
+        nchunks = -(-h // header.meta["band_rows"])
+        buf = io.BytesIO()
+        write_stream(buf, "range", {**header.meta, "width": w, "height": h, "chunks": nchunks}, [chunk] * nchunks)
+        with pytest.raises(InputError, match=rf"^<bytes>: corrupt or hostile range header: it claims a {w} x {h} image"):
+            read_range(buf.getvalue())
+    # one sample more than the codec's limit (a broadcast view: nothing is allocated)
+    side = 1 << 14
+    big = np.broadcast_to(np.float32(500.0), (side, MAX_SAMPLES // side + 1))
+    with pytest.raises(InputError, match=r"^z: a 16385 x 16384 range image holds 268 M samples, more than the codec's 268 M"):
+        encode_range(RangeImage(big), quantum=0.02)
 
 
 def test_npz_round_trip_as_a_scan_writes_it(tmp_path: Path) -> None:
