@@ -201,6 +201,35 @@ def test_old_codec_name_is_refused_by_name(good_file: bytes) -> None:
             read_range(buf.getvalue())
 
 
+def test_white_noise_bands_code_one_tree_margin(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A lossless band whose leaves keep their surface model at the first tree margin (noise
+    about a smooth surface) is not coded at the coarser margins: the same stream as with every
+    margin coded, one tree a band. Detailed, low-noise depth still tries them all."""
+    from shared.compress import _band
+
+    coded = []
+    events = _band._encode_events
+
+    def counted(*args, **kw):
+        coded.append(args[4])  # the margin
+        return events(*args, **kw)
+
+    monkeypatch.setattr(_band, "_encode_events", counted)
+    noisy = piecewise(512, 384, sigma=0.2, seed=4)
+    blob = encode_range(RangeImage(noisy), quantum=0.02)
+    assert coded == [_band.SPLIT_LOSSLESS[0]] * 2  # two bands, the first margin alone
+    coded.clear()
+    monkeypatch.setattr(_band, "MARGIN_MODEL_MAX", 1.01)  # never skipped
+    assert encode_range(RangeImage(noisy), quantum=0.02) == blob
+    assert sorted(coded) == sorted(_band.SPLIT_LOSSLESS * 2)
+    monkeypatch.setattr(_band, "MARGIN_MODEL_MAX", 0.8)
+    coded.clear()
+    yy, xx = np.mgrid[0:256, 0:384].astype(np.float64)
+    detailed = 900.0 + 0.5 * np.sin(xx / 3.0) * np.cos(yy / 5.0) + np.random.default_rng(4).normal(0, 0.005, xx.shape)
+    encode_range(RangeImage(detailed.astype(np.float32)), quantum=0.02)
+    assert sorted(coded) == sorted(_band.SPLIT_LOSSLESS)
+
+
 def test_a_header_claiming_a_huge_image_is_refused_before_allocating() -> None:
     """A decompression bomb: a constant band codes in a few bytes, so a small file could claim
     (and make a worker fill) tens of gigabytes; such a header is refused by name, before the
