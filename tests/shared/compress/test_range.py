@@ -230,6 +230,36 @@ def test_white_noise_bands_code_one_tree_margin(monkeypatch: pytest.MonkeyPatch)
     assert sorted(coded) == sorted(_band.SPLIT_LOSSLESS)
 
 
+def test_white_noise_bands_skip_the_bias_trial(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Within a bound, a band whose leaves keep their surface model (noise about a smooth
+    surface) is not coded with bias cancellation too: the same stream as with the trial made.
+    Detailed, low-noise depth still tries it."""
+    from shared.compress import _band
+    from shared.compress import _lpred as lp
+
+    biased = []
+    residuals = lp.encode_residuals
+
+    def counted(*args, **kw):
+        biased.append(int(args[7]))  # the bias flag
+        return residuals(*args, **kw)
+
+    monkeypatch.setattr(lp, "encode_residuals", counted)
+    noisy = piecewise(512, 384, sigma=0.2, seed=5)
+    blob = encode_range(RangeImage(noisy), max_error=0.1)
+    assert biased and 1 not in biased
+    monkeypatch.setattr(_band, "BIAS_MODEL_MAX", 1.01)  # always tried
+    biased.clear()
+    assert encode_range(RangeImage(noisy), max_error=0.1) == blob
+    assert 1 in biased
+    monkeypatch.setattr(_band, "BIAS_MODEL_MAX", 0.8)
+    biased.clear()
+    yy, xx = np.mgrid[0:256, 0:384].astype(np.float64)
+    detailed = 900.0 + 0.5 * np.sin(xx / 3.0) * np.cos(yy / 5.0) + np.random.default_rng(5).normal(0, 0.005, xx.shape)
+    encode_range(RangeImage(detailed.astype(np.float32)), max_error=0.1)
+    assert 1 in biased
+
+
 def test_a_header_claiming_a_huge_image_is_refused_before_allocating() -> None:
     """A decompression bomb: a constant band codes in a few bytes, so a small file could claim
     (and make a worker fill) tens of gigabytes; such a header is refused by name, before the
