@@ -569,8 +569,8 @@ def warm(domains: Sequence[str] = DOMAINS, work: Path | None = None, parallel: b
     :func:`_render_inputs`), beside sim, scan and merge in this one: numba compiles on one core
     a process. No kernel module is compiled by both processes, so their cache indexes are never
     written by two processes at once. Measured on this 2-core machine from an empty cache:
-    the side process's compress and render about 54 + 23 s beside sim, scan and merge's
-    6 + 52-62 + 12 s (with render in this process: 114 s wall)."""
+    the side process's compress and render 45-48 + 23 s beside sim, scan and merge's
+    5 + 50-52 + 10-11 s, 72-75 s wall (114 s with render in this process, after the scan)."""
     seconds: dict[str, float] = {}
     sided = tuple(d for d in SIDE_DOMAINS if d in domains)
     with contextlib.ExitStack() as stack:
