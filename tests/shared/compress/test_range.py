@@ -219,10 +219,11 @@ def test_white_noise_bands_code_one_tree_margin(monkeypatch: pytest.MonkeyPatch)
     blob = encode_range(RangeImage(noisy), quantum=0.02)
     assert coded == [_band.SPLIT_LOSSLESS[0]] * 2  # two bands, the first margin alone
     coded.clear()
+    default = _band.MARGIN_MODEL_MAX
     monkeypatch.setattr(_band, "MARGIN_MODEL_MAX", 1.01)  # never skipped
     assert encode_range(RangeImage(noisy), quantum=0.02) == blob
     assert sorted(coded) == sorted(_band.SPLIT_LOSSLESS * 2)
-    monkeypatch.setattr(_band, "MARGIN_MODEL_MAX", 0.8)
+    monkeypatch.setattr(_band, "MARGIN_MODEL_MAX", default)
     coded.clear()
     yy, xx = np.mgrid[0:256, 0:384].astype(np.float64)
     detailed = 900.0 + 0.5 * np.sin(xx / 3.0) * np.cos(yy / 5.0) + np.random.default_rng(4).normal(0, 0.005, xx.shape)
@@ -248,11 +249,12 @@ def test_white_noise_bands_skip_the_bias_trial(monkeypatch: pytest.MonkeyPatch) 
     noisy = piecewise(512, 384, sigma=0.2, seed=5)
     blob = encode_range(RangeImage(noisy), max_error=0.1)
     assert biased and 1 not in biased
+    default = _band.BIAS_MODEL_MAX
     monkeypatch.setattr(_band, "BIAS_MODEL_MAX", 1.01)  # always tried
     biased.clear()
     assert encode_range(RangeImage(noisy), max_error=0.1) == blob
     assert 1 in biased
-    monkeypatch.setattr(_band, "BIAS_MODEL_MAX", 0.8)
+    monkeypatch.setattr(_band, "BIAS_MODEL_MAX", default)
     biased.clear()
     yy, xx = np.mgrid[0:256, 0:384].astype(np.float64)
     detailed = 900.0 + 0.5 * np.sin(xx / 3.0) * np.cos(yy / 5.0) + np.random.default_rng(5).normal(0, 0.005, xx.shape)
