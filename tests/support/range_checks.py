@@ -12,7 +12,7 @@ import pytest
 
 from shared.compress import RangeImage, encode_range, expected_lossless, read_range
 from shared.core.errors import InputError
-from shared.formats.container import MAGIC
+from shared.formats.container import MAGIC, TRAILER
 
 _CHUNK = struct.Struct("<II")
 
@@ -57,7 +57,7 @@ def chunk_spans(blob: bytes) -> list[tuple[int, int]]:
     length and CRC-32 sit in the 8 bytes before its start."""
     pos = len(MAGIC) + 12 + struct.unpack_from("<I", blob, len(MAGIC) + 4)[0]
     spans = []
-    while blob[pos : pos + 8] != b"GLC-END\n":
+    while blob[pos : pos + len(TRAILER)] != TRAILER:
         length, _ = _CHUNK.unpack_from(blob, pos)
         spans.append((pos + 8, pos + 8 + length))
         pos += 8 + length

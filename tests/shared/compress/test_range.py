@@ -28,6 +28,7 @@ from tests.support.range_checks import (
     check_bounded,
     check_damage_refused,
     check_lossless,
+    chunk_spans,
     lossless_blob,
 )
 
@@ -403,13 +404,11 @@ def test_damage_the_stream_heals_is_refused_by_the_bands_check(kw: dict) -> None
     good = read_range(blob).z
     meta = open_container(blob, kind="range")[0].meta
     lossless, scale = meta["mode"] == "lossless", float(meta["scale"])
-    hdr_end = len(MAGIC) + 12 + struct.unpack_from("<I", blob, len(MAGIC) + 4)[0]
-    length = struct.unpack_from("<I", blob, hdr_end)[0]
-    start = hdr_end + 8
-    payload = blob[start : start + length]
+    ((start, end),) = chunk_spans(blob)  # one band; its length and CRC-32 in the 8 bytes before
+    payload = blob[start:end]
     nt = struct.unpack_from("<I", payload)[0]
     tables = np.frombuffer(payload, np.uint8, nt, 8)
-    words0 = np.frombuffer(payload, "<u2", (length - 8 - nt) // 2, 8 + nt)
+    words0 = np.frombuffer(payload, "<u2", (end - start - 8 - nt) // 2, 8 + nt)
     healed = None
     for k in rng.permutation(words0.size)[:2000]:
         words = words0.copy()
@@ -421,8 +420,8 @@ def test_damage_the_stream_heals_is_refused_by_the_bands_check(kw: dict) -> None
     assert healed is not None, "no flip of 2000 healed: the search no longer finds what this test needs"
     k, words = healed
     bad = bytearray(blob)
-    bad[start + 8 + nt : start + length] = words.astype("<u2").tobytes()
-    struct.pack_into("<I", bad, hdr_end + 4, zlib.crc32(bytes(bad[start : start + length])))
+    bad[start + 8 + nt : end] = words.astype("<u2").tobytes()
+    struct.pack_into("<I", bad, start - 4, zlib.crc32(bytes(bad[start:end])))
     with pytest.raises(InputError, match=r"corrupt chunk 0 \(its decoded samples fail their check\)"):
         read_range(bytes(bad))
 
