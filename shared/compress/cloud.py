@@ -22,6 +22,7 @@ import io
 import logging
 import math
 import os
+import shutil
 import struct
 import zlib
 from collections.abc import Iterator
@@ -48,6 +49,10 @@ CHUNK_POINTS = 1 << 21
 SPLIT_POINTS = 1 << 18
 #: Largest chunk a reader accepts (the writer's CHUNK_POINTS may change between versions).
 MAX_CHUNK_POINTS = 1 << 24
+#: Most points in a cloud (268 M; a 150 MP camera's view is 151 M), refused by the writer and by
+#: the reader before it allocates: an entropy coder codes a run of equal points in almost no
+#: bits, so a few kilobytes of chunks can claim and really decode gigabytes of records.
+MAX_POINTS = 1 << 28
 NORMAL_BITS = 12
 #: Largest angle between a normal and its decoded value, degrees (measured bound of 12-bit octahedral).
 NORMAL_MAX_DEG = 0.05
@@ -204,6 +209,11 @@ def _check_precision(precision: float) -> float:
     return p
 
 
+def _check_count(count: int, where: str) -> None:
+    if count > MAX_POINTS:
+        raise InputError(where, f"a cloud of {count / 1e6:.0f} M points is more than the codec's {MAX_POINTS / 1e6:.0f} M")
+
+
 def chunk_points(count: int) -> int:
     """Points per chunk for a cloud of ``count`` points: at most :data:`CHUNK_POINTS`, equal
     chunks, an even number of them above :data:`SPLIT_POINTS` points."""
@@ -251,6 +261,7 @@ def write_cloud(path: str | os.PathLike[str], ply: str | os.PathLike[str], preci
     """Code the PLY cloud ``ply`` into the container file ``path`` (atomically); returns its size."""
     precision = _check_precision(precision)
     header = read_header(ply)
+    _check_count(header.count, str(ply))
     plan = _plan_fields(header.dtype, str(ply))
     meta = _meta(header.dtype, header.count, precision, _units_of(header.comments), header.comments)
     chunks = iter_ply_records(ply, meta["chunk_points"])
@@ -260,6 +271,7 @@ def write_cloud(path: str | os.PathLike[str], ply: str | os.PathLike[str], preci
 def encode_cloud(rec: np.ndarray, precision: float, units: str = "mm", comments: tuple[str, ...] = ()) -> bytes:
     """Code structured point records (PLY vertex dtype, at least x, y, z) into container bytes."""
     precision = _check_precision(precision)
+    _check_count(len(rec), "cloud")
     plan = _plan_fields(rec.dtype, "cloud")
     meta = _meta(rec.dtype, len(rec), precision, units, comments)
     per = meta["chunk_points"]
@@ -345,12 +357,16 @@ def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Itera
     try:
         dtype = np.dtype([(str(n), str(t)) for n, t in meta["fields"]])
         per = int(meta["chunk_points"])
+        points = int(meta["points"])
         ok = (meta.get("codec") == CODEC and 0 < per <= MAX_CHUNK_POINTS
-              and float(meta["precision"]) > 0 and meta["chunks"] == -(-int(meta["points"]) // per))
+              and float(meta["precision"]) > 0 and meta["chunks"] == -(-points // per))
     except (KeyError, TypeError, ValueError):
         ok = False
     if not ok:
         raise InputError(where, "corrupt or unsupported cloud header")
+    if points > MAX_POINTS:
+        raise InputError(where, f"corrupt or hostile cloud header: it claims {points / 1e6:.0f} M points, more than "
+                                f"the codec's {MAX_POINTS / 1e6:.0f} M")
     return meta, chunks, dtype, where
 
 
@@ -394,5 +410,14 @@ def decode_cloud(source: str | os.PathLike[str] | bytes) -> np.ndarray:
 def read_cloud_to_ply(source: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
     """Decode a cloud container into a binary PLY (the cloud contract), atomically."""
     meta, _, dtype, _ = _open(source)
+    out = Path(out)
+    # the records' bytes, checked before minutes of decoding end in a full disk
+    need = int(meta["points"]) * dtype.itemsize
+    room = out.parent
+    while not room.exists() and room != room.parent:
+        room = room.parent
+    free = shutil.disk_usage(room).free
+    if need > free:
+        raise InputError(str(out), f"the decoded cloud needs {need / 1e6:,.1f} MB, and its folder has {free / 1e6:,.1f} MB free")
     comments = tuple(str(c) for c in meta.get("comments", ()))
     return write_ply_records(out, iter_cloud(source), int(meta["points"]), dtype, comments)

@@ -11,6 +11,7 @@ import pytest
 
 from shared.compress.cloud import (
     CONFIDENCE_STEP,
+    MAX_POINTS,
     NORMAL_MAX_DEG,
     SIZE_STEP_OF_PRECISION,
     decode_cloud,
@@ -19,6 +20,7 @@ from shared.compress.cloud import (
     write_cloud,
 )
 from shared.core.errors import InputError
+from shared.formats.container import open_container, write_stream
 from shared.formats.ply import CLOUD_DTYPE, iter_ply_records, read_header, write_ply_records
 
 MERGED = np.dtype(CLOUD_DTYPE.descr + [("view", "<u2"), ("confidence", "<f4"), ("weird", "<f8")])
@@ -133,6 +135,52 @@ def test_damaged_cloud_files(tmp_path: Path) -> None:
     p.write_bytes(blob[: len(blob) - 20])
     with pytest.raises(InputError, match="truncated"):
         decode_cloud(p)
+
+
+def test_a_header_claiming_a_huge_cloud_is_refused_before_allocating(tmp_path: Path,
+                                                                     monkeypatch: pytest.MonkeyPatch) -> None:
+    """A decompression bomb: equal points code in almost no bits (4 M points in about a kilobyte,
+    130 MB decoded), so a small file can claim, and really decode, gigabytes. A header claiming
+    more than the codec's limit is refused by name before anything is allocated or written, the
+    encoder refuses such clouds alike, and a PLY that would not fit its disk is refused before
+    decoding starts (nothing written)."""
+    import io
+    import shutil
+
+    import shared.compress.cloud as cloud
+
+    same = np.zeros(1 << 20, CLOUD_DTYPE)
+    same["z"], same["nz"] = 500.0, 1.0
+    blob = encode_cloud(same, 0.5)
+    assert len(blob) < 2000 and len(decode_cloud(blob)) == len(same)  # the bomb's ratio, for real
+    header, chunks = open_container(blob, kind="cloud")
+    chunk = list(chunks)[0]
+    per = 1 << 24
+    for points in (MAX_POINTS + 1, 1 << 40):
+        n = -(-points // per)
+        buf = io.BytesIO()
+        write_stream(buf, "cloud", {**header.meta, "points": points, "chunk_points": per, "chunks": n},
+                     (chunk for _ in range(n)))
+        bomb = tmp_path / "bomb.glo"
+        bomb.write_bytes(buf.getvalue())
+        message = rf"^{bomb}: corrupt or hostile cloud header: it claims {points / 1e6:.0f} M points, more than the codec's 268 M"
+        with pytest.raises(InputError, match=message):
+            decode_cloud(bomb)
+        with pytest.raises(InputError, match=message):
+            read_cloud_to_ply(bomb, tmp_path / "out.ply")
+        assert not (tmp_path / "out.ply").exists()
+    # one point more than the limit (a broadcast view: nothing is allocated)
+    with pytest.raises(InputError, match=r"^cloud: a cloud of 268 M points is more than the codec's 268 M"):
+        encode_cloud(np.broadcast_to(same[:1], (MAX_POINTS + 1,)), 0.5)
+    # within the limit, but more than the output's disk holds (a full disk, as the check sees it):
+    # 1 M points of 31 bytes
+    good = tmp_path / "same.glo"
+    good.write_bytes(blob)
+    free = len(same) * CLOUD_DTYPE.itemsize - 1
+    monkeypatch.setattr(cloud.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(free * 2, free, free))
+    with pytest.raises(InputError, match=rf"^{tmp_path / 'sub' / 'out.ply'}: the decoded cloud needs 32.5 MB, and its folder has 32.5 MB free"):
+        read_cloud_to_ply(good, tmp_path / "sub" / "out.ply")
+    assert not (tmp_path / "sub").exists()
 
 
 def test_other_codec_versions_fail_clearly(monkeypatch: pytest.MonkeyPatch) -> None:
