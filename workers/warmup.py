@@ -53,7 +53,7 @@ KERNEL_MODULES: dict[str, tuple[str, ...]] = {
                "shared.render._match", "shared.compress.tilenode"),  # tilenode: the tiles' octree-coded nodes
     "compress": ("shared.compress._rans", "shared.compress._tables", "shared.compress._check", "shared.compress._mask", "shared.compress._wp",
                  "shared.compress._rows", "shared.compress._ls",
-                 "shared.compress._lpred", "shared.compress._interp", "shared.compress._quadtree",
+                 "shared.compress._lpred", "shared.compress._levels", "shared.compress._interp", "shared.compress._quadtree",
                  "shared.compress._octree_ctx", "shared.compress._octree"),
     "merge": ("shared.merge._kernels", "shared.merge._fusion_kernels"),
     "derive": ("shared.derive._raster",),  # the texture baker's UV rasteriser

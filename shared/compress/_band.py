@@ -25,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from shared.compress import _levels as lv
 from shared.compress import _lpred as lp
 from shared.compress._check import fold, lossless_check
 from shared.compress._interp import (
@@ -241,7 +242,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, nleaf)
     none = np.zeros((1, W), np.int64)  # the weighted predictor's arrays where it does not run
     pw = pe = none
-    # the residuals' symbol counts with sign contexts, by level and pattern (lp.sign_bits), of
+    # the residuals' symbol counts with sign contexts, by level and pattern (lv.sign_bits), of
     # the way kept (alt) and of the way tried beside it (alt_b)
     count = (opts & lp.OPT_SIGN) != 0
     # the curvature in the activity: the first margin coded chooses, the others follow
@@ -307,11 +308,11 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
                                  tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt_b, pls, scale, chk_b)
         if n1 < 0:
             return -1, None
-        with_bias = lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0]
+        with_bias = lv.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0]
         keep = _save(tab, val, nb, n_res, n1)
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
                                     TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt, pls, scale, chk)
-        if n_end < 0 or with_bias < lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]:
+        if n_end < 0 or with_bias < lv.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]:
             bias = 1
             _restore(tab, val, nb, n_res, keep)
             n_end = n1
@@ -327,7 +328,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             # not the code length (on depth held constant over 2 x 2 pixels, the local
             # predictors' errors are 0 at every other pixel, the fit's smaller but never 0:
             # with the leaves choosing by absolute error it coded 5 % larger)
-            with_ls = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
+            with_ls = lv.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
             keep = _save(tab, val, nb, n_res, n_end)
             keep_k = leaves[:nleaf, 4].copy()
             lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ZERO,
@@ -338,7 +339,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
                                      TR, tab, val, nb, n_res0, none, none, ZERO, ZERO, ZERO, alt_b, none, scale, NO_CHK)
             if n0 < 0:
                 return -1, None
-            if lp.context_choice(tab, val, nb, n_res0, np.int64(n0), TR)[0] <= with_ls + LS_HEAD_BITS * n_tiles(W):
+            if lv.context_choice(tab, val, nb, n_res0, np.int64(n0), TR)[0] <= with_ls + LS_HEAD_BITS * n_tiles(W):
                 ls, pls, head_n = ZERO, none, HEAD_N
                 aw, an, n_res, n_end = np.int64(aw0), np.int64(an0), n_res0, n0
                 alt, alt_b = alt_b, alt
@@ -350,7 +351,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             # the weighted predictor (a choice of every leaf, its error in the context): both
             # ways, kept where it saves WP_MIN_GAIN (it lost on the bunny at 4:1, where the
             # plane fits)
-            without = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
+            without = lv.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]
             keep = _save(tab, val, nb, n_res, n_end)
             keep_k = leaves[:nleaf, 4].copy()
             pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
@@ -365,7 +366,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
                                      TR, tab, val, nb, n_res, pw, pe, ONE, ZERO, ZERO, alt_b, pls, scale, NO_CHK)
             if n1 < 0:
                 return -1, None
-            if lp.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0] < (1.0 - WP_MIN_GAIN) * without:
+            if lv.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0] < (1.0 - WP_MIN_GAIN) * without:
                 wp = 1
                 aw = aw1
                 an = an1
@@ -376,22 +377,22 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
                 leaves[:nleaf, 4] = keep_k
     # the residual tables, one a run of activity levels (level_partition), and the activity
     # without the curvature where the residuals' counts say it codes smaller
-    counts, raw = lp.level_counts(tab, val, nb, n_res, np.int64(n_end), TR)
-    bits, lut = lp.level_partition(counts, raw)  # the levels' tables: bits as the coder spends them
-    if choose_grad and lp.level_partition(lp.grad_counts(alt), raw)[0] < (1.0 - GRAD_MIN_GAIN) * bits:
+    counts, raw = lv.level_counts(tab, val, nb, n_res, np.int64(n_end), TR)
+    bits, lut = lv.level_partition(counts, raw)  # the levels' tables: bits as the coder spends them
+    if choose_grad and lv.level_partition(lv.grad_counts(alt), raw)[0] < (1.0 - GRAD_MIN_GAIN) * bits:
         opts = np.int64(opts & ~lp.OPT_GRAD)
         alt = np.zeros((lp.NLEVEL * lp.NSUB, NSYM), np.int32)
         n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, TR,
                                     tab, val, nb, n_res, pw, pe, np.int64(wp), ZERO, ZERO, alt, pls, scale, chk)
         if n_end < 0:
             return -1, None
-        counts, raw = lp.level_counts(tab, val, nb, n_res, np.int64(n_end), TR)
-        bits, lut = lp.level_partition(counts, raw)
+        counts, raw = lv.level_counts(tab, val, nb, n_res, np.int64(n_end), TR)
+        bits, lut = lv.level_partition(counts, raw)
     grad = int(bool(opts & lp.OPT_GRAD))
     # the sign contexts' offset (their groups of four levels; sign_bits counts their bits as
     # level_partition counts the levels')
-    cofs = lp.choice_of(counts, raw)[1]
-    lp.apply_levels(tab, n_res, np.int64(n_end), TR, lut)
+    cofs = lv.choice_of(counts, raw)[1]
+    lv.apply_levels(tab, n_res, np.int64(n_end), TR, lut)
     head = np.zeros(head_n, np.int64)
     head[:N_FLAGS] = bias, cofs, wp, aw + lp.FB_MAX, an + lp.FB_MAX, grad, 0, ls
     head[N_FLAGS:HEAD_N] = np.diff(lut)
@@ -401,7 +402,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     _put_predictors(tab, val, nb, n, head, leaves, nleaf)
     gain = 0.0
     if opts & lp.OPT_SIGN:
-        gain = bits - lp.sign_bits(alt, np.int64(cofs), tab, nb, n_res, np.int64(n_end))
+        gain = bits - lv.sign_bits(alt, np.int64(cofs), tab, nb, n_res, np.int64(n_end))
     signs = _SignPass(t, valid, cells, leaves, lcoef, lossless, opts, np.int64(bias), aw, an, pw, pe, np.int64(wp),
                       np.int64(cofs), alt, n + F_SIGNS, n_res, gain, pls, scale, int(chk[0]) if chk.size else 0)
     # kept once coded: a margin whose buffers were too small codes its tree again
@@ -664,7 +665,7 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
     n_end = interp_events(t, valid, tab, val, nb, n_res, TR, fbw, ZERO, ZERO, hist, alt, scale, chk)
     if n_end < 0:
         return -1, np.inf, 0
-    bits, cofs, cshift = lp.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
+    bits, cofs, cshift = lv.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)
     # the second pass's estimate: the weights chosen (their share of the first pass's bits
     # from the candidates' counts) in level or in sign tables, whichever the first pass's
     # counts say is smaller
@@ -677,7 +678,7 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
         estimate = _stream_bits(tab, val, nb, np.int64(n)) + min(bits, share * min(bits, sign_bits))
         if estimate > INTERP_GIVE_UP * rival:
             return -2, np.inf, 0
-    lp.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
+    lv.apply_contexts(tab, n_res, np.int64(n_end), TR, np.int64(cofs), np.int64(cshift))
     put_head(cofs, cshift, 0, fbw)
     stream = _stream_bits(tab, val, nb, np.int64(n_end))
     if force is not None or way or not np.array_equal(chosen, fbw):
@@ -692,8 +693,8 @@ def _interp_band(t: np.ndarray, valid: np.ndarray, tab: np.ndarray, val: np.ndar
             return -1, np.inf, 0
         cofs_w, cshift_w = cofs, 0
         if way == 0:
-            cofs_w, cshift_w = lp.context_choice(tab, val, nb, n_res, np.int64(n_w), TR)[1:]
-            lp.apply_contexts(tab, n_res, np.int64(n_w), TR, np.int64(cofs_w), np.int64(cshift_w))
+            cofs_w, cshift_w = lv.context_choice(tab, val, nb, n_res, np.int64(n_w), TR)[1:]
+            lv.apply_contexts(tab, n_res, np.int64(n_w), TR, np.int64(cofs_w), np.int64(cshift_w))
         put_head(cofs_w, cshift_w, way, chosen)
         stream_w = _stream_bits(tab, val, nb, np.int64(n_w))
         if force is not None or stream_w < stream:
@@ -749,7 +750,7 @@ def decode_band(tables: np.ndarray, words: np.ndarray, H: int, W: int, lossless:
     if nleaf < 0:
         return -1
     bias, cofs, wp, aw, an, grad, sc, _ = (np.int64(v) for v in head[:N_FLAGS])
-    lut = lp.activity_tables(lp.partition_tables(head[N_FLAGS:HEAD_N]))
+    lut = lp.activity_tables(lv.partition_tables(head[N_FLAGS:HEAD_N]))
     lsw = (head[HEAD_N::2] << 8) + head[HEAD_N + 1 :: 2] - LS_BIAS
     cells = _leaf_cells(np.int64(H), np.int64(W), leaves, np.int64(nleaf))
     xa, xb, pos = lp.decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, bool(lossless), bias,

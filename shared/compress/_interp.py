@@ -28,7 +28,7 @@ sees are rounded to 0.
 
 Residuals are coded in level tables by the activity ``|left - right|`` (or ``|above - below|``)
 plus twice the error of the sample before in its pass and the error of the sample a pass-row
-above, in half-octaves (:func:`shared.compress._lpred.context_choice` slides and merges them),
+above, in half-octaves (:func:`shared.compress._levels.context_choice` slides and merges them),
 or, where the band's first pass estimates them smaller, in sign contexts (:func:`_table`: three
 groups of those levels x the signs of the residual before in the pass-row and of the two samples
 it is interpolated from x three classes of pass, 45 tables).
@@ -50,6 +50,7 @@ import numpy as np
 from numba import njit
 
 from shared.compress._check import add_row, scratch
+from shared.compress._levels import pattern_bits
 from shared.compress._lpred import (
     E_LIM,
     F_SHIFT,
@@ -63,7 +64,6 @@ from shared.compress._lpred import (
     NI_PAT,
     NLEVEL,
     _level_of,
-    pattern_bits,
 )
 from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
 
@@ -138,7 +138,7 @@ def _coarse(rec, valid, y, x, last):
 def _table(t_res, act, sgn, cofs, rprev, rnb, cls):
     """(table, flip) of a residual of activity ``act``: in level mode (``sgn`` 0) the table
     ``t_res`` plus its level (made tables after the pass by
-    :func:`shared.compress._lpred.context_choice`), no flip; in sign mode the table of its
+    :func:`shared.compress._levels.context_choice`), no flip; in sign mode the table of its
     group of levels from ``cofs`` (3), its pattern (5) and its class ``cls`` (3: the finest
     spacing's pass B, its pass A, the others). The pattern: the signs of the residual before in
     its pass-row ``rprev`` and of the sum ``rnb`` of the residuals of the two samples it is
@@ -189,7 +189,7 @@ def _count_alt(alt, act, rprev, rnb, cls, r):
 def sign_estimate(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n0: int, n1: int) -> float:
     """Estimated bits of a band's interpolation residuals (events n0..n1-1, coded in level
     tables) had they been coded in sign contexts from offset ``cofs``: from the counts ``alt``
-    of :func:`interp_events` (:func:`shared.compress._lpred.pattern_bits`)."""
+    of :func:`interp_events` (:func:`shared.compress._levels.pattern_bits`)."""
     # the groups of :func:`_group`
     groups = (np.minimum(np.maximum(np.arange(NLEVEL, dtype=np.int64) - cofs, 0), NCTX - 1) * NI_GRP) >> 4
     first = groups * (NI_PAT * NI_CLS)
@@ -200,7 +200,7 @@ def sign_estimate(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n
 def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt, scale, chk):
     """Append the residual events of a band in interpolation order (bounded mode: ``t`` (H, W)
     int64 fine-unit targets) after event ``n``, each in table ``t_res`` plus its activity level
-    (:func:`shared.compress._lpred.context_choice` then makes them tables), with the error
+    (:func:`shared.compress._levels.context_choice` then makes them tables), with the error
     feedback weights ``fbw`` (NLV, 2) int64 (sixteenths, by level and pass); with ``sgn`` 1, in
     the sign contexts of :func:`_table` (final tables, from offset ``cofs``). Unless ``hist`` is
     (1, 1, 1, 1, 1), adds to it (NLV, 2, NCAND, HG, HB) int64 the symbols each weight of

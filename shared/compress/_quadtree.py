@@ -75,7 +75,7 @@ MODE_INTERP = 1
 #: The raster order's header after the tree: :data:`N_FLAGS` flags (bias cancellation, the sign
 #: contexts' offset, the weighted predictor, the two feedback weights, the curvature in the
 #: activity, sign contexts, the least-squares predictor), then the activity levels' tables as
-#: NLEVEL - 1 flags (:func:`shared.compress._lpred.partition_tables`), then, with the
+#: NLEVEL - 1 flags (:func:`shared.compress._levels.partition_tables`), then, with the
 #: least-squares predictor, its weights' bytes (from :data:`HEAD_N` on).
 N_FLAGS = 8
 HEAD_N = N_FLAGS + lp.NLEVEL - 1

@@ -8,6 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from shared.compress import _levels as lv
 from shared.compress import _lpred as lp
 from shared.compress._rans import (
     NSYM,
@@ -66,19 +67,19 @@ def test_the_partition_is_a_valid_one_and_never_costs_more_than_sliding_and_merg
     levels = {lev: (int(rng.integers(0, 3000)) if rng.random() < 0.7 else 0, 0.5 * 1.41 ** (lev / 2))
               for lev in range(lp.NLEVEL)}
     counts = _counts(levels, seed)
-    bits, lut = lp.level_partition(counts, 0.0)
-    np.testing.assert_array_equal(lp.partition_tables(np.diff(lut)), lut)  # what the decoder rebuilds
+    bits, lut = lv.level_partition(counts, 0.0)
+    np.testing.assert_array_equal(lv.partition_tables(np.diff(lut)), lut)  # what the decoder rebuilds
     assert bits == pytest.approx(_exact_bits(counts, lut))
     for cofs in range(lp.MAX_COFS + 1):
         for cshift in range(3):
-            assert bits <= _exact_bits(counts, lp.level_tables(np.int64(cofs), np.int64(cshift))) + 1e-6
+            assert bits <= _exact_bits(counts, lv.level_tables(np.int64(cofs), np.int64(cshift))) + 1e-6
 
 
 def test_quiet_levels_share_a_table_and_busy_ones_keep_their_own() -> None:
     # a real capture's quiet levels hold a few dozen residuals each, spread over a hundred
     # symbols: each table stored would cost more than the levels' distributions differ
     counts = _counts({12: (30, 20.0), 13: (40, 25.0), 14: (35, 30.0), 20: (100000, 4.0), 21: (100000, 8.0)})
-    lut = lp.level_partition(counts, 0.0)[1]
+    lut = lv.level_partition(counts, 0.0)[1]
     assert lut[12] == lut[13] == lut[14]
     assert len({lut[14], lut[20], lut[21]}) == 3
 
