@@ -304,7 +304,7 @@ def load_range_npz(path: str | os.PathLike[str]) -> RangeImage:
     """A scan's ``range.npz`` (``z``, ``K``, ``dist``, ``units``) as a :class:`RangeImage`."""
     p = Path(path)
     if not p.is_file():
-        raise InputError(p, "no such file")
+        raise InputError(p, "a folder, not a range.npz file" if p.is_dir() else "no such file")
     try:
         with np.load(p, allow_pickle=False) as d:
             if "z" not in d:

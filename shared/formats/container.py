@@ -157,7 +157,7 @@ def open_container(source: str | os.PathLike[str] | bytes, kind: str | None = No
         return header, from_bytes()
     where = str(source)
     if not Path(source).is_file():
-        raise InputError(where, "no such file")
+        raise InputError(where, "a folder, not a compressed file" if Path(source).is_dir() else "no such file")
     with open(source, "rb") as fh:
         header = read_header(fh, where, kind)
         start = fh.tell()

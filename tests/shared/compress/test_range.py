@@ -367,6 +367,10 @@ def test_wrong_magic_version_kind_and_trailing_bytes(tmp_path: Path, good_file: 
         read_range(_write(tmp_path, good_file + b"\0"))
     with pytest.raises(InputError, match="no such file"):
         read_range(tmp_path / "missing.glr")
+    with pytest.raises(InputError, match=rf"^{tmp_path}: a folder, not a compressed file$"):
+        read_range(tmp_path)
+    with pytest.raises(InputError, match=rf"^{tmp_path}: a folder, not a range.npz file$"):
+        load_range_npz(tmp_path)
 
 
 def test_damaged_payload_with_a_matching_checksum_is_still_caught() -> None:
