@@ -358,7 +358,7 @@ def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Itera
         dtype = np.dtype([(str(n), str(t)) for n, t in meta["fields"]])
         per = int(meta["chunk_points"])
         points = int(meta["points"])
-        ok = (meta.get("codec") == CODEC and 0 < per <= MAX_CHUNK_POINTS
+        ok = (meta.get("codec") == CODEC and 0 < per <= MAX_CHUNK_POINTS and points >= 0
               and float(meta["precision"]) > 0 and meta["chunks"] == -(-points // per))
     except (KeyError, TypeError, ValueError):
         ok = False

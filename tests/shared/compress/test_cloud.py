@@ -169,6 +169,11 @@ def test_a_header_claiming_a_huge_cloud_is_refused_before_allocating(tmp_path: P
         with pytest.raises(InputError, match=message):
             read_cloud_to_ply(bomb, tmp_path / "out.ply")
         assert not (tmp_path / "out.ply").exists()
+    # a negative count whose chunk count adds up (0 chunks): a bare ValueError from numpy before
+    buf = io.BytesIO()
+    write_stream(buf, "cloud", {**header.meta, "points": -5, "chunks": 0}, [])
+    with pytest.raises(InputError, match=r"^<bytes>: corrupt or unsupported cloud header"):
+        decode_cloud(buf.getvalue())
     # one point more than the limit (a broadcast view: nothing is allocated)
     with pytest.raises(InputError, match=r"^cloud: a cloud of 268 M points is more than the codec's 268 M"):
         encode_cloud(np.broadcast_to(same[:1], (MAX_POINTS + 1,)), 0.5)
