@@ -19,6 +19,7 @@ __all__ = [
     "read_cloud_to_ply",
     "write_cloud",
     "RangeImage",
+    "check_camera",
     "check_range",
     "decode_range",
     "encode_range",

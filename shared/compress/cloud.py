@@ -35,7 +35,7 @@ import numpy as np
 from shared.compress import _octree as ot
 from shared.core.errors import InputError
 from shared.core.threads import cpu_budget
-from shared.formats.container import open_container, write_container, write_stream
+from shared.formats.container import header_int, open_container, write_container, write_stream
 from shared.formats.ply import iter_ply_records, read_header, write_ply_records
 
 log = logging.getLogger(__name__)
@@ -356,8 +356,8 @@ def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Itera
         raise InputError(where, f"cloud codec {codec!r} is not supported (this build reads {CODEC!r}; re-encode the cloud)")
     try:
         dtype = np.dtype([(str(n), str(t)) for n, t in meta["fields"]])
-        per = int(meta["chunk_points"])
-        points = int(meta["points"])
+        per = header_int(meta, "chunk_points")
+        points = header_int(meta, "points")
         ok = (meta.get("codec") == CODEC and 0 < per <= MAX_CHUNK_POINTS and points >= 0
               and float(meta["precision"]) > 0 and meta["chunks"] == -(-points // per))
     except (KeyError, TypeError, ValueError):

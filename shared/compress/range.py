@@ -55,7 +55,8 @@ from shared.compress._check import output_check
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
 from shared.core.threads import cpu_budget
-from shared.formats.container import open_container, write_container, write_stream
+from shared.formats.container import header_int, open_container, write_container, write_stream
+from shared.formats.rig import DIST_LENGTHS, MAX_DISTORTION
 
 log = logging.getLogger(__name__)
 
@@ -169,6 +170,37 @@ def check_range(z: np.ndarray, where: str = "z") -> np.ndarray:
     return z
 
 
+def check_camera(K: Any, dist: Any, units: Any, where: str) -> tuple[np.ndarray | None, np.ndarray | None, str]:
+    """A range image's camera as its reader and writer accept it: ``K`` None or (3, 3) float64,
+    finite or all NaN (unknown, as a scan without a rig writes it); ``dist`` None or OpenCV's 4,
+    5, 8, 12 or 14 finite coefficients (flattened); ``units`` a name of letters (``mm``).
+    InputError naming the field otherwise: a header or an npz from elsewhere must not pass a
+    camera the triangulation or an export would misread."""
+    def numbers(value: Any, name: str) -> np.ndarray:
+        try:
+            return np.asarray(value, np.float64)
+        except (TypeError, ValueError):
+            raise InputError(where, f"{name} must be numbers, got {_short(value)}") from None
+
+    if K is not None:
+        K = numbers(K, "K")
+        if K.shape != (3, 3) or not (np.isfinite(K).all() or np.isnan(K).all()):
+            raise InputError(where, f"K must be a 3 x 3 matrix of finite numbers (or all NaN: unknown), got {_short(K.tolist())}")
+    if dist is not None:
+        dist = numbers(dist, "dist").ravel()
+        if dist.size not in DIST_LENGTHS or not np.isfinite(dist).all() or np.abs(dist).max() > MAX_DISTORTION:
+            raise InputError(where, f"dist must be OpenCV's {', '.join(map(str, DIST_LENGTHS))} finite distortion coefficients "
+                                    f"(at most {MAX_DISTORTION:g} in magnitude), got {_short(dist.tolist())}")
+    if not (isinstance(units, str) and 0 < len(units) <= 16 and units.isalpha()):
+        raise InputError(where, f"units must be a unit's name such as mm, got {_short(units)}")
+    return K, dist, units
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
 def _encode_band(zb: np.ndarray, plan: _Plan) -> bytes:
     t, valid = qt.quantise(zb, plan.scale, plan.lossless)
     tables, words, check = encode_band(t, valid, plan.lossless, plan.opts, plan.scale)
@@ -224,6 +256,7 @@ def write_range(path: str | os.PathLike[str], img: RangeImage, *, quantum: float
     2 is up to 2 % smaller lossless, and slower to code and to decode).
     """
     z = check_range(img.z)
+    check_camera(img.K, img.dist, img.units, "range image")
     plan = _plan(z, quantum, max_error, effort)
     return write_container(path, "range", _meta(img, z, plan, quantum, max_error), _encoded_chunks(z, plan))
 
@@ -232,6 +265,7 @@ def encode_range(img: RangeImage, *, quantum: float | None = None, max_error: fl
                  effort: int = 1) -> bytes:
     """:func:`write_range` into memory: the container's bytes."""
     z = check_range(img.z)
+    check_camera(img.K, img.dist, img.units, "range image")
     plan = _plan(z, quantum, max_error, effort)
     buf = io.BytesIO()
     write_stream(buf, "range", _meta(img, z, plan, quantum, max_error), _encoded_chunks(z, plan))
@@ -243,11 +277,12 @@ def _check_meta(meta: dict[str, Any], where: str) -> tuple[int, int, int, bool, 
     if codec in OLD_CODECS:
         raise InputError(where, f"range codec {codec!r} is not supported (this build reads {CODEC!r}; re-encode the range image)")
     try:
-        w, h, band = int(meta["width"]), int(meta["height"]), int(meta["band_rows"])
+        w, h, band = header_int(meta, "width"), header_int(meta, "height"), header_int(meta, "band_rows")
         lossless = meta["mode"] == "lossless"
         scale = float(meta["scale"])
-        ok = (meta.get("codec") == CODEC and int(meta["fine_shift"]) == qt.F_SHIFT and w > 0 and h > 0
-              and band > 0 and band % qt.TOP == 0 and meta["chunks"] == -(-h // band) and scale > 0)
+        ok = (meta.get("codec") == CODEC and header_int(meta, "fine_shift") == qt.F_SHIFT and w > 0 and h > 0
+              and band > 0 and band % qt.TOP == 0 and meta["chunks"] == -(-h // band) and math.isfinite(scale)
+              and scale > 0 and meta["mode"] in ("lossless", "bounded"))
     except (KeyError, TypeError, ValueError):
         ok = False
     if not ok:
@@ -263,6 +298,8 @@ def read_range(source: str | os.PathLike[str] | bytes) -> RangeImage:
     where = "<bytes>" if isinstance(source, bytes | bytearray | memoryview) else str(source)
     header, chunks = open_container(source, kind="range")
     w, h, band, lossless, scale = _check_meta(header.meta, where)
+    K, dist, units = check_camera(header.meta.get("K"), header.meta.get("dist"), header.meta.get("units", "mm"),
+                                  f"{where}: corrupt range header")
     z = np.empty((h, w), np.float32)
 
     def decode(i: int, payload: bytes) -> None:
@@ -288,10 +325,7 @@ def read_range(source: str | os.PathLike[str] | bytes) -> RangeImage:
                 futures.pop(0).result()
         for f in futures:
             f.result()
-    meta = header.meta
-    K = None if meta.get("K") is None else np.asarray(meta["K"], np.float64)
-    dist = None if meta.get("dist") is None else np.asarray(meta["dist"], np.float64)
-    return RangeImage(z, K, dist, str(meta.get("units", "mm")))
+    return RangeImage(z, K, dist, units)
 
 
 def expected_lossless(z: np.ndarray, quantum: float) -> np.ndarray:
@@ -317,6 +351,7 @@ def load_range_npz(path: str | os.PathLike[str]) -> RangeImage:
         raise
     except Exception as exc:  # zipfile/np.load raise many types for a damaged file
         raise InputError(p, f"unreadable range.npz ({type(exc).__name__}: {exc})") from None
+    K, dist, units = check_camera(K, dist, units, str(p))
     return RangeImage(check_range(z, f"{p}: z"), K, dist, units)
 
 

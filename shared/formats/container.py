@@ -117,12 +117,23 @@ def read_header(f: BinaryIO, where: str, kind: str | None = None) -> ContainerHe
         meta = json.loads(doc)
     except (UnicodeDecodeError, json.JSONDecodeError):
         raise InputError(where, "corrupt header (not a JSON document)") from None
-    if not isinstance(meta, dict) or not isinstance(meta.get("chunks"), int) or meta["chunks"] < 0:
+    if (not isinstance(meta, dict) or not isinstance(meta.get("chunks"), int) or isinstance(meta["chunks"], bool)
+            or meta["chunks"] < 0):
         raise InputError(where, 'corrupt header (no "chunks" count)')
     name = _KIND_NAMES[kind_id]
     if kind is not None and name != kind:
         raise InputError(where, f"holds a {name}, not a {kind}")
     return ContainerHeader(name, version, meta)
+
+
+def header_int(meta: dict[str, Any], key: str) -> int:
+    """``meta[key]`` when the header holds a JSON integer there: KeyError when it is absent,
+    TypeError for anything else (a float, which ``int()`` would truncate or fail to convert when
+    infinite, a string, a bool) -- what the readers' header checks catch as a corrupt header."""
+    v = meta[key]
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise TypeError(f"{key!r} is not an integer")
+    return v
 
 
 def iter_chunks(f: BinaryIO, header: ContainerHeader, where: str) -> Iterator[bytes]:

@@ -107,6 +107,8 @@ MAX_FOCAL_PX = 1e6
 MAX_PRINCIPAL_SIDES = 4.0
 #: Largest magnitude of a distortion coefficient (OpenCV's rational terms reach hundreds).
 MAX_DISTORTION = 1e4
+#: Lengths of OpenCV's distortion vectors (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4 [tx ty]]]]).
+DIST_LENGTHS = (4, 5, 8, 12, 14)
 #: Largest camera-projector distance in the rig's units (10 km in mm).
 MAX_BASELINE = 1e7
 #: Largest rig file accepted.
@@ -160,7 +162,7 @@ def _device(doc: Any, where: Path | str, name: str) -> Device:
     dist_raw = doc.get("dist", [0, 0, 0, 0, 0])
     dist = np.asarray(dist_raw, dtype=np.float64).ravel() if isinstance(dist_raw, list) and all(
         isinstance(v, int | float) and not isinstance(v, bool) for v in dist_raw) else None
-    if dist is None or dist.size not in (4, 5, 8, 12, 14) or not np.all(np.isfinite(dist)):
+    if dist is None or dist.size not in DIST_LENGTHS or not np.all(np.isfinite(dist)):
         raise InputError(where, f'field "{name}.dist" must be OpenCV distortion coefficients [k1, k2, p1, p2, k3]')
     if np.abs(dist).max(initial=0.0) > MAX_DISTORTION:
         raise InputError(where, f'field "{name}.dist": coefficients must be at most {MAX_DISTORTION:g} in magnitude')

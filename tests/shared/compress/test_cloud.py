@@ -154,7 +154,8 @@ def test_a_header_claiming_a_huge_cloud_is_refused_before_allocating(tmp_path: P
     blob = encode_cloud(same, 0.5)
     assert len(blob) < 2000 and len(decode_cloud(blob)) == len(same)  # the bomb's ratio, for real
     header, chunks = open_container(blob, kind="cloud")
-    chunk = list(chunks)[0]
+    payloads = list(chunks)
+    chunk = payloads[0]
     per = 1 << 24
     for points in (MAX_POINTS + 1, 1 << 40):
         n = -(-points // per)
@@ -169,11 +170,14 @@ def test_a_header_claiming_a_huge_cloud_is_refused_before_allocating(tmp_path: P
         with pytest.raises(InputError, match=message):
             read_cloud_to_ply(bomb, tmp_path / "out.ply")
         assert not (tmp_path / "out.ply").exists()
-    # a negative count whose chunk count adds up (0 chunks): a bare ValueError from numpy before
-    buf = io.BytesIO()
-    write_stream(buf, "cloud", {**header.meta, "points": -5, "chunks": 0}, [])
-    with pytest.raises(InputError, match=r"^<bytes>: corrupt or unsupported cloud header"):
-        decode_cloud(buf.getvalue())
+    # a negative count whose chunk count adds up (0 chunks): a bare ValueError from numpy before;
+    # counts that are not JSON integers (an infinite one was a bare OverflowError from int())
+    for claim in ({"points": -5, "chunks": 0}, {"points": float("inf")}, {"chunk_points": float("inf")},
+                  {"points": float(len(same))}, {"points": str(len(same))}):
+        buf = io.BytesIO()
+        write_stream(buf, "cloud", {**header.meta, **claim}, payloads if claim.get("chunks") != 0 else [])
+        with pytest.raises(InputError, match=r"^<bytes>: corrupt or unsupported cloud header"):
+            decode_cloud(buf.getvalue())
     # one point more than the limit (a broadcast view: nothing is allocated)
     with pytest.raises(InputError, match=r"^cloud: a cloud of 268 M points is more than the codec's 268 M"):
         encode_cloud(np.broadcast_to(same[:1], (MAX_POINTS + 1,)), 0.5)

@@ -5,6 +5,7 @@ too) and real range images and on hostile arrays; bad input, damaged files, olde
 from __future__ import annotations
 
 import io
+import re
 import struct
 from pathlib import Path
 
@@ -281,6 +282,51 @@ def test_a_header_claiming_a_huge_image_is_refused_before_allocating() -> None:
     big = np.broadcast_to(np.float32(500.0), (side, MAX_SAMPLES // side + 1))
     with pytest.raises(InputError, match=r"^z: a 16385 x 16384 range image holds 268 M samples, more than the codec's 268 M"):
         encode_range(RangeImage(big), quantum=0.02)
+
+
+def test_a_header_or_npz_with_a_malformed_camera_or_size_is_refused_by_name(tmp_path: Path) -> None:
+    """What a hostile or careless writer puts in a header's fields: sizes that are floats (an
+    infinite one overflowed int() with a bare OverflowError), strings or bools, an unknown mode,
+    an infinite scale, a camera matrix or distortion that is not one (the decoder handed them on
+    to whatever reprojects the image), units that are not a name. Each is refused by name before
+    decoding; an npz from elsewhere, and the encoder's input, alike."""
+    z = piecewise(64, 48)
+    good = RangeImage(z, np.eye(3) * 500.0, np.zeros(5), "mm")
+    blob = encode_range(good, quantum=0.02)
+    header, chunks = open_container(blob, kind="range")
+    payloads = list(chunks)
+
+    def with_meta(**changes: object) -> bytes:
+        buf = io.BytesIO()
+        write_stream(buf, "range", {**header.meta, **changes}, payloads)
+        return buf.getvalue()
+
+    for key, value in (("width", float("inf")), ("width", 64.0), ("width", 1e308), ("height", "48"), ("band_rows", True),
+                       ("fine_shift", float("inf")), ("mode", "other"), ("scale", float("inf")), ("scale", "x")):
+        with pytest.raises(InputError, match=r"^<bytes>: corrupt or unsupported range header$"):
+            read_range(with_meta(**{key: value}))
+    for key, value, message in (
+            ("K", "abc", "K must be numbers, got 'abc'"),
+            ("K", [[1, 2], [3]], "K must be numbers"),
+            ("K", [[1, 0, 0], [0, 1, 0]], "K must be a 3 x 3 matrix of finite numbers"),
+            ("K", [[1e400, 0, 0], [0, 1, 0], [0, 0, 1]], "K must be a 3 x 3 matrix of finite numbers"),
+            ("dist", [0.1, 0.2, 0.3], "dist must be OpenCV's 4, 5, 8, 12, 14 finite distortion coefficients"),
+            ("dist", {"k1": 0.1}, "dist must be numbers"),
+            ("units", 5, "units must be a unit's name such as mm, got 5"),
+            ("units", "../../etc", "units must be a unit's name")):
+        with pytest.raises(InputError, match=rf"^<bytes>: corrupt range header: {re.escape(message)}"):
+            read_range(with_meta(**{key: value}))
+    # the unknown camera as a scan without a rig writes it (all NaN) and no camera at all pass
+    assert np.isnan(read_range(with_meta(K=None, dist=None)).z).sum() == np.isnan(z).sum()
+    unknown = save_range_npz(tmp_path / "unknown.npz", RangeImage(z))
+    assert np.isnan(load_range_npz(unknown).K).all()
+    bad = tmp_path / "bad" / "range.npz"
+    bad.parent.mkdir()
+    np.savez(bad, z=z, K=np.eye(2), dist=np.zeros(5), units=np.array("mm"))
+    with pytest.raises(InputError, match=rf"^{bad}: K must be a 3 x 3 matrix"):
+        load_range_npz(bad)
+    with pytest.raises(InputError, match=r"^range image: dist must be OpenCV's"):
+        encode_range(RangeImage(z, np.eye(3), np.zeros(6), "mm"), quantum=0.02)
 
 
 def test_npz_round_trip_as_a_scan_writes_it(tmp_path: Path) -> None:
