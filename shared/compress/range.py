@@ -179,7 +179,7 @@ def check_camera(K: Any, dist: Any, units: Any, where: str) -> tuple[np.ndarray 
     def numbers(value: Any, name: str) -> np.ndarray:
         try:
             return np.asarray(value, np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: an integer past float's range
             raise InputError(where, f"{name} must be numbers, got {_short(value)}") from None
 
     if K is not None:

@@ -6,7 +6,8 @@ limit) and accepts ``NaN`` and ``Infinity``, which JSON does not have. A client'
 must fail with an :class:`~shared.core.errors.InputError` that names the document, never with
 one of those. :func:`loads_bounded` checks the size, then the nesting depth with a linear scan
 that never recurses (strings masked out first, so brackets inside them do not count), then
-parses with number hooks that refuse over-long numbers and the non-JSON constants.
+parses with number hooks that refuse over-long numbers, numbers beyond float's range (``1e400``)
+and the non-JSON constants.
 
 Every JSON document a client sends goes through here: HTTP bodies and form fields, and the
 files of a submission (``capture.json``, ``scanset.json``, ``rig.json``, camera paths).
@@ -15,6 +16,7 @@ files of a submission (``capture.json``, ``scanset.json``, ``rig.json``, camera 
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any
@@ -24,7 +26,8 @@ import numpy as np
 from shared.core.errors import InputError
 from shared.core.paths import read_bounded
 
-__all__ = ["MAX_DEPTH", "MAX_DOCUMENT_BYTES", "MAX_NUMBER_CHARS", "json_depth", "loads_bounded", "read_json_bounded"]
+__all__ = ["MAX_DEPTH", "MAX_DOCUMENT_BYTES", "MAX_NUMBER_CHARS", "finite_number", "json_depth", "loads_bounded",
+           "read_json_bounded"]
 
 #: Deepest nesting any Graylight document has is about 5; 64 leaves room without reaching recursion limits.
 MAX_DEPTH = 64
@@ -64,11 +67,28 @@ def json_depth(data: bytes) -> int:
     return int(np.cumsum(step).max(initial=0))
 
 
+def finite_number(value: Any) -> bool:
+    """Whether a parsed JSON value is a number (an int or a float, not a bool) of finite float
+    value: an integer past float's range (``10**400``, which a library caller can pass) is not,
+    where ``math.isfinite`` would raise a bare OverflowError on it."""
+    if isinstance(value, bool) or not isinstance(value, int | float):
+        return False
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 def _number_hook(kind: type, what: str):
     def parse(text: str) -> Any:
         if len(text) > MAX_NUMBER_CHARS:
             raise InputError(what, f"a number of {len(text)} characters (at most {MAX_NUMBER_CHARS})")
-        return kind(text)
+        value = kind(text)
+        # "1e400" is short and valid JSON, but parses to infinity: the constant refused by name
+        # below, arriving as a number (validators then met int(inf), a bare OverflowError)
+        if kind is float and not math.isfinite(value):
+            raise InputError(what, f"{text} is beyond the range of a 64-bit float")
+        return value
 
     return parse
 

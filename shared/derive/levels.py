@@ -9,6 +9,7 @@ Highest with about 500 k faces and 4k-8k maps, JPEG maps at quality 59 (Thumb) a
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from shared.core.errors import InputError
 
@@ -52,19 +53,34 @@ LEVELS: dict[str, Level] = {
 DEFAULT_LEVELS = ("thumb", "low", "medium", "high")
 
 
+def _short_int(v: int) -> str:
+    text = str(v)
+    return text if len(text) <= 20 else f"an integer of {len(text)} digits"
+
+
 def check_level(level: Level, where: str = "levels") -> Level:
     """Raise :class:`InputError` naming the field when a budget makes no sense."""
     if not level.name.isidentifier() or len(level.name) > 32:
         raise InputError(where, f"level name {level.name!r} must be a short identifier")
     if not MIN_FACES <= level.faces <= MAX_FACES:
-        raise InputError(f"{where}.{level.name}.faces", f"must be in [{MIN_FACES}, {MAX_FACES}], got {level.faces}")
+        raise InputError(f"{where}.{level.name}.faces", f"must be in [{MIN_FACES}, {MAX_FACES}], got {_short_int(level.faces)}")
     px = level.texture_px
     if not 64 <= px <= MAX_TEXTURE_PX or px & (px - 1):
         raise InputError(f"{where}.{level.name}.texture_px",
-                         f"must be a power of two in [64, {MAX_TEXTURE_PX}], got {px}")
+                         f"must be a power of two in [64, {MAX_TEXTURE_PX}], got {_short_int(px)}")
     if not 1 <= level.jpeg_quality <= 100:
-        raise InputError(f"{where}.{level.name}.jpeg_quality", f"must be in [1, 100], got {level.jpeg_quality}")
+        raise InputError(f"{where}.{level.name}.jpeg_quality", f"must be in [1, 100], got {_short_int(level.jpeg_quality)}")
     return level
+
+
+def _integer(item: dict[str, Any], key: str, default: int, name: Any) -> int:
+    """A level object's integer field: a JSON integer, not a float int() would truncate (faces
+    150.5 read as 150), an infinite one it cannot convert, a string or a bool."""
+    v = item.get(key, default)
+    if isinstance(v, bool) or not isinstance(v, int):
+        text = repr(v)
+        raise InputError(f"levels.{name}.{key}", f"must be an integer, got {text if len(text) <= 40 else text[:37] + '...'}")
+    return v
 
 
 def parse_levels(spec: str | list | None) -> list[Level]:
@@ -87,13 +103,10 @@ def parse_levels(spec: str | list | None) -> list[Level]:
                 raise InputError("levels", f"unknown field {sorted(unknown)[0]!r}")
             name = item.get("name")
             base = LEVELS.get(name) if isinstance(name, str) else None
-            try:
-                level = Level(str(name), int(item.get("faces", base.faces if base else -1)),
-                              int(item.get("texture_px", base.texture_px if base else -1)),
-                              int(item.get("jpeg_quality", base.jpeg_quality if base else 79)),
-                              item.get("max_bytes", base.max_bytes if base else None))
-            except (TypeError, ValueError):
-                raise InputError(f"levels.{name}", "faces, texture_px and jpeg_quality must be integers") from None
+            level = Level(str(name), _integer(item, "faces", base.faces if base else -1, name),
+                          _integer(item, "texture_px", base.texture_px if base else -1, name),
+                          _integer(item, "jpeg_quality", base.jpeg_quality if base else 79, name),
+                          item.get("max_bytes", base.max_bytes if base else None))
         elif isinstance(item, str) and ":" in item:
             parts = item.split(":")
             if len(parts) != 3:

@@ -130,13 +130,21 @@ def _no_unknown(obj: dict[str, Any], known: tuple[str, ...], where: Path | str, 
 def _matrix(value: Any, shape: tuple[int, ...], where: Path | str, name: str) -> np.ndarray:
     try:
         arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer past float's range
         raise InputError(where, f'field "{name}" must be numbers of shape {shape}') from None
     if arr.shape != shape:
         raise InputError(where, f'field "{name}" has shape {arr.shape}, expected {shape}')
     if not np.all(np.isfinite(arr)):
         raise InputError(where, f'field "{name}" holds NaN or infinite values')
     return arr
+
+
+def _floats(values: list[Any]) -> np.ndarray | None:
+    """``values`` as float64 (n,), or None when one is an integer past float's range."""
+    try:
+        return np.asarray(values, dtype=np.float64).ravel()
+    except OverflowError:
+        return None
 
 
 def _device(doc: Any, where: Path | str, name: str) -> Device:
@@ -160,7 +168,7 @@ def _device(doc: Any, where: Path | str, name: str) -> Device:
         raise InputError(where, f'field "{name}.K": principal point ({K[0, 2]:.6g}, {K[1, 2]:.6g}) lies more than '
                                 f"{MAX_PRINCIPAL_SIDES:g} image sides from the image")
     dist_raw = doc.get("dist", [0, 0, 0, 0, 0])
-    dist = np.asarray(dist_raw, dtype=np.float64).ravel() if isinstance(dist_raw, list) and all(
+    dist = _floats(dist_raw) if isinstance(dist_raw, list) and all(
         isinstance(v, int | float) and not isinstance(v, bool) for v in dist_raw) else None
     if dist is None or dist.size not in DIST_LENGTHS or not np.all(np.isfinite(dist)):
         raise InputError(where, f'field "{name}.dist" must be OpenCV distortion coefficients [k1, k2, p1, p2, k3]')

@@ -28,7 +28,6 @@ raises :class:`~shared.core.errors.InputError` with a one-line message naming th
 
 from __future__ import annotations
 
-import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -38,6 +37,7 @@ import numpy as np
 
 from shared.core.errors import InputError, relative_message
 from shared.core.files import read_json, write_json_atomic
+from shared.core.jsonsafe import finite_number
 from shared.core.paths import confine
 from shared.formats.capture import CAPTURE_FILE, load_capture
 from shared.formats.images import probe_image
@@ -142,7 +142,7 @@ def _number_list(value: Any, n: int | None, where: str, limit: float = MAX_COORD
         raise InputError(where, f"must be {want}, got {_short(value)}")
     try:
         arr = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):  # OverflowError: an integer past float's range
         raise InputError(where, f"must hold numbers only, got {_short(value)}") from None
     if arr.ndim != 1 or not np.all(np.isfinite(arr)):
         raise InputError(where, f"must hold finite numbers, got {_short(value)}")
@@ -229,7 +229,7 @@ def _cloud_view(root: Path, i: int, doc: dict[str, Any], check: bool) -> ViewSpe
     name = _view_name(doc, path.stem, f"views[{i}]")
     where = f"views[{i}] ({name})"
     units = doc.get("units", "mm")
-    if units not in UNITS:
+    if not isinstance(units, str) or units not in UNITS:
         raise InputError(f"{where}.units", f"must be one of {', '.join(UNITS)}, got {_short(units)}")
     if check:
         try:
@@ -325,7 +325,7 @@ def parse_scanset(doc: Any, root: Path, check: bool = True) -> ScanSet:
         _no_unknown(r, ("center", "radius"), "roi")
         centre = _number_list(r["center"], 3, "roi.center")
         radius = r["radius"]
-        if not isinstance(radius, (int, float)) or isinstance(radius, bool) or not math.isfinite(radius) or not 0 < radius <= MAX_COORDINATE:
+        if not finite_number(radius) or not 0 < radius <= MAX_COORDINATE:
             raise InputError("roi.radius", f"must be a positive number of mm up to {MAX_COORDINATE:g}, got {_short(radius)}")
         roi = Roi(center=centre, radius=float(radius))
     extra = {"simulated": doc["simulated"]} if doc.get("simulated") is not None else {}

@@ -10,13 +10,12 @@ has no session figures, and the report says so.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from shared.core.errors import InputError
-from shared.core.jsonsafe import read_json_bounded
+from shared.core.jsonsafe import finite_number, read_json_bounded
 
 __all__ = ["CALIBRATION_FORMAT", "CalibrationReport", "calibration_report_for"]
 
@@ -44,17 +43,13 @@ class CalibrationReport:
                 "units": self.units}
 
 
-def _finite(v: Any) -> bool:
-    return isinstance(v, int | float) and math.isfinite(v)
-
-
 def _same_rig(a: Any, b: Any, tol: float = 1e-9) -> bool:
     """Whether two rig documents hold the same numbers (a report describes this rig, not an older one)."""
     if isinstance(a, dict) and isinstance(b, dict):
         return a.keys() == b.keys() and all(_same_rig(a[k], b[k], tol) for k in a)
     if isinstance(a, list) and isinstance(b, list):
         return len(a) == len(b) and all(_same_rig(x, y, tol) for x, y in zip(a, b, strict=True))
-    if _finite(a) and _finite(b):
+    if finite_number(a) and finite_number(b):
         return abs(float(a) - float(b)) <= tol * max(1.0, abs(float(a)))
     return a == b
 
@@ -80,7 +75,7 @@ def calibration_report_for(rig_path: Path) -> CalibrationReport | None:
         rms = doc.get("rms_px") if isinstance(doc.get("rms_px"), dict) else {}
         poses = [p for p in doc.get("poses", []) if isinstance(p, dict)]
         board = doc.get("board_check") if isinstance(doc.get("board_check"), dict) else {}
-        baseline = doc.get("baseline") if _finite(doc.get("baseline")) else None
-        return CalibrationReport(cand, {k: float(v) for k, v in rms.items() if _finite(v)}, poses, board, baseline,
+        baseline = doc.get("baseline") if finite_number(doc.get("baseline")) else None
+        return CalibrationReport(cand, {k: float(v) for k, v in rms.items() if finite_number(v)}, poses, board, baseline,
                                  str(doc.get("units", "mm")))
     return None

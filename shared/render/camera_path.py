@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 
 from shared.core.errors import InputError
-from shared.core.jsonsafe import read_json_bounded
+from shared.core.jsonsafe import finite_number, read_json_bounded
 
 DEFAULT_UP = (0.0, -1.0, 0.0)
 DEFAULT_FOV = 50.0
@@ -296,10 +296,9 @@ def dolly_path(
 
 
 def _vec3(value, where: str) -> np.ndarray:
-    ok = isinstance(value, list) and len(value) == 3 and all(
-        isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+    ok = isinstance(value, list) and len(value) == 3 and all(finite_number(v) for v in value)
     v = np.asarray(value, np.float64) if ok else None
-    if v is None or not np.isfinite(v).all() or np.abs(v).max() > MAX_COORDINATE:
+    if v is None or np.abs(v).max() > MAX_COORDINATE:
         raise InputError(where, f"must be a list of 3 finite numbers of magnitude at most {MAX_COORDINATE:g}")
     return v
 
@@ -354,8 +353,8 @@ def parse_camera_doc(doc: Any, where: str, *, inline: bool = False) -> KeyframeP
         target = _vec3(kf["target"], f"{at}.target")
         targets.append(np.full(3, np.nan) if np.allclose(eyes[-1], target) else target)
         t = kf.get("t", i / max(len(frames) - 1, 1))
-        if not isinstance(t, int | float) or isinstance(t, bool):
-            raise InputError(f"{at}.t", f"must be a number, got {str(t)[:40]}")
+        if not finite_number(t):
+            raise InputError(f"{at}.t", f"must be a finite number, got {str(t)[:40]}")
         times.append(t)
     t = np.asarray(times, np.float64)
     if not np.isfinite(t).all() or np.any(np.diff(t) < 0):

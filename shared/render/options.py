@@ -8,12 +8,12 @@ job's ``params.preview`` before anything runs.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 from shared.core.errors import InputError
+from shared.core.jsonsafe import finite_number
 from shared.render.camera_path import NAMED_PATHS, KeyframePath, parse_camera_doc
 
 __all__ = ["MAX_FPS", "MAX_HEIGHT", "MAX_SECONDS", "MAX_WIDTH", "MIN_SIDE", "PREVIEW_DEFAULTS", "PreviewOptions"]
@@ -54,7 +54,7 @@ class PreviewOptions:
             width, height = (int(v) for v in self.size)
             if isinstance(self.size, str | bytes) or any(isinstance(v, bool) for v in self.size):
                 raise TypeError
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):  # OverflowError: int() of an infinite float
             raise InputError(f"{prefix}size", f"must be [width, height] in pixels, got {self.size!r}") from None
         if width > MAX_WIDTH or height > MAX_HEIGHT:
             raise InputError(f"{prefix}size", f"{width}x{height} is too large (at most {MAX_WIDTH}x{MAX_HEIGHT})")
@@ -63,9 +63,9 @@ class PreviewOptions:
         if width % 2 or height % 2:
             raise InputError(f"{prefix}size", f"{width}x{height}: H.264 needs even width and height")
         s, f = self.seconds, self.fps
-        if isinstance(s, bool) or not (isinstance(s, int | float) and math.isfinite(s) and 0 < s <= MAX_SECONDS):
+        if not (finite_number(s) and 0 < s <= MAX_SECONDS):
             raise InputError(f"{prefix}seconds", f"must be in (0, {MAX_SECONDS:g}], got {s!r}")
-        if isinstance(f, bool) or not (isinstance(f, int | float) and math.isfinite(f) and 1 <= f <= MAX_FPS):
+        if not (finite_number(f) and 1 <= f <= MAX_FPS):
             raise InputError(f"{prefix}fps", f"must be in [1, {MAX_FPS}], got {f!r}")
         if not isinstance(self.path, str) or not self.path:
             raise InputError(f"{prefix}path", f"must be auto, arc, orbit, dolly or a keyframe file, got {self.path!r}")

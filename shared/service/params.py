@@ -33,12 +33,12 @@ re-render) and refused from clients.
 from __future__ import annotations
 
 import json
-import math
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import Any
 
 from shared.core.errors import InputError
+from shared.core.jsonsafe import finite_number
 from shared.derive.levels import parse_levels
 from shared.publish.labels import LABEL_PATTERN, MAX_LABEL_CHARS, check_label
 from shared.render.camera_path import MAX_COORDINATE, MAX_INLINE_KEYFRAMES, NAMED_PATHS
@@ -102,7 +102,7 @@ def _preview(value: Any, field: str) -> dict[str, Any]:
 
 
 def _seconds(value: Any, field: str) -> float:
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
+    ok = finite_number(value)
     if not ok or not 0 <= value <= MAX_PROBE_SECONDS:
         raise InputError(field, f"must be a number of seconds in 0..{MAX_PROBE_SECONDS:g}, got {value!r}")
     return value
@@ -119,8 +119,7 @@ def compress_options(value: Any, field: str = "params.compress") -> dict[str, An
         raise InputError(field, "give quantum or max_error, not both")
     for k in ("quantum", "max_error"):
         v = value.get(k)
-        if k in value and (not isinstance(v, int | float) or isinstance(v, bool) or not math.isfinite(v)
-                           or not 0 < v <= MAX_QUANTUM):
+        if k in value and (not finite_number(v) or not 0 < v <= MAX_QUANTUM):
             raise InputError(f"{field}.{k}", f"must be a positive number up to {MAX_QUANTUM:g}, got {_short(v)}")
     if "keep_range" in value and not isinstance(value["keep_range"], bool):
         raise InputError(f"{field}.keep_range", f"must be true or false, got {value['keep_range']!r}")

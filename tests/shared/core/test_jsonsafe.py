@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 from hypothesis import given
@@ -33,6 +34,14 @@ def test_brackets_inside_strings_do_not_count() -> None:
 def test_overlong_numbers_are_refused_by_name(literal: str) -> None:
     with pytest.raises(InputError, match=r"^rig\.json: a number of \d+ characters"):
         loads_bounded('{"fx": ' + literal + "}", "rig.json")
+
+
+@pytest.mark.parametrize("literal", ["1e400", "-1e309", "1.5E+999"])
+def test_numbers_beyond_floats_range_are_refused_by_name(literal: str) -> None:
+    # short, valid JSON, but infinite once parsed: validators downstream met int(inf)
+    with pytest.raises(InputError, match=rf"^capture\.json: {re.escape(literal)} is beyond the range of a 64-bit float$"):
+        loads_bounded('{"size": [' + literal + ", 48]}", "capture.json")
+    assert loads_bounded('{"a": 1e308, "b": 1e-400}', "x.json") == {"a": 1e308, "b": 0.0}
 
 
 @pytest.mark.parametrize("constant", ["NaN", "Infinity", "-Infinity"])

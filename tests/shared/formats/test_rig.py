@@ -56,6 +56,11 @@ def test_round_trip(tmp_path: Path) -> None:
         (lambda d: d["camera"].update(dist=[1e300, 0, 0, 0, 0]), 'field "camera.dist": coefficients must be at most'),
         (lambda d: d["camera"].update(dist=[True, 0, 0, 0, 0]), 'field "camera.dist" must be OpenCV distortion'),
         (lambda d: d.update(T=[1e300, 0, 0]), 'field "T": a baseline of'),
+        # integers past float's range (a library caller's document: files are parsed with bounded
+        # numbers) were a bare OverflowError
+        (lambda d: d["camera"]["K"][0].__setitem__(0, 10**400), 'field "camera.K" must be numbers of shape (3, 3)'),
+        (lambda d: d["camera"].update(dist=[10**400, 0, 0, 0, 0]), 'field "camera.dist" must be OpenCV distortion'),
+        (lambda d: d.update(T=[10**400, 0, 0]), 'field "T" must be numbers of shape (3,)'),
     ],
 )
 def test_bad_rigs_name_the_field(change, message: str) -> None:

@@ -200,6 +200,14 @@ def test_bad_cloud_units(tmp_path: Path) -> None:
     assert _error(tmp_path).startswith("views[0] (a).units: must be one of mm, m")
 
 
+def test_cloud_units_that_are_not_a_string_are_refused(tmp_path: Path) -> None:
+    # a list or an object (valid JSON) was looked up in the units table: a bare TypeError
+    write_ply(tmp_path / "a.ply", np.zeros((5, 3), np.float32))
+    for units in (["mm"], {"mm": 1}):
+        _write(tmp_path, scanset_doc([{"cloud": "a.ply", "units": units}, {"cloud": "a.ply", "name": "b"}]))
+        assert _error(tmp_path).startswith("views[0] (a).units: must be one of mm, m")
+
+
 def test_top_level_units_is_refused_not_read_as_mm(tmp_path: Path) -> None:
     """Issue 22: cloud views with ``units`` at the top level were silently read as millimetres."""
     write_ply(tmp_path / "a.ply", np.zeros((5, 3), np.float32))

@@ -47,6 +47,13 @@ def test_good_params_pass_through() -> None:
         ("scan", {"rig": "x"}, "params.rig", "multipart field 'rig'"),
         ("scan", {"preview_epoch": 3}, "params.preview_epoch", "set by the service"),
         ("probe", {"seconds": 61}, "params.seconds", "0..60"),
+        # an integer past float's range, or an infinite size: bare OverflowErrors from isfinite and int()
+        ("probe", {"seconds": 10**400}, "params.seconds", "0..60"),
+        ("scan", {"preview": {"seconds": 10**400}}, "params.preview.seconds", "(0, 600]"),
+        ("scan", {"preview": {"size": [float("inf"), 480]}}, "params.preview.size", "[width, height]"),
+        ("scan", {"compress": {"max_error": 10**400}}, "params.compress.max_error", "up to 1000"),
+        ("scan", {"preview": {"camera": {"keyframes": [{"eye": [0, 0, 10**400], "target": [0, 0, 0]}]}}},
+         "params.preview.camera.keyframes[0].eye", "3 finite numbers"),
         ("calibrate", {"render": False}, "params.render", "accepted: none"),
         ("scan", [], "params", "JSON object"),
     ],
