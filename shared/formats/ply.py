@@ -194,6 +194,9 @@ def read_header(path: str | os.PathLike[str]) -> PlyHeader:
     if count is None or count < 0:
         raise InputError(path, "PLY has no vertex element")
     names = [p[0] for p in props]
+    twice = sorted({n for n in names if names.count(n) > 1})
+    if twice:  # numpy refuses such a record type with a bare ValueError
+        raise InputError(path, f"PLY vertex property {twice[0][:40]!r} is declared more than once")
     for axis in ("x", "y", "z"):
         if axis not in names:
             raise InputError(path, f"PLY vertex element has no '{axis}' property")

@@ -81,6 +81,9 @@ def test_foreign_clouds_ascii_and_big_endian(tmp_path: Path) -> None:
          b"property float z\nend_header\n" + bytes(12), "header claims 1000000000000 vertices of 12 bytes, 12 bytes follow"),
         (b"ply\nformat ascii 1.0\nelement vertex " + b"9" * 5000 + b"\nproperty float x\nend_header\n", "bad vertex count '9999"),
         (b"ply\nformat xml 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n", "unsupported PLY format"),
+        # numpy refuses a record type with a field twice: a bare ValueError from another scanner's file
+        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n"
+         b"property uchar red\nproperty uchar red\nend_header\n" + bytes(14), "PLY vertex property 'red' is declared more than once"),
     ],
 )
 def test_bad_files_name_the_file(tmp_path: Path, content: bytes, message: str) -> None:
