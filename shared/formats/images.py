@@ -223,7 +223,10 @@ def _decode_unchanged(path: Path, expect: tuple[int, int] | None) -> np.ndarray:
         img = decode_png(data)
     if img is None:
         # No EXIF rotation: the header probe and the pattern geometry refer to the stored pixel grid.
-        img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+        try:
+            img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED | cv2.IMREAD_IGNORE_ORIENTATION)
+        except cv2.error:  # an assertion (a header claiming over 2^30 pixels): its text names OpenCV's sources
+            img = None
     if img is None:
         raise InputError(path, "corrupt or unsupported image (the decoder could not read it)")
     if img.dtype not in (np.uint8, np.uint16):

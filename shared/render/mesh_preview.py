@@ -175,7 +175,10 @@ def _image(doc: dict, binary: bytes, texture_ref: dict | None, path: Path) -> np
         view = doc["images"][source]["bufferView"]
     except (KeyError, IndexError, TypeError):
         raise InputError(path, "a material's texture has no embedded image (external images are not read)") from None
-    img = cv2.imdecode(np.frombuffer(_view(doc, binary, view, path), np.uint8), cv2.IMREAD_COLOR)
+    try:
+        img = cv2.imdecode(np.frombuffer(_view(doc, binary, view, path), np.uint8), cv2.IMREAD_COLOR)
+    except cv2.error:  # an assertion (a header claiming over 2^30 pixels): its text names OpenCV's sources
+        img = None
     if img is None:
         raise InputError(path, f"image {source} does not decode (JPEG or PNG expected)")
     return np.ascontiguousarray(img[:, :, ::-1])

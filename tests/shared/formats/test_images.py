@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import struct
+import zlib
 from pathlib import Path
 
 import cv2
@@ -109,6 +111,16 @@ def test_missing_empty_corrupt_truncated(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="corrupt") as exc:
         read_grey(bad)
     assert "bad.png" in str(exc.value)
+
+    # A header claiming 65535 x 65535 pixels (its CRC mended): OpenCV asserts past 2^30 pixels,
+    # an error whose text names OpenCV's source files; it is a corrupt image, by name.
+    ihdr = struct.pack(">IIBBBBB", 65535, 65535, 8, 0, 0, 0, 0)
+    huge = tmp_path / "huge.png"
+    huge.write_bytes(data[:8] + struct.pack(">I", 13) + b"IHDR" + ihdr + struct.pack(">I", zlib.crc32(b"IHDR" + ihdr))
+                     + full.read_bytes()[33:])
+    for read in (read_grey, read_colour):
+        with pytest.raises(InputError, match=rf"^{huge}: corrupt or unsupported image"):
+            read(huge)
 
 
 def test_wrong_size(tmp_path: Path) -> None:
