@@ -25,6 +25,7 @@ file spells it.
 from __future__ import annotations
 
 import os
+import re
 from pathlib import Path
 
 import cv2
@@ -50,6 +51,16 @@ _SIZE_KEYS = {
 _DIST_SIZES = (4, 5, 8, 12, 14)
 
 
+def _parser_message(line: str) -> str:
+    """What OpenCV's parser says, without its build's source paths: ``OpenCV(5.1.0)
+    /io/opencv/modules/core/src/persistence_yml.cpp:794: error: (-212:Parsing error) parseValue
+    in function '...'`` reads ``Parsing error: parseValue``."""
+    m = re.search(r"error: \(-?\d+:([^)]*)\)\s*(.*?)(?:\s+in function .*)?$", line)
+    if m:
+        return f"{m.group(1)}: {m.group(2)}" if m.group(2) else m.group(1)
+    return "parse error" if ".cpp" in line or "/" in line else line
+
+
 def _open(path: Path) -> cv2.FileStorage:
     if not path.is_file():
         raise InputError(path, "calibration file not found")
@@ -58,7 +69,7 @@ def _open(path: Path) -> cv2.FileStorage:
     except (cv2.error, SystemError) as exc:  # OpenCV's parser errors surface as either
         cause = exc.__cause__ or exc.__context__ or exc
         lines = [ln.strip() for ln in str(cause).splitlines() if ln.strip()]
-        msg = lines[-1] if lines else "parse error"
+        msg = _parser_message(lines[-1]) if lines else "parse error"
         raise InputError(path, f"not an OpenCV FileStorage file ({msg})") from None
     if not fs.isOpened():
         raise InputError(path, "not an OpenCV FileStorage file")

@@ -125,8 +125,11 @@ def test_bad_fields_name_the_field(edit: dict, needle: str, tmp_path: Path) -> N
 def test_not_a_filestorage(tmp_path: Path) -> None:
     junk = tmp_path / "junk.yaml"
     junk.write_text("this: [is, not\n  closed")
-    with pytest.raises(InputError, match="junk.yaml"):
+    with pytest.raises(InputError, match="junk.yaml") as err:
         read_opencv_rig(junk)
+    # OpenCV's message names its build's source file: only the parser's words are kept
+    assert ".cpp" not in str(err.value) and "/io/" not in str(err.value), str(err.value)
+    assert "Parsing error" in str(err.value), str(err.value)
     plain = tmp_path / "plain.yaml"
     plain.write_text("%YAML:1.0\n---\nfoo: 1\n")
     with pytest.raises(InputError, match='"K1"'):
