@@ -53,12 +53,17 @@ _DIST_SIZES = (4, 5, 8, 12, 14)
 
 def _parser_message(line: str) -> str:
     """What OpenCV's parser says, without its build's source paths: ``OpenCV(5.1.0)
-    /io/opencv/modules/core/src/persistence_yml.cpp:794: error: (-212:Parsing error) parseValue
-    in function '...'`` reads ``Parsing error: parseValue``."""
-    m = re.search(r"error: \(-?\d+:([^)]*)\)\s*(.*?)(?:\s+in function .*)?$", line)
-    if m:
-        return f"{m.group(1)}: {m.group(2)}" if m.group(2) else m.group(1)
-    return "parse error" if ".cpp" in line or "/" in line else line
+    /io/opencv/modules/core/src/persistence_yml.cpp:684: error: (-212:Parsing error) parseValue
+    in function '/path/calib.yaml(2): Missing , between the elements'`` reads ``Parsing error at
+    line 2: Missing , between the elements``."""
+    m = re.search(r"error: \(-?\d+:([^)]*)\)\s*(.*?)(?:\s+in function '(.*)')?$", line)
+    if not m:
+        return "parse error" if ".cpp" in line or "/" in line else line
+    kind, where, detail = m.group(1), m.group(2), m.group(3) or ""
+    at = re.search(r"\((\d+)\):\s*(.+)$", detail)
+    if at:
+        return f"{kind} at line {at.group(1)}: {at.group(2)}"
+    return f"{kind}: {where}" if where else kind
 
 
 def _open(path: Path) -> cv2.FileStorage:
