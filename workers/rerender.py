@@ -21,10 +21,19 @@ from pathlib import Path
 from shared.core.errors import InputError
 from shared.service.artifacts import ArtifactStore
 from shared.service.config import Settings
+from shared.service.faults import storage_fault
 from shared.service.jobs import JobState, row_key, stage_spec
 from shared.service.jobstore import Job, JobStore
 from shared.service.rerenders import Rerender, RerenderStore, request_rerender
-from workers.runner import SUMMARY_FILE, TRANSIENT, Heartbeat, LeaseLost, _run_adapter, public_summary
+from workers.runner import (
+    SUMMARY_FILE,
+    TRANSIENT,
+    Heartbeat,
+    LeaseLost,
+    _run_adapter,
+    public_summary,
+    unexpected_failure,
+)
 
 log = logging.getLogger(__name__)
 
@@ -83,9 +92,11 @@ def run_rerender(rerender_id: str, settings: Settings) -> str:
     except TRANSIENT:
         raise  # the lease expires and the reconciler queues the re-render again
     except Exception as exc:
-        msg = str(exc) if isinstance(exc, InputError) else f"{type(exc).__name__}: {exc}"
-        if not isinstance(exc, InputError):
+        if isinstance(exc, InputError):
+            msg = str(exc)
+        else:  # as a stage's failure reads: no bare exception, no worker path (those go to the log)
             log.exception("re-render %s failed", rec.id)
+            msg = storage_fault(exc, "preview") or unexpected_failure(exc, "preview", "the job's tiles")
         rr.fail_rerender(rec.id, token, msg)
         return "failed"
     finally:

@@ -14,7 +14,7 @@ from shared.service.jobstore import JobStore, NewJob
 from shared.service.rerenders import RerenderStore
 from tests.support.jobsvc import ServiceEnv
 from workers.reconciler import reconcile_once
-from workers.rerender import enqueue_rerenders
+from workers.rerender import enqueue_rerenders, run_rerender
 
 
 def queue_len(senv: ServiceEnv, queue: str) -> int:
@@ -66,14 +66,13 @@ def test_stage_that_keeps_killing_workers_fails(svc_env: ServiceEnv) -> None:
     assert j.state == "failed" and "worker lost 2 times" in j.error
 
 
-def test_nightly_rerender_queues_beside_the_job(svc_env: ServiceEnv, tmp_path: Path) -> None:
-    settings = svc_env.settings
-    store = JobStore(settings.database_url)
-    owner, _ = store.create_key("r")
+def finished_scan_job(store: JobStore, owner: int):
+    """A scan job every stage of which completed with the key it would really have (two map
+    pieces), none of them stored."""
     graph = graph_for("scan")
-    job, ready = store.create_job(owner.id, NewJob(kind="scan", capture_ref="object:x", capture_key="c" * 64, graph=graph))
+    job, ready = store.create_job(owner, NewJob(kind="scan", capture_ref="object:x", capture_key="c" * 64, graph=graph))
     keys: dict[str, str] = {}
-    while True:  # finish every queued stage with the key it would really have (two map pieces)
+    while True:
         queued = [s for s in store.get_job(job.id).stages if s.state == "queued"]
         if not queued:
             break
@@ -83,7 +82,15 @@ def test_nightly_rerender_queues_beside_the_job(svc_env: ServiceEnv, tmp_path: P
             expand = fan_out(graph, spec.name, 2)
             c = store.claim_stage(st.id, "w")
             assert store.complete_stage(st.id, c.token, keys[st.name], expand=expand)[0]
-    done = store.get_job(job.id)
+    return store.get_job(job.id), graph
+
+
+def test_nightly_rerender_queues_beside_the_job(svc_env: ServiceEnv, tmp_path: Path) -> None:
+    settings = svc_env.settings
+    store = JobStore(settings.database_url)
+    owner, _ = store.create_key("r")
+    done, graph = finished_scan_job(store, owner.id)
+    job = done
     assert done.state == "succeeded"
     if any(m.is_map for m in graph):
         assert {"tiles_chunk#0", "tiles_chunk#1"} <= {s.name for s in done.stages}
@@ -117,6 +124,23 @@ def test_nightly_rerender_queues_beside_the_job(svc_env: ServiceEnv, tmp_path: P
     assert reconcile_once(settings, store, now=later + 10 * settings.lease_seconds).rerenders_requeued == 1
     assert queue_len(svc_env, "render") == 3
     assert store.get_job(job.id).state == "succeeded"
+
+
+def test_a_rerender_that_fails_unexpectedly_says_so_without_the_bare_exception(svc_env: ServiceEnv) -> None:
+    """A re-render whose job's tiles are gone from the store (its keys were never stored here):
+    it fails, and its reason reads as a stage's does -- the stage and what it was reading --
+    not the exception's name and text, which may carry a worker's paths (they go to the log)."""
+    settings = svc_env.settings
+    store = JobStore(settings.database_url)
+    owner, _ = store.create_key("r")
+    done, _ = finished_scan_job(store, owner.id)
+    assert enqueue_rerenders(settings, "all", store) == 1
+    rec = RerenderStore(store).latest_rerender(done.id)
+    assert run_rerender(rec.id, settings) == "failed"
+    error = RerenderStore(store).get_rerender(rec.id).error
+    assert error.startswith("stage preview ") and "the worker's log has the details" in error, error
+    assert "Error" not in error and str(settings.cache_dir) not in error, error
+    assert store.get_job(done.id).state == "succeeded"  # the job is untouched
 
 
 def test_abandoned_upload_sessions_are_deleted_with_their_chunks(svc_env: ServiceEnv, tmp_path: Path) -> None:
