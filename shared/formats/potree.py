@@ -8,14 +8,15 @@ world coordinates (units of the source cloud) with colour, normal and world ``si
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
 from shared.core.errors import InputError
+from shared.core.jsonsafe import finite_number, read_json_bounded
 
 _TYPES = {
     "int8": "i1", "uint8": "u1", "int16": "<i2", "uint16": "<u2", "int32": "<i4", "uint32": "<u4",
@@ -138,68 +139,137 @@ def _child_box(lo: np.ndarray, hi: np.ndarray, index: int) -> tuple[np.ndarray, 
     return lo, hi
 
 
+#: Deepest level a hierarchy may reach (a node's name is "r" and a digit a level; Potree's own
+#: trees stay under 20): a proxy pointing back at an earlier chunk would otherwise expand forever.
+MAX_LEVELS = 32
+#: Largest magnitude of an offset or bounding-box coordinate, and of a scale, in the cloud's units.
+MAX_COORDINATE = 1e12
+MAX_SCALE = 1e3
+#: Most elements of one attribute (Potree's are 1 to 4).
+MAX_ELEMENTS = 16
+
+
+def _bad(meta_path: Path, field: str, problem: str) -> InputError:
+    return InputError(meta_path, f'malformed Potree metadata: "{field}" {problem}')
+
+
+def _vec3(meta_path: Path, value: Any, field: str) -> np.ndarray:
+    if not (isinstance(value, list) and len(value) == 3 and all(finite_number(v) for v in value)):
+        raise _bad(meta_path, field, "must be a list of 3 finite numbers")
+    v = np.asarray(value, np.float64)
+    if np.abs(v).max() > MAX_COORDINATE:
+        raise _bad(meta_path, field, f"must hold numbers of magnitude at most {MAX_COORDINATE:g}")
+    return v
+
+
+def _metadata(meta_path: Path, decoders: Mapping[str, Any]) -> tuple[dict, np.dtype, np.ndarray, np.ndarray,
+                                                                      np.ndarray, np.ndarray, int, float]:
+    """``metadata.json`` read with bounds and every field the reader uses checked: (document,
+    record dtype, offset, scale, box min, box max, first hierarchy chunk's size, spacing)."""
+    meta = read_json_bounded(meta_path, str(meta_path), missing="not a tiles folder (no metadata.json)")
+    if not isinstance(meta, dict):
+        raise InputError(meta_path, "malformed Potree metadata: not a JSON object")
+    if meta.get("version") != "2.0":
+        raise InputError(meta_path, f"unsupported Potree version {str(meta.get('version'))[:40]!r}")
+    encoding = meta.get("encoding", "DEFAULT")
+    if encoding != "DEFAULT" and (not isinstance(encoding, str) or encoding not in decoders):
+        raise InputError(meta_path, f"unsupported encoding {str(encoding)[:40]!r}")
+    attributes = meta.get("attributes")
+    if not isinstance(attributes, list) or not attributes:
+        raise _bad(meta_path, "attributes", "must be a non-empty list")
+    fields: list[tuple] = []
+    for i, a in enumerate(attributes):
+        name = a.get("name") if isinstance(a, dict) else None
+        kind = a.get("type") if isinstance(a, dict) else None
+        n = a.get("numElements", 1) if isinstance(a, dict) else None
+        if not isinstance(name, str) or not name or len(name) > 64:
+            raise _bad(meta_path, f"attributes[{i}].name", "must be a short non-empty name")
+        if not isinstance(kind, str) or kind not in _TYPES:
+            raise _bad(meta_path, f"attributes[{i}].type", f"must be one of {', '.join(_TYPES)}")
+        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_ELEMENTS:
+            raise _bad(meta_path, f"attributes[{i}].numElements", f"must be an integer in 1..{MAX_ELEMENTS}")
+        if any(f[0] == name for f in fields):
+            raise _bad(meta_path, f"attributes[{i}].name", f"{name[:40]!r} is declared twice")
+        fields.append((name, _TYPES[kind], (n,)) if n > 1 else (name, _TYPES[kind]))
+    dtype = np.dtype(fields)
+    if "position" not in dtype.names or dtype["position"].shape != (3,) or dtype["position"].base.kind not in "iu":
+        raise _bad(meta_path, "attributes", "must hold a position of 3 integers")
+    offset = _vec3(meta_path, meta.get("offset"), "offset")
+    scale = _vec3(meta_path, meta.get("scale"), "scale")
+    if not ((scale > 0) & (scale <= MAX_SCALE)).all():
+        raise _bad(meta_path, "scale", f"must hold numbers in (0, {MAX_SCALE:g}]")
+    box = meta.get("boundingBox")
+    if not isinstance(box, dict):
+        raise _bad(meta_path, "boundingBox", "must be an object with min and max")
+    bmin = _vec3(meta_path, box.get("min"), "boundingBox.min")
+    bmax = _vec3(meta_path, box.get("max"), "boundingBox.max")
+    if not (bmax >= bmin).all():
+        raise _bad(meta_path, "boundingBox", "max lies below min")
+    hierarchy = meta.get("hierarchy")
+    first = hierarchy.get("firstChunkSize") if isinstance(hierarchy, dict) else None
+    if isinstance(first, bool) or not isinstance(first, int) or first < 0:
+        raise _bad(meta_path, "hierarchy.firstChunkSize", "must be a byte count")
+    spacing = meta.get("spacing")
+    if not finite_number(spacing) or not 0 < spacing <= MAX_COORDINATE:
+        raise _bad(meta_path, "spacing", "must be a positive number")
+    return meta, dtype, offset, scale, bmin, bmax, first, float(spacing)
+
+
 def open_tiles(root: Path, decoders: Mapping[str, Callable[..., np.ndarray]] | None = None) -> PotreeTiles:
     """Open a Potree 2.0 folder; raises :class:`InputError` naming the file that is wrong.
 
     ``decoders`` maps other node encodings than "DEFAULT" to their decoders, called as
     ``decoder(bytes, record dtype, count, where=...)`` -> records (Graylight's octree-coded nodes:
-    :data:`shared.compress.tilenode.DECODERS`); tiles in another encoding are refused.
+    :data:`shared.compress.tilenode.DECODERS`); tiles in another encoding are refused. Every
+    node's bytes lie inside ``octree.bin`` and every proxy's inside ``hierarchy.bin``, each
+    hierarchy chunk read once and no deeper than :data:`MAX_LEVELS` (a foreign or damaged
+    folder fails here, by name, not later in a read).
     """
     root = Path(root)
     decoders = dict(decoders or {})
     meta_path = root / "metadata.json"
     if not meta_path.is_file():
         raise InputError(root, "not a tiles folder (no metadata.json)")
-    try:
-        meta = json.loads(meta_path.read_text())
-        if meta.get("version") != "2.0":
-            raise InputError(meta_path, f"unsupported Potree version {meta.get('version')!r}")
-        if meta.get("encoding", "DEFAULT") != "DEFAULT" and meta.get("encoding") not in decoders:
-            raise InputError(meta_path, f"unsupported encoding {meta.get('encoding')!r}")
-        fields = []
-        for a in meta["attributes"]:
-            t = _TYPES[a["type"]]
-            n = int(a["numElements"])
-            fields.append((a["name"], t, (n,)) if n > 1 else (a["name"], t))
-        dtype = np.dtype(fields)
-        offset = np.asarray(meta["offset"], np.float64)
-        scale = np.asarray(meta["scale"], np.float64)
-        bmin = np.asarray(meta["boundingBox"]["min"], np.float64)
-        bmax = np.asarray(meta["boundingBox"]["max"], np.float64)
-        first = int(meta["hierarchy"]["firstChunkSize"])
-        spacing = float(meta["spacing"])
-    except InputError:
-        raise
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(meta_path, f"malformed Potree metadata: {exc!r}") from None
-    hpath = root / "hierarchy.bin"
-    if not hpath.is_file() or not (root / "octree.bin").is_file():
+    meta, dtype, offset, scale, bmin, bmax, first, spacing = _metadata(meta_path, decoders)
+    hpath, opath = root / "hierarchy.bin", root / "octree.bin"
+    if not hpath.is_file() or not opath.is_file():
         raise InputError(root, "tiles folder lacks hierarchy.bin or octree.bin")
     hier = np.fromfile(hpath, dtype=np.uint8)
+    octree_bytes = opath.stat().st_size
 
     nodes: dict[str, PotreeNode] = {}
     root_node = PotreeNode("r", 0, 0, 0, 0, 0, 2, bmin, bmax, spacing)
     pending = [(root_node, 0, first)]  # proxies to expand: (node, hierarchy offset, size)
+    seen: set[int] = set()  # hierarchy chunks read (by offset): a proxy may not point back
     while pending:
         start, h_off, h_size = pending.pop()
-        if h_size % HIERARCHY_DTYPE.itemsize or h_off + h_size > hier.size:
-            raise InputError(hpath, f"hierarchy chunk at {h_off}+{h_size} is out of range")
+        if (h_size % HIERARCHY_DTYPE.itemsize or h_off < 0 or h_size < 0 or h_off + h_size > hier.size
+                or h_off in seen):
+            raise InputError(hpath, f"hierarchy chunk at {h_off}+{h_size} is out of range or read twice")
+        seen.add(h_off)
         recs = np.frombuffer(hier[h_off : h_off + h_size].tobytes(), HIERARCHY_DTYPE)
         queue = [start]
         for i, r in enumerate(recs):
             if i >= len(queue):
                 raise InputError(hpath, "hierarchy chunk has more records than its nodes announce")
             cur = queue[i]
+            kind, off, size = int(r["type"]), int(r["offset"]), int(r["size"])
+            if kind not in (0, 1, 2):
+                raise InputError(hpath, f"node {cur.name}: unknown node type {kind}")
             cur.num_points = int(r["points"])
             cur.child_mask = int(r["mask"])
-            if int(r["type"]) == 2 and cur is not start:
+            if kind == 2 and cur is not start:
                 cur.node_type = 2
-                pending.append((cur, int(r["offset"]), int(r["size"])))
+                pending.append((cur, off, size))
                 continue
-            cur.node_type = int(r["type"])
-            cur.byte_offset = int(r["offset"])
-            cur.byte_size = int(r["size"])
+            if off < 0 or size < 0 or off + size > octree_bytes:
+                raise InputError(hpath, f"node {cur.name}: its bytes {off}+{size} lie outside octree.bin")
+            cur.node_type = kind
+            cur.byte_offset = off
+            cur.byte_size = size
             nodes[cur.name] = cur
+            if cur.child_mask and cur.level + 1 > MAX_LEVELS:
+                raise InputError(hpath, f"node {cur.name[:40]}...: the hierarchy is deeper than {MAX_LEVELS} levels")
             for k in range(8):
                 if cur.child_mask & (1 << k):
                     lo, hi = _child_box(cur.box_min, cur.box_max, k)
