@@ -360,13 +360,14 @@ def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Itera
         points = header_int(meta, "points")
         ok = (meta.get("codec") == CODEC and 0 < per <= MAX_CHUNK_POINTS and points >= 0
               and float(meta["precision"]) > 0 and meta["chunks"] == -(-points // per))
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):  # OverflowError: float() of a 400-digit integer
         ok = False
     if not ok:
         raise InputError(where, "corrupt or unsupported cloud header")
     if points > MAX_POINTS:
-        raise InputError(where, f"corrupt or hostile cloud header: it claims {points / 1e6:.0f} M points, more than "
-                                f"the codec's {MAX_POINTS / 1e6:.0f} M")
+        claim = f"{points / 1e6:.0f} M points" if points < 10**15 else "over 10^15 points"
+        raise InputError(where, f"corrupt or hostile cloud header: it claims {claim}, more than the codec's "
+                                f"{MAX_POINTS / 1e6:.0f} M")
     return meta, chunks, dtype, where
 
 

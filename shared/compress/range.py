@@ -283,13 +283,14 @@ def _check_meta(meta: dict[str, Any], where: str) -> tuple[int, int, int, bool, 
         ok = (meta.get("codec") == CODEC and header_int(meta, "fine_shift") == qt.F_SHIFT and w > 0 and h > 0
               and band > 0 and band % qt.TOP == 0 and meta["chunks"] == -(-h // band) and math.isfinite(scale)
               and scale > 0 and meta["mode"] in ("lossless", "bounded"))
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):  # OverflowError: float() of a 400-digit integer
         ok = False
     if not ok:
         raise InputError(where, "corrupt or unsupported range header")
     if w * h > MAX_SAMPLES:
-        raise InputError(where, f"corrupt or hostile range header: it claims a {w} x {h} image ({w * h / 1e6:.0f} M "
-                                f"samples), more than the codec's {MAX_SAMPLES / 1e6:.0f} M")
+        claim = f"a {w} x {h} image ({w * h / 1e6:.0f} M samples)" if w * h < 10**15 else "an image of over 10^15 samples"
+        raise InputError(where, f"corrupt or hostile range header: it claims {claim}, more than the codec's "
+                                f"{MAX_SAMPLES / 1e6:.0f} M")
     return w, h, band, lossless, scale
 
 

@@ -1,16 +1,81 @@
 """Hostile inputs for the job service's tests (issue 21): a zip bomb of many small members
-written without compressing each member again, deeply nested JSON, and a request body streamed
-over a raw socket (so a test can send more than the server wants to read)."""
+written without compressing each member again, deeply nested JSON, a request body streamed
+over a raw socket (so a test can send more than the server wants to read), and every field of
+a valid document replaced by values a careless or hostile writer sends (:func:`field_variants`)."""
 
 from __future__ import annotations
 
+import copy
 import socket
 import struct
 import threading
 import zlib
+from collections.abc import Callable, Iterator
 from pathlib import Path
+from typing import Any
 
-__all__ = ["deep_json", "many_member_bomb", "process_rss", "stream_body"]
+__all__ = ["HOSTILE_VALUES", "bare_failures", "deep_json", "field_variants", "many_member_bomb", "process_rss",
+           "stream_body"]
+
+#: What a careless or hostile writer puts in a field: wrong types, numbers past float's range
+#: (an integer Python's json reads from a library caller; 1e400 parses to infinity), negative,
+#: zero and huge counts, paths, NUL, long text, nested and ragged lists, objects.
+HOSTILE_VALUES: tuple[Any, ...] = (
+    None, True, False, 0, -1, 1, 3, 2**31, 2**63, 10**400, 1e308, float("nan"), float("inf"), float("-inf"), 0.5,
+    "", "abc", "../../etc/passwd", "a\x00b", "é" * 5000, [], [1], [[1, 2], [3]], [None], ["a"], {}, {"a": 1},
+    [[0, 0, 0], [0, 0, 0], [0, 0, 0]], [[1e308] * 3] * 3, list(range(100)),
+)
+
+
+def _paths(doc: Any, prefix: tuple = ()) -> Iterator[tuple]:
+    yield prefix
+    if isinstance(doc, dict):
+        for k, v in doc.items():
+            yield from _paths(v, prefix + (k,))
+    elif isinstance(doc, list):
+        for i, v in enumerate(doc[:3]):
+            yield from _paths(v, prefix + (i,))
+
+
+def field_variants(doc: Any) -> Iterator[tuple[str, Any]]:
+    """(field path, document) for every field of ``doc`` (lists: their first three items) and
+    the document itself, each replaced in turn by every :data:`HOSTILE_VALUES` value, and each
+    field left out."""
+    for path in list(_paths(doc)):
+        name = ".".join(map(str, path)) or "(document)"
+        for value in HOSTILE_VALUES:
+            out = copy.deepcopy(doc)
+            if not path:
+                yield name, value
+                continue
+            cur = out
+            for k in path[:-1]:
+                cur = cur[k]
+            cur[path[-1]] = value
+            yield name, out
+        if path:
+            out = copy.deepcopy(doc)
+            cur = out
+            for k in path[:-1]:
+                cur = cur[k]
+            if isinstance(cur, dict):
+                del cur[path[-1]]
+                yield name + " (left out)", out
+
+
+def bare_failures(doc: Any, read: Callable[[Any], object], expected: type[BaseException]) -> list[str]:
+    """The variants of ``doc`` (:func:`field_variants`) on which ``read`` raised anything but
+    ``expected``: "field: ExceptionName: text" each (empty when every variant was read or
+    refused as it should be)."""
+    out = []
+    for name, variant in field_variants(doc):
+        try:
+            read(variant)
+        except expected:
+            pass
+        except Exception as exc:  # noqa: BLE001 - what the test reports
+            out.append(f"{name}: {type(exc).__name__}: {str(exc)[:100]}")
+    return out
 
 
 def deep_json(levels: int = 10_000) -> str:

@@ -18,6 +18,7 @@ from shared.core.errors import InputError
 from shared.formats.ply import write_ply
 from shared.formats.potree import HIERARCHY_DTYPE, open_tiles
 from shared.render.octree import build_tiles
+from tests.support.hostile import bare_failures
 
 
 @pytest.fixture(scope="module")
@@ -100,3 +101,18 @@ def test_a_hierarchy_pointing_outside_its_files_or_back_is_refused(tiles: Path, 
     with pytest.raises(InputError) as err:
         open_tiles(out, decoders=tilenode.DECODERS)
     assert str(err.value).startswith(f"{out / 'hierarchy.bin'}: ") and message in str(err.value), str(err.value)
+
+
+def test_every_metadata_field_refused_by_name_not_a_bare_exception(tiles: Path, tmp_path: Path) -> None:
+    """Every field of metadata.json replaced by what a careless or hostile writer sends
+    (tests.support.hostile), and the folder opened and its nodes read: over a hundred bare exceptions before."""
+    doc = json.loads((tiles / "metadata.json").read_text())
+    out = _edited(tiles, tmp_path)
+
+    def read(meta: object) -> None:
+        (out / "metadata.json").write_text(json.dumps(meta))
+        t = open_tiles(out, decoders=tilenode.DECODERS)
+        for name in list(t.nodes)[:8]:
+            t.read_node(name)
+
+    assert not bare_failures(doc, read, InputError)

@@ -6,6 +6,7 @@ import pytest
 
 from shared.core.errors import InputError
 from shared.service.params import check_job_params
+from tests.support.hostile import bare_failures
 
 
 def test_good_params_pass_through() -> None:
@@ -92,3 +93,20 @@ def test_derivatives_parameter_names_levels_and_fields() -> None:
                        (3, "params.derivatives")):
         with pytest.raises(InputError, match=field.replace(".", r"\.") + ":"):
             check_job_params("multiview", {"derivatives": bad})
+
+
+@pytest.mark.parametrize("kind", ["scan", "multiview", "probe"])
+def test_every_field_of_full_params_refused_by_name_not_a_bare_exception(kind: str) -> None:
+    """Every field of a full set of parameters replaced by what a careless or hostile client
+    sends (tests.support.hostile): each is accepted or refused with an InputError naming it."""
+    full = {"render": True, "export": True, "drop_unregistered": False,
+            "derivatives": {"levels": ["thumb", {"name": "low", "faces": 1000, "texture_px": 256, "jpeg_quality": 80}],
+                            "colour": "photo"},
+            "tiles": {"max_chunk": 100_000, "max_leaf": 10_000, "node_codec": "octree"},
+            "preview": {"size": [640, 360], "seconds": 4, "fps": 30,
+                        "camera": {"fov": 40, "keyframes": [{"eye": [0, 0, 1], "target": [0, 0, 0]}]}},
+            "compress": {"quantum": 0.02, "keep_range": True}, "title": "A", "collection": "B", "identifier": "C"}
+    params = {"probe": {"seconds": 1}, "scan": {k: v for k, v in full.items() if k not in ("derivatives", "drop_unregistered")},
+              "multiview": full}[kind]
+    check_job_params(kind, params)  # as written, accepted
+    assert not bare_failures(params, lambda d: check_job_params(kind, d), InputError)
