@@ -173,7 +173,7 @@ def check_range(z: np.ndarray, where: str = "z") -> np.ndarray:
 def check_camera(K: Any, dist: Any, units: Any, where: str) -> tuple[np.ndarray | None, np.ndarray | None, str]:
     """A range image's camera as its reader and writer accept it: ``K`` None or (3, 3) float64,
     finite or all NaN (unknown, as a scan without a rig writes it); ``dist`` None or OpenCV's 4,
-    5, 8, 12 or 14 finite coefficients (flattened); ``units`` a name of letters (``mm``).
+    5, 8, 12 or 14 finite coefficients (flattened); ``units`` a short printable name (``mm``).
     InputError naming the field otherwise: a header or an npz from elsewhere must not pass a
     camera the triangulation or an export would misread."""
     def numbers(value: Any, name: str) -> np.ndarray:
@@ -191,8 +191,9 @@ def check_camera(K: Any, dist: Any, units: Any, where: str) -> tuple[np.ndarray 
         if dist.size not in DIST_LENGTHS or not np.isfinite(dist).all() or np.abs(dist).max() > MAX_DISTORTION:
             raise InputError(where, f"dist must be OpenCV's {', '.join(map(str, DIST_LENGTHS))} finite distortion coefficients "
                                     f"(at most {MAX_DISTORTION:g} in magnitude), got {_short(dist.tolist())}")
-    if not (isinstance(units, str) and 0 < len(units) <= 16 and units.isalpha()):
-        raise InputError(where, f"units must be a unit's name such as mm, got {_short(units)}")
+    # the rig's rule (a scan writes its rig's units), printable: units go into PLY headers' comments
+    if not (isinstance(units, str) and 0 < len(units) <= 16 and units.isprintable()):
+        raise InputError(where, f"units must be a short printable name such as mm, got {_short(units)}")
     return K, dist, units
 
 

@@ -20,6 +20,7 @@ is read in chunks without loading it whole.
 from __future__ import annotations
 
 import os
+import re
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
@@ -78,8 +79,16 @@ class PlyHeader:
     comments: tuple[str, ...] = ()
 
 
+def _comment(text: str) -> str:
+    """``text`` as one line of printable ASCII, anything else as "?": a foreign file's accented
+    comment (read back as U+FFFD) failed the header's ASCII encoding with a bare
+    UnicodeEncodeError, and a newline (a rig's units) would have started a header line of its own."""
+    return "".join(ch if " " <= ch <= "~" else "?" for ch in str(text))
+
+
 def _header_text(count: int, dtype: np.dtype, comments: tuple[str, ...]) -> bytes:
-    lines = ["ply", "format binary_little_endian 1.0", *(f"comment {c}" for c in comments), f"element vertex {count}"]
+    lines = ["ply", "format binary_little_endian 1.0", *(f"comment {_comment(c)}" for c in comments),
+             f"element vertex {count}"]
     for name in dtype.names or ():
         lines.append(f"property {_NP_TO_PLY[dtype[name].str[1:]]} {name}")
     lines.append("end_header")
@@ -141,6 +150,9 @@ def write_ply(
     return path
 
 
+_END_HEADER = re.compile(rb"^end_header[ \t\r]*$", re.MULTILINE)
+
+
 def read_header(path: str | os.PathLike[str]) -> PlyHeader:
     """Parse a PLY header; raises :class:`InputError` naming the file for anything we cannot read."""
     path = Path(path)
@@ -150,9 +162,11 @@ def read_header(path: str | os.PathLike[str]) -> PlyHeader:
         size = os.fstat(f.fileno()).st_size
     if not head.startswith(b"ply"):
         raise InputError(path, "not a PLY file (no 'ply' magic)")
-    end = head.find(b"end_header")
-    if end < 0:
+    # the line that is end_header, not those words inside a comment ("comment ... end_header")
+    m = _END_HEADER.search(head)
+    if m is None:
         raise InputError(path, "PLY header has no end_header within 64 KiB")
+    end = m.start()
     nl = head.find(b"\n", end)
     if nl < 0:
         raise InputError(path, "PLY header is truncated")

@@ -221,7 +221,8 @@ def parse_rig(doc: Any, where: Path | str = "rig.json") -> Rig:
         raise InputError(where, "must be a JSON object")
     _no_unknown(doc, _TOP_KEYS, where, None)
     units = doc.get("units", "mm")
-    if not isinstance(units, str) or not units or len(units) > 16:
+    if not isinstance(units, str) or not units or len(units) > 16 or not (units.isascii() and units.isprintable()):
+        # printable ASCII: units go into every output's PLY header comments and paradata
         raise InputError(where, f'field "units" must be a string such as "mm", got {_short(units)}')
     for key in ("camera", "projector", "R", "T"):
         if key not in doc:

@@ -312,8 +312,8 @@ def test_a_header_or_npz_with_a_malformed_camera_or_size_is_refused_by_name(tmp_
             ("K", [[1e400, 0, 0], [0, 1, 0], [0, 0, 1]], "K must be a 3 x 3 matrix of finite numbers"),
             ("dist", [0.1, 0.2, 0.3], "dist must be OpenCV's 4, 5, 8, 12, 14 finite distortion coefficients"),
             ("dist", {"k1": 0.1}, "dist must be numbers"),
-            ("units", 5, "units must be a unit's name such as mm, got 5"),
-            ("units", "../../etc", "units must be a unit's name")):
+            ("units", 5, "units must be a short printable name such as mm, got 5"),
+            ("units", "mm\nend_header", "units must be a short printable name")):
         with pytest.raises(InputError, match=rf"^<bytes>: corrupt range header: {re.escape(message)}"):
             read_range(with_meta(**{key: value}))
     # the unknown camera as a scan without a rig writes it (all NaN) and no camera at all pass

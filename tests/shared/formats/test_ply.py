@@ -42,6 +42,19 @@ def test_full_contract_round_trip(tmp_path: Path) -> None:
     assert path.stat().st_size == h.data_offset + 31 * 1000
 
 
+def test_foreign_comments_are_written_back_as_one_ascii_line(tmp_path: Path) -> None:
+    """Another scanner's accented comment (read as U+FFFD) failed the header's ASCII encoding
+    with a bare UnicodeEncodeError when written back (decompressing its cloud); a newline would
+    have started a header line of its own. Each comment is written as one printable line."""
+    src = tmp_path / "foreign.ply"
+    src.write_bytes("ply\nformat ascii 1.0\ncomment scanné à Paris\nelement vertex 1\nproperty float x\n"
+                    "property float y\nproperty float z\nend_header\n0 0 0\n".encode())
+    h = read_header(src)
+    out = write_ply(tmp_path / "out.ply", np.zeros((1, 3), np.float32), comments=(*h.comments, "units mm\nend_header"))
+    assert read_header(out).comments == ("scann?? ?? Paris", "units mm?end_header")
+    assert len(read_ply(out).xyz) == 1
+
+
 def test_chunks_cover_the_cloud_once(tmp_path: Path) -> None:
     c = _cloud(2500)
     path = write_ply(tmp_path / "c.ply", **c)

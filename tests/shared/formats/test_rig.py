@@ -47,6 +47,9 @@ def test_round_trip(tmp_path: Path) -> None:
         (lambda d: d["projector"].update(width=0), 'field "projector.width" must be an integer in 2..65536'),
         (lambda d: d.update(T=[float("nan"), 0, 0]), 'field "T" holds NaN'),
         (lambda d: d.update(units=""), 'field "units" must be a string'),
+        # units go into every output's PLY header and paradata: printable ASCII only
+        (lambda d: d.update(units="mm\nend_header"), 'field "units" must be a string'),
+        (lambda d: d.update(units="µm"), 'field "units" must be a string'),
         (lambda d: d.update(scale=2), "unknown field 'scale' at the top level"),
         (lambda d: d["camera"].update(k=[1]), "unknown field 'k' in \"camera\""),
         (lambda d: d["camera"]["K"][0].__setitem__(0, 1e308), 'field "camera.K": focal length and skew must be at most'),
