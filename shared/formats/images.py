@@ -110,7 +110,16 @@ def _probe_tiff(head: bytes, path: Path) -> ImageInfo:
             (ifd,) = struct.unpack(order + "I", head[4:8])
             count_fmt, entry_size, count_size = "H", 12, 2
         with open_regular(path, path, missing="image file is missing") as f:
-            f.seek(ifd)
+            size = os.fstat(f.fileno()).st_size
+
+            def seek(offset: int) -> None:
+                # a directory or value offset past the file's end (BigTIFF's reach 2^64: seek
+                # raised a bare ValueError or OSError)
+                if not 0 <= offset < size:
+                    raise InputError(path, f"corrupt TIFF header (an offset of {offset} in a file of {size} bytes)")
+                f.seek(offset)
+
+            seek(ifd)
             (count,) = struct.unpack(order + count_fmt, f.read(count_size))
             if count > 4096:
                 raise InputError(path, f"corrupt TIFF header ({count} directory entries)")
@@ -144,7 +153,7 @@ def _probe_tiff(head: bytes, path: Path) -> ImageInfo:
                 if n * 2 <= (8 if big else 4):
                     bits = int(struct.unpack(order + "H", value[:2])[0])
                 else:
-                    f.seek(int(struct.unpack(order + ("Q" if big else "I"), value)[0]))
+                    seek(int(struct.unpack(order + ("Q" if big else "I"), value)[0]))
                     bits = int(struct.unpack(order + "H", f.read(2))[0])
     except struct.error:
         raise InputError(path, "truncated TIFF header") from None

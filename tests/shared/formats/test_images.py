@@ -123,6 +123,25 @@ def test_missing_empty_corrupt_truncated(tmp_path: Path) -> None:
             read(huge)
 
 
+def test_tiff_offsets_past_the_file_are_a_corrupt_header(tmp_path: Path) -> None:
+    """A TIFF's directory offset past the file's end: 2^63 and more (BigTIFF's 64-bit offsets)
+    made the header probe's seek raise a bare ValueError or OSError."""
+    good = tmp_path / "good.tif"
+    cv2.imwrite(str(good), _image(40, 50, 1, np.uint16))
+    assert probe_image(good).size == (50, 40)
+    raw = good.read_bytes()
+    order = "<" if raw[:2] == b"II" else ">"
+    for offset in (len(raw) + 10, 0xFFFFFFFF):
+        bad = tmp_path / "bad.tif"
+        bad.write_bytes(raw[:4] + struct.pack(order + "I", offset) + raw[8:])
+        with pytest.raises(InputError, match=rf"^{bad}: corrupt TIFF header \(an offset of {offset} in a file of"):
+            probe_image(bad)
+    big = tmp_path / "big.tif"  # a BigTIFF header whose directory lies at 2^64 - 1
+    big.write_bytes(b"II+\x00" + struct.pack("<HHQ", 8, 0, 2**64 - 1) + bytes(64))
+    with pytest.raises(InputError, match=r"corrupt TIFF header \(an offset of 18446744073709551615"):
+        probe_image(big)
+
+
 def test_wrong_size(tmp_path: Path) -> None:
     path = tmp_path / "small.png"
     cv2.imwrite(str(path), _image(10, 20, 1, np.uint8))
