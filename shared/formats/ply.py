@@ -247,7 +247,18 @@ def _records(path: Path, header: PlyHeader) -> np.ndarray:
             raise InputError(path, f"ASCII PLY holds {table.shape[0]} vertices, header says {header.count}")
         rec = np.empty(header.count, dtype=header.dtype)
         for i, name in enumerate(header.dtype.names or ()):
-            rec[name] = table[:, i]
+            col = table[:, i]
+            kind = header.dtype[name]
+            if kind.kind in "iu":
+                # the text is parsed as float64: 300 in a uchar wrapped to 44, -1 to 255, 1.5 to 1
+                lim = np.iinfo(kind)
+                with np.errstate(invalid="ignore"):
+                    bad = ~np.isfinite(col) | (col != np.round(col)) | (col < lim.min) | (col > lim.max)
+                if bad.any():
+                    k = int(np.argmax(bad))
+                    raise InputError(path, f"ASCII PLY vertex {k}: {name} is {col[k]:g}, not an integer in "
+                                           f"{lim.min}..{lim.max} as its type {_NP_TO_PLY[kind.str[1:]]} holds")
+            rec[name] = col
         return rec
     need = header.data_offset + header.count * header.dtype.itemsize
     have = path.stat().st_size

@@ -94,6 +94,11 @@ def test_foreign_clouds_ascii_and_big_endian(tmp_path: Path) -> None:
          b"property float z\nend_header\n" + bytes(12), "header claims 1000000000000 vertices of 12 bytes, 12 bytes follow"),
         (b"ply\nformat ascii 1.0\nelement vertex " + b"9" * 5000 + b"\nproperty float x\nend_header\n", "bad vertex count '9999"),
         (b"ply\nformat xml 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\nend_header\n", "unsupported PLY format"),
+        # ASCII values are parsed as float64: 300 in a uchar wrapped to 44, -1 to 255, 1.5 to 1
+        (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n"
+         b"property uchar red\nend_header\n0 0 0 7\n1 1 1 300\n", "ASCII PLY vertex 1: red is 300, not an integer in 0..255"),
+        (b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n"
+         b"property short view\nend_header\n0 0 0 1.5\n", "ASCII PLY vertex 0: view is 1.5, not an integer in -32768..32767"),
         # numpy refuses a record type with a field twice: a bare ValueError from another scanner's file
         (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n"
          b"property uchar red\nproperty uchar red\nend_header\n" + bytes(14), "PLY vertex property 'red' is declared more than once"),
