@@ -144,7 +144,11 @@ def _cloud_view(spec: ViewSpec) -> ViewCloud:
         given[ok] /= length[ok, None]
         normals[ok] = given[ok]
     if pc.size is not None:
-        size = np.asarray(pc.size, np.float32)[finite] * np.float32(spec.scale_mm)
+        # another scanner's sizes where they are sizes (NaN, zero or negative: the estimate stays,
+        # as the fusion's grid is scaled by them)
+        given_size = np.asarray(pc.size, np.float32)[finite] * np.float32(spec.scale_mm)
+        ok = np.isfinite(given_size) & (given_size > 0)
+        size[ok] = given_size[ok]
     rgb = None if pc.rgb is None else np.asarray(pc.rgb)[finite]
     return ViewCloud(index=spec.index, name=spec.name, xyz=xyz, normals=normals, size=size,
                      confidence=np.ones(len(xyz), np.float32), rgb=rgb)

@@ -77,6 +77,22 @@ def test_cloud_view_in_metres_with_estimated_normals(tmp_path: Path) -> None:
     assert load_view(ss.views[1]).xyz[:, 2].mean() == pytest.approx(0.5, abs=1e-3)
 
 
+def test_cloud_view_sizes_that_are_not_sizes_keep_the_estimate(tmp_path: Path) -> None:
+    """Another scanner's size field with NaN, zero and negative values: the fusion's grid is
+    scaled by sizes, so there the estimated spacing stands; the file's other sizes are kept."""
+    u, v = np.meshgrid(np.linspace(-50, 50, 60), np.linspace(-50, 50, 60))
+    xyz = np.stack([u.ravel(), v.ravel(), 500.0 + 0.2 * u.ravel()], axis=1).astype(np.float32)
+    size = np.full(len(xyz), 3.0, np.float32)
+    bad = [1830, 1831, 1832]  # inside the grid, where the estimate is the spacing
+    size[bad] = np.nan, 0.0, -1.0
+    write_ply(tmp_path / "a.ply", xyz, size=size)
+    write_scanset(tmp_path, scanset_doc([{"cloud": "a.ply"}, {"cloud": "a.ply", "name": "b"}]))
+    view = load_view(load_scanset(tmp_path).views[0])
+    assert np.isfinite(view.size).all() and (view.size > 0).all()
+    np.testing.assert_allclose(view.size[bad], 100.0 / 59, rtol=0.1)  # the estimated spacing
+    assert (np.delete(view.size, bad) == 3.0).all()
+
+
 def test_normals_face_the_sensor() -> None:
     rng = np.random.default_rng(2)
     xyz = np.column_stack([rng.uniform(-10, 10, 500), rng.uniform(-10, 10, 500), np.full(500, 100.0)])
