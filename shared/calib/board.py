@@ -33,6 +33,7 @@ import numpy as np
 
 from shared.core.errors import InputError
 from shared.core.files import read_json
+from shared.core.jsonsafe import finite_number
 
 log = logging.getLogger(__name__)
 
@@ -177,7 +178,8 @@ def _positive_int_pair(doc: dict[str, Any], key: str, where: Path | str, minimum
 
 def _positive_number(doc: dict[str, Any], key: str, where: Path | str) -> float:
     v = doc.get(key)
-    if not isinstance(v, int | float) or isinstance(v, bool) or not np.isfinite(v) or not 0 < v <= MAX_BOARD_SIZE:
+    # finite_number: np.isfinite raised a bare TypeError on an integer of 2^63 (19 digits: a file may hold it)
+    if not finite_number(v) or not 0 < v <= MAX_BOARD_SIZE:
         raise InputError(where, f'field "{key}" must be a positive number up to {MAX_BOARD_SIZE:g}, got {str(v)[:40]}')
     return float(v)
 

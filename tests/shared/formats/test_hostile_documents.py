@@ -16,6 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from shared.calib.board import parse_board
 from shared.compress.cloud import decode_cloud, encode_cloud
 from shared.compress.range import RangeImage, encode_range, read_range
 from shared.core.errors import InputError
@@ -56,6 +57,17 @@ def test_scanset_json(capture: Path, tmp_path: Path) -> None:
            "turntable": {"angles_deg": [0, 30, 60]}, "roi": {"center": [0, 0, 500], "radius": 100}}
     parse_scanset(doc, root, check=False)  # the document as written is read
     assert not bare_failures(doc, lambda d: parse_scanset(d, root, check=False), InputError)
+
+
+@pytest.mark.parametrize("doc", [
+    {"kind": "chessboard", "inner_corners": [9, 6], "square_size": 25.0, "units": "mm"},
+    {"kind": "charuco", "squares": [7, 5], "square_size": 30.0, "marker_size": 22.0, "dictionary": "DICT_5X5_100",
+     "units": "mm"},
+])
+def test_board_json(doc: dict) -> None:
+    # a square size of 2^63 (19 digits, within the parser's number length) was a bare TypeError
+    parse_board(doc, "board.json")
+    assert not bare_failures(doc, lambda d: parse_board(d, "board.json"), InputError)
 
 
 @pytest.mark.parametrize("kind", ["range lossless", "range bounded", "cloud"])
