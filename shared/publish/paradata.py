@@ -45,6 +45,7 @@ from typing import Any
 from shared.core.errors import InputError
 from shared.core.files import write_json_atomic
 from shared.core.jsonsafe import read_json_bounded
+from shared.formats.rig import parse_rig
 
 log = logging.getLogger(__name__)
 
@@ -219,20 +220,16 @@ def rig_figures(rig_path: Path) -> dict[str, Any] | None:
     from shared.publish.calibration import calibration_report_for
 
     try:
-        doc = read_json_bounded(rig_path, "rig", missing="rig file not found")
+        # parsed as the rig contract says: any JSON file of an input folder is tried, and one that
+        # looked like a rig but held, say, a number for its camera raised a bare AttributeError
+        rig = parse_rig(read_json_bounded(rig_path, "rig", missing="rig file not found"), "rig")
     except InputError:
         return None
-    if not isinstance(doc, dict) or "camera" not in doc or "projector" not in doc:
-        return None
-    out: dict[str, Any] = {"units": doc.get("units", "mm")}
-    for dev in ("camera", "projector"):
-        d = doc.get(dev) or {}
-        K = d.get("K") or [[None] * 3] * 3
-        out[dev] = {"size": [d.get("width"), d.get("height")], "focal_px": [K[0][0], K[1][1]],
-                    "principal_px": [K[0][2], K[1][2]], "dist": d.get("dist")}
-    T = doc.get("T")
-    if isinstance(T, list) and len(T) == 3 and all(isinstance(v, int | float) for v in T):
-        out["baseline"] = float(sum(v * v for v in T) ** 0.5)
+    out: dict[str, Any] = {"units": rig.units}
+    for name, dev in (("camera", rig.camera), ("projector", rig.projector)):
+        out[name] = {"size": [dev.width, dev.height], "focal_px": [float(dev.K[0, 0]), float(dev.K[1, 1])],
+                     "principal_px": [float(dev.K[0, 2]), float(dev.K[1, 2])], "dist": dev.dist.tolist()}
+    out["baseline"] = rig.baseline
     report = calibration_report_for(rig_path)
     if report is not None:
         out["calibration"] = report.summary()

@@ -12,6 +12,7 @@ import pytest
 from pyld import jsonld
 
 from services.cli.main import main
+from shared.core.errors import InputError
 
 # One group with test_publish.py: the session fixtures of conftest.py (the set, its scan and its merge)
 # are made on one xdist worker, not once a worker.
@@ -107,3 +108,25 @@ def test_rerun_reproduces_a_merge(merged: Path, tmp_path: Path, capsys: pytest.C
     for rel in files:
         assert _sha(again / rel) == _sha(first / rel), rel
     assert "2 records equal but for timings" in capsys.readouterr().out
+
+
+def test_rig_figures_of_a_json_file_that_is_not_quite_a_rig(tmp_path: Path) -> None:
+    """Paradata tries every JSON file of an input folder as a rig: every field of a rig replaced by
+    what a careless writer sends gives figures or None, never a bare exception (a number for its
+    camera raised AttributeError), and a rig gives its figures."""
+    from shared.formats.rig import save_rig
+    from shared.publish.paradata import rig_figures
+    from shared.sim.rigs import make_rig
+    from tests.support.hostile import bare_failures
+
+    path = save_rig(make_rig(camera_size=(640, 480), projector_size=(320, 240), seed=0), tmp_path / "rig.json")
+    fig = rig_figures(path)
+    assert fig["camera"]["size"] == [640, 480] and fig["baseline"] > 0 and len(fig["camera"]["dist"]) == 5
+    doc = json.loads(path.read_text())
+    other = tmp_path / "other.json"
+
+    def read(d: object) -> None:
+        other.write_text(json.dumps(d))
+        rig_figures(other)
+
+    assert not bare_failures(doc, read, InputError)
