@@ -359,7 +359,7 @@ def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Itera
         per = header_int(meta, "chunk_points")
         points = header_int(meta, "points")
         ok = (meta.get("codec") == CODEC and 0 < per <= MAX_CHUNK_POINTS and points >= 0
-              and float(meta["precision"]) > 0 and meta["chunks"] == -(-points // per))
+              and 0 < float(meta["precision"]) < math.inf and meta["chunks"] == -(-points // per))
     except (KeyError, TypeError, ValueError, OverflowError):  # OverflowError: float() of a 400-digit integer
         ok = False
     if not ok:

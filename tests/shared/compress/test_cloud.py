@@ -173,7 +173,8 @@ def test_a_header_claiming_a_huge_cloud_is_refused_before_allocating(tmp_path: P
     # a negative count whose chunk count adds up (0 chunks): a bare ValueError from numpy before;
     # counts that are not JSON integers (an infinite one was a bare OverflowError from int())
     for claim in ({"points": -5, "chunks": 0}, {"points": float("inf")}, {"chunk_points": float("inf")},
-                  {"points": float(len(same))}, {"points": str(len(same))}):
+                  {"points": float(len(same))}, {"points": str(len(same))},
+                  {"precision": float("inf")}):  # decoded every coordinate as infinity before
         buf = io.BytesIO()
         write_stream(buf, "cloud", {**header.meta, **claim}, payloads if claim.get("chunks") != 0 else [])
         with pytest.raises(InputError, match=r"^<bytes>: corrupt or unsupported cloud header"):
