@@ -26,8 +26,8 @@ import numpy as np
 from shared.core.errors import InputError
 from shared.core.paths import read_bounded
 
-__all__ = ["MAX_DEPTH", "MAX_DOCUMENT_BYTES", "MAX_NUMBER_CHARS", "finite_number", "json_depth", "loads_bounded",
-           "read_json_bounded"]
+__all__ = ["MAX_DEPTH", "MAX_DOCUMENT_BYTES", "MAX_NUMBER_CHARS", "finite_number", "json_depth", "json_integer",
+           "loads_bounded", "read_json_bounded"]
 
 #: Deepest nesting any Graylight document has is about 5; 64 leaves room without reaching recursion limits.
 MAX_DEPTH = 64
@@ -65,6 +65,12 @@ def json_depth(data: bytes) -> int:
     step = np.isin(a, _OPEN).astype(np.int32) - np.isin(a, _CLOSE).astype(np.int32)
     step[~outside] = 0
     return int(np.cumsum(step).max(initial=0))
+
+
+def json_integer(value: Any) -> bool:
+    """Whether a parsed JSON value is an integer: not a bool (an int to Python), not a float that
+    ``int()`` would truncate (150.5) or fail on (infinity), not a string ``int()`` would parse."""
+    return isinstance(value, int) and not isinstance(value, bool)
 
 
 def finite_number(value: Any) -> bool:

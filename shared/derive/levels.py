@@ -12,6 +12,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from shared.core.errors import InputError
+from shared.core.jsonsafe import json_integer
 
 __all__ = ["DEFAULT_LEVELS", "LEVELS", "Level", "parse_levels"]
 
@@ -77,7 +78,7 @@ def _integer(item: dict[str, Any], key: str, default: int, name: Any) -> int:
     """A level object's integer field: a JSON integer, not a float int() would truncate (faces
     150.5 read as 150), an infinite one it cannot convert, a string or a bool."""
     v = item.get(key, default)
-    if isinstance(v, bool) or not isinstance(v, int):
+    if not json_integer(v):
         text = repr(v)
         raise InputError(f"levels.{name}.{key}", f"must be an integer, got {text if len(text) <= 40 else text[:37] + '...'}")
     return v

@@ -34,6 +34,7 @@ from typing import Any, BinaryIO
 
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
+from shared.core.jsonsafe import json_integer
 
 MAGIC = b"\x89GLC\r\n\x1a\n"
 TRAILER = b"GLC-END\n"
@@ -117,8 +118,7 @@ def read_header(f: BinaryIO, where: str, kind: str | None = None) -> ContainerHe
         meta = json.loads(doc)
     except (UnicodeDecodeError, json.JSONDecodeError):
         raise InputError(where, "corrupt header (not a JSON document)") from None
-    if (not isinstance(meta, dict) or not isinstance(meta.get("chunks"), int) or isinstance(meta["chunks"], bool)
-            or meta["chunks"] < 0):
+    if not isinstance(meta, dict) or not json_integer(meta.get("chunks")) or meta["chunks"] < 0:
         raise InputError(where, 'corrupt header (no "chunks" count)')
     name = _KIND_NAMES[kind_id]
     if kind is not None and name != kind:
@@ -131,7 +131,7 @@ def header_int(meta: dict[str, Any], key: str) -> int:
     TypeError for anything else (a float, which ``int()`` would truncate or fail to convert when
     infinite, a string, a bool) -- what the readers' header checks catch as a corrupt header."""
     v = meta[key]
-    if isinstance(v, bool) or not isinstance(v, int):
+    if not json_integer(v):
         raise TypeError(f"{key!r} is not an integer")
     return v
 

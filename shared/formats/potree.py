@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 
 from shared.core.errors import InputError
-from shared.core.jsonsafe import finite_number, read_json_bounded
+from shared.core.jsonsafe import finite_number, json_integer, read_json_bounded
 
 _TYPES = {
     "int8": "i1", "uint8": "u1", "int16": "<i2", "uint16": "<u2", "int32": "<i4", "uint32": "<u4",
@@ -186,7 +186,7 @@ def _metadata(meta_path: Path, decoders: Mapping[str, Any]) -> tuple[dict, np.dt
             raise _bad(meta_path, f"attributes[{i}].name", "must be a short non-empty name")
         if not isinstance(kind, str) or kind not in _TYPES:
             raise _bad(meta_path, f"attributes[{i}].type", f"must be one of {', '.join(_TYPES)}")
-        if isinstance(n, bool) or not isinstance(n, int) or not 1 <= n <= MAX_ELEMENTS:
+        if not json_integer(n) or not 1 <= n <= MAX_ELEMENTS:
             raise _bad(meta_path, f"attributes[{i}].numElements", f"must be an integer in 1..{MAX_ELEMENTS}")
         if any(f[0] == name for f in fields):
             raise _bad(meta_path, f"attributes[{i}].name", f"{name[:40]!r} is declared twice")
@@ -207,7 +207,7 @@ def _metadata(meta_path: Path, decoders: Mapping[str, Any]) -> tuple[dict, np.dt
         raise _bad(meta_path, "boundingBox", "max lies below min")
     hierarchy = meta.get("hierarchy")
     first = hierarchy.get("firstChunkSize") if isinstance(hierarchy, dict) else None
-    if isinstance(first, bool) or not isinstance(first, int) or first < 0:
+    if not json_integer(first) or first < 0:
         raise _bad(meta_path, "hierarchy.firstChunkSize", "must be a byte count")
     spacing = meta.get("spacing")
     if not finite_number(spacing) or not 0 < spacing <= MAX_COORDINATE:
