@@ -42,8 +42,9 @@ from shared.core.files import write_json_atomic
 log = logging.getLogger(__name__)
 
 _SHARED = Path(__file__).resolve().parents[1] / "shared"
-#: A numba kernel's decorator, but for inline="always" helpers (compiled into their callers).
-_CACHED_KERNEL = re.compile(r'^@(?:numba\.)?njit\b(?![^\n]*inline="always")', re.MULTILINE)
+#: A numba kernel's decorator (numba's, or :mod:`shared.core.jit`'s ``kernel`` and ``helper``),
+#: but for inline="always" functions (compiled into their callers).
+_CACHED_KERNEL = re.compile(r'^@(?:(?:numba\.)?njit|kernel|helper)\b(?![^\n]*inline="always")', re.MULTILINE)
 
 #: Modules holding numba kernels, by domain.
 KERNEL_MODULES: dict[str, tuple[str, ...]] = {

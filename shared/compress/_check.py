@@ -19,7 +19,8 @@ decoding, 0.3 ns encoding (a 15 MP image: 2.5 and 5 ms of CPU)."""
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from shared.core.jit import helper, kernel
 
 #: A hole's bits (any NaN the decoder writes counts as this one).
 HOLE = np.uint32(0x7FC00000)
@@ -28,7 +29,7 @@ _M2 = np.uint64(0xC4CEB9FE1A85EC53)
 _S = np.uint64(33)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _mixed(u, i):
     """MurmurHash3's 64-bit finaliser of a sample's bits ``u`` (uint32) beside its index ``i``."""
     k = np.uint64(u) | (np.uint64(i) << np.uint64(32))
@@ -39,12 +40,12 @@ def _mixed(u, i):
     return k ^ (k >> _S)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _fold(h):
     return np.uint32((h ^ (h >> np.uint64(32))) & np.uint64(0xFFFFFFFF))
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def output_check(bits):
     """The check of a decoded band: ``bits`` (H, W) uint32, its float32 samples' bit patterns
     (C-contiguous rows). Returns uint32."""
@@ -60,14 +61,14 @@ def output_check(bits):
     return _fold(h)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def scratch(W):
     """A row of ``W`` float32 samples and its uint32 view: their bits (:func:`add_row`)."""
     f32 = np.empty(W, np.float32)
     return f32, f32.view(np.uint32)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def add_row(h, rec, off, shift, valid_row, y, W, scale, f32, u32):
     """``h`` (uint64) plus row ``y``'s terms of :func:`output_check`: each valid sample x the
     decoder's ``float32((rec[x + off] >> shift) * scale)`` (``rec`` int64 reconstruction in fine
@@ -82,7 +83,7 @@ def add_row(h, rec, off, shift, valid_row, y, W, scale, f32, u32):
     return h
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def lossless_check(t, valid, scale, shift):
     """:func:`output_check` of the band the decoder will write from lossless targets ``t`` (H, W)
     int64 (fine units, ``shift`` bits below the quantum) and ``valid`` (H, W) bool: each valid
@@ -95,7 +96,7 @@ def lossless_check(t, valid, scale, shift):
     return _fold(h)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def fold(h):
     """The 32-bit check of a sum of :func:`add_row` terms ``h`` (uint64)."""
     return _fold(h)

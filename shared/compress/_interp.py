@@ -47,7 +47,6 @@ instead of estimated (-1.5 % more for 70 passes), 24 sign tables by the sign bef
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from shared.compress._check import add_row, scratch
 from shared.compress._levels import pattern_bits
@@ -66,6 +65,7 @@ from shared.compress._lpred import (
     _level_of,
 )
 from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
+from shared.core.jit import helper, kernel
 
 #: Spacing of the coarsest grid.
 S0 = 16
@@ -86,7 +86,7 @@ HG = 6
 HB = 16
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _two_sided(rec, valid, ym, xm, yp, xp, H, W):
     """Prediction from the reconstructed samples (ym, xm) and (yp, xp) (either may be outside or
     invalid): (prediction, activity, found)."""
@@ -103,7 +103,7 @@ def _two_sided(rec, valid, ym, xm, yp, xp, H, W):
     return 0, 8 * FINE, False
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _pass(s, k):
     """The samples of pass ``k`` at spacing ``s`` (h = s / 2) and their neighbours: (first row,
     row step, first column, column step, the two-sided offset (dy, dx), the fallback's offset
@@ -115,7 +115,7 @@ def _pass(s, k):
     return h, s, 0, h, h, 0, 0, h
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _coarse(rec, valid, y, x, last):
     """Prediction of a grid sample (y, x) of spacing S0 from its grid neighbours W, N, NW."""
     okw = x >= S0 and valid[y, x - S0]
@@ -134,7 +134,7 @@ def _coarse(rec, valid, y, x, last):
     return last, 16 * FINE
 
 
-@njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _table(t_res, act, sgn, cofs, rprev, rnb, cls):
     """(table, flip) of a residual of activity ``act``: in level mode (``sgn`` 0) the table
     ``t_res`` plus its level (made tables after the pass by
@@ -154,13 +154,13 @@ def _table(t_res, act, sgn, cofs, rprev, rnb, cls):
     return sgn * tb + (1 - sgn) * (t_res + lev), flip * sgn
 
 
-@njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def _group(lev, cofs):
     """The sign contexts' group (0..NI_GRP - 1) of activity level ``lev`` from offset ``cofs``."""
     return (min(max(lev - cofs, 0), NCTX - 1) * NI_GRP) >> 4
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _pattern(rprev, rnb):
     """The sign pattern (0..NI_PAT - 1) and flip (-1 or 0) of :func:`_table`."""
     sp = np.int64(rprev > 0) - np.int64(rprev < 0)
@@ -170,7 +170,7 @@ def _pattern(rprev, rnb):
     return nz * (1 + sp * sn) + (1 - nz) * (4 - (sn & 1)), ref >> 63
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _neighbour_residuals(rr, ym, xm, yp, xp, H, W):
     """The sum of the residuals at (ym, xm) and (yp, xp) (0 outside the band; ``rr`` is 0 where
     no residual was coded)."""
@@ -179,7 +179,7 @@ def _neighbour_residuals(rr, ym, xm, yp, xp, H, W):
     return a + b
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _count_alt(alt, act, rprev, rnb, cls, r):
     """Count residual ``r``'s symbol in sign contexts (:func:`interp_events`' ``alt``)."""
     pat, flip = _pattern(rprev, rnb)
@@ -196,7 +196,7 @@ def sign_estimate(alt: np.ndarray, cofs: int, tab: np.ndarray, nb: np.ndarray, n
     return pattern_bits(alt, first, tab, nb, np.int64(n0), np.int64(n1), False)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt, scale, chk):
     """Append the residual events of a band in interpolation order (bounded mode: ``t`` (H, W)
     int64 fine-unit targets) after event ``n``, each in table ``t_res`` plus its activity level
@@ -299,7 +299,7 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt, s
     return n
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _get(xa, xb, pos, words, nw, sym, fb, t_res, act, cofs, cshift, sgn, rprev, rnb, cls):
     """A residual coded by :func:`_table` (level mode: levels merged by ``cshift``)."""
     tb, flip = _table(t_res, act, sgn, cofs, rprev, rnb, cls)
@@ -309,7 +309,7 @@ def _get(xa, xb, pos, words, nw, sym, fb, t_res, act, cofs, cshift, sgn, rprev, 
     return (r ^ flip) - flip, xa, xb, pos
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, sgn, fbw, scale, t_res, out):
     """Inverse of :func:`interp_events` (feedback weights ``fbw`` (NLV, 2) int64, sign contexts
     ``sgn``; in level mode the tables merged by ``cshift``) into ``out``

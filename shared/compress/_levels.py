@@ -16,14 +16,14 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from shared.compress._lpred import MAX_COFS, NCTX, NLEVEL, NRES, NSUB
 from shared.compress._rans import NSYM
 from shared.compress._tables import table_bits
+from shared.core.jit import helper, kernel
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _tables_bits(counts, nt):
     """Estimated bits of coding the symbols counted in ``counts`` (>= nt, symbols) int64, tables 0..nt-1,
     with static tables: their code lengths and the stored tables (:mod:`shared.compress._tables`:
@@ -45,7 +45,7 @@ def _tables_bits(counts, nt):
     return bits
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def context_choice(tab, val, nb, n0, n1, t0):
     """The residual tables of events n0..n1-1 (coded by :func:`encode_residuals` with their
     activity level as table ``t0 + level``): the offset ``cofs`` (0..:data:`MAX_COFS`) and the
@@ -60,7 +60,7 @@ def context_choice(tab, val, nb, n0, n1, t0):
     return choice_of(counts, raw)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def level_counts(tab, val, nb, n0, n1, t0):
     """The symbol counts (NLEVEL, NSYM) int64 of the residual events n0..n1-1 by activity level
     (their tables ``t0 + level``), and the escapes' raw bits (the same whatever the tables)."""
@@ -75,7 +75,7 @@ def level_counts(tab, val, nb, n0, n1, t0):
     return counts, raw
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def choice_of(counts, raw):
     """:func:`context_choice` of the residuals counted by :func:`level_counts`."""
     merged = np.zeros((NCTX, NSYM), np.int64)
@@ -100,7 +100,7 @@ def choice_of(counts, raw):
     return best, best_o, best_s
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def pattern_bits(alt, first, tab, nb, n0, n1, exact):
     """Estimated bits of a band's residuals (events n0..n1-1, coded without sign contexts) had
     they been coded in sign contexts: from the counts ``alt`` (NLEVEL * m, NSYM) of their
@@ -140,13 +140,13 @@ def grad_counts(alt: np.ndarray) -> np.ndarray:
     return alt[NLEVEL * NSUB :].astype(np.int64)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def apply_contexts(tab, n0, n1, t0, cofs, cshift):
     """Turn the levels of the residual events n0..n1-1 into their tables (:func:`context_choice`)."""
     apply_levels(tab, n0, n1, t0, level_tables(cofs, cshift))
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def apply_levels(tab, n0, n1, t0, lut):
     """Turn the levels of the residual events n0..n1-1 into their tables ``lut`` (NLEVEL,) int64."""
     for i in range(n0, n1):
@@ -154,7 +154,7 @@ def apply_levels(tab, n0, n1, t0, lut):
             tab[i] = t0 + lut[tab[i] - t0]
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def level_tables(cofs, cshift):
     """The table (NLEVEL,) int64 of each activity level: slid by ``cofs`` and merged by
     ``cshift`` (0..2, :func:`context_choice`)."""
@@ -164,7 +164,7 @@ def level_tables(cofs, cshift):
     return lut
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def partition_tables(starts):
     """The table (NLEVEL,) int64 of each level from the flags ``starts`` (NLEVEL - 1,) of 0 or 1
     (1: level k + 1 starts a new table; the decoder checks them, as it reads them)."""
@@ -174,7 +174,7 @@ def partition_tables(starts):
     return lut
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def level_partition(counts, raw):
     """The partition of the activity levels into runs of neighbouring levels, one table a run,
     that codes the residuals counted by :func:`level_counts` (``counts``, escapes' ``raw`` bits)

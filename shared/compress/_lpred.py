@@ -40,7 +40,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 from numba.cpython.unsafe.numbers import leading_zeros
 
 from shared.compress._check import add_row, scratch
@@ -48,6 +47,7 @@ from shared.compress._ls import ls_predict
 from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
 from shared.compress._rows import F_SHIFT, FINE, MINB, fill_row, first_row, row_prediction, target_row
 from shared.compress._wp import wp_hole, wp_predict, wp_update
+from shared.core.jit import helper, kernel
 
 #: Residual predictors a leaf may choose (see :func:`local_pred`; :data:`K_WP` is the weighted
 #: predictor of :mod:`shared.compress._wp` and :data:`K_LS` the least-squares predictor of
@@ -106,13 +106,13 @@ LEVEL_LUT = np.array([min(NLEVEL - 1, int(2 * math.log2(v + 1))) for v in range(
 RECIP = np.array([0] + [(1 << 16) // n for n in range(1, BIAS_RESET + 1)], np.int64)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _level_of(act):
     v = act >> 2
     return np.int64(at(LEVEL_LUT, v)) if v < 4096 else NLEVEL - 1
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def local_pred(k, a, b, c, d, m):
     """Predictor ``k`` of a sample from its reconstructed neighbours W ``a``, N ``b``, NW ``c``, NE
     ``d`` and its leaf's model ``m`` (fine units): 0 the model, 1 LOCO-I's median edge detector,
@@ -136,7 +136,7 @@ def local_pred(k, a, b, c, d, m):
     return med if k == 1 else (m + med) >> 1
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _log_cost(e):
     """A leaf's cost of a prediction error ``e`` (fine units) when it chooses its predictor:
     floor(log2(2 m + 1)) for m = |e| in quarters of a quantum, about the bits a residual costs
@@ -152,17 +152,17 @@ def _log_cost(e):
     return 64 - np.int64(leading_zeros(np.uint64(abs(e) >> (F_SHIFT - 2))))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _err_cost(e, lossless):
     return _log_cost(e) if lossless else min(abs(e), E_LIM)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _sign3(g):
     return 0 if g < -(FINE >> 2) else (2 if g > (FINE >> 2) else 1)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def local_cost_integral(t, valid, lossless):
     """Integral image (H + 1, W + 1) int64 of every valid sample's absolute error (fine units,
     clamped) under LOCO-I's median predictor over the targets ``t``: the quadtree's estimate of
@@ -187,7 +187,7 @@ def local_cost_integral(t, valid, lossless):
     return S
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def local_bits(S, y0, x0, B, n):
     """Estimated bits of the n valid samples of block (y0, x0, B) under local prediction: a
     Laplacian's n log2(1 + 2e m) for their mean absolute error m (quanta) from ``S``."""
@@ -200,7 +200,7 @@ def local_bits(S, y0, x0, B, n):
     return n * math.log2(1.0 + 2.0 * math.e * m)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, wp, pls, ls, cost, local, known):
     """Each leaf's predictor (``leaves[:, 4]``: 0 its model, else :func:`local_pred`'s): the one
     of least summed cost over the leaf, predicted from the targets ``t`` (exact in lossless mode,
@@ -273,7 +273,7 @@ FB_SHIFT = 4
 FB_MAX = 16
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def feedback_weights(t, valid, cells, leaves, lcoef, pw, pls):
     """The band's error-feedback weights (aw, an), in sixteenths: the least-squares fit of each
     sample's prediction error (its leaf's predictor over the targets) to its W and N
@@ -325,7 +325,7 @@ def feedback_weights(t, valid, cells, leaves, lcoef, pw, pls):
     return qw, qn
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _activity(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
     """A sample's activity (fine units): the curvature of the row above and its neighbours'
     prediction errors ``ew``, ``en``, ``enw``, ``ene``; with ``wp`` :func:`_wp_activity`."""
@@ -339,7 +339,7 @@ def _activity(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
     return act
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _context(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
     """A sample's activity level (:func:`_activity`, :func:`_level_of`)."""
     return _level_of(_activity(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me))
@@ -356,14 +356,14 @@ def activity_tables(lut: np.ndarray) -> np.ndarray:
     return np.append(lut[LEVEL_LUT], lut[NLEVEL - 1]).astype(np.uint8)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _bias_context(a, b, c, d, lev):
     """Bias cancellation's context (< NBIAS): the signs of the gradients W-NW, N-NW, NE-N and the
     activity level in four groups."""
     return (_sign3(a - c) * 9 + _sign3(b - c) * 3 + _sign3(d - b)) * 4 + (min(lev, NCTX - 1) >> 2)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _sign_context(p, rn, lossless):
     """A band's sign context of a sample predicted ``p`` (fine units) whose N neighbour's residual
     was ``rn`` (quanta): (pattern < :data:`NSUB`, flip -1 or 0; a residual r is coded as
@@ -381,7 +381,7 @@ def _sign_context(p, rn, lossless):
     return 1 - far + ((sgn ^ flip) - flip), flip
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _wp_activity(act, me):
     """The activity of a band running the weighted predictor: half the usual one plus twice the
     weighted predictor's largest neighbour error ``me`` (fine units). Measured against the usual
@@ -391,7 +391,7 @@ def _wp_activity(act, me):
     return (act >> 1) + 2 * me
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def wp_band(t, valid, cells, leaves, lcoef):
     """The weighted predictor over a band's targets (lossless mode: they are the reconstruction):
     its prediction (H, W) int64 and its largest neighbour error (H, W) int64, fine units."""
@@ -429,7 +429,7 @@ def wp_band(t, valid, cells, leaves, lcoef):
     return pw, pe
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, an, t_res, tab, val, nb, n, pw, pe, wp,
                      sc, cofs, alt, pls, scale, chk):
     """Append the residual events of a band (raster order) after event ``n``, with bias
@@ -552,7 +552,7 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
     return n
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _bias_update(bsum, bcnt, bcor, q, err):
     s = at(bsum, q) + min(max(err, -E_LIM), E_LIM)
     m = at(bcnt, q) + 1
@@ -564,7 +564,7 @@ def _bias_update(bsum, bcnt, bcor, q, err):
     set_at(bcor, q, (s * at(RECIP, m)) >> 16)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoef, lossless, bias, aw, an, cofs, lut,
                      wp, sc, scale, t_res, out, lsw, grad):
     """Inverse of :func:`encode_residuals` (with every option on) into ``out`` (H, W) float32,

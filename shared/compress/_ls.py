@@ -29,10 +29,10 @@ sides take the nearest pixel of their row; off the current row's start, the W ne
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from shared.compress._rans import at
 from shared.compress._rows import FINE, fill_row, target_row
+from shared.core.jit import helper, kernel
 
 #: Neighbours of a sample (rows above, column offset): W, NW, NE, WW, NWW, NEE, NN, NNW, NNE,
 #: WWW, NNWW, NNEE, then the row above out to 3 and 4 columns (N is the origin of the
@@ -68,13 +68,13 @@ ROBUST = 4.0
 ERR_CAP = 64.0 * FINE
 
 
-# plain kernels, inlined by LLVM (numba's IR inlining of their call sites cost seconds of compilation)
-@njit(cache=True, nogil=True)
+# kernel helpers (shared.core.jit), inlined by LLVM (numba's IR inlining of their call sites cost seconds of compilation)
+@helper(inline=False)
 def _d(v, n):
     return min(max(v - n, -D_LIM), D_LIM)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _neighbour(i, x, W, a, ra, rb, rc):
     """Neighbour i of :data:`LS_DY`, :data:`LS_DX` of pixel x (W ``a``), clamped to the band."""
     dy = LS_DY[i]
@@ -85,7 +85,7 @@ def _neighbour(i, x, W, a, ra, rb, rc):
     return ra[j] if dy == 1 else rc[j]
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def ls_predict(x, W, a, ra, rb, rc, w):
     """The prediction (fine units) of pixel x of width-W rows from its W neighbour ``a`` and the
     padded rows ``ra``, ``rb``, ``rc`` with the weights ``w`` (tiles * NLS,) int64, x's tile's
@@ -110,7 +110,7 @@ def ls_predict(x, W, a, ra, rb, rc, w):
     return n + ((acc + (1 << (LS_SHIFT - 1))) >> LS_SHIFT)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def ls_rows(t, valid, cells, leaves, lcoef, w, pred, rows):
     """Every valid sample's prediction (fine units) into ``pred`` (H, W) int64 under the weights
     ``w`` (tiles * NLS,) int64 (:func:`ls_predict`), over a band's targets ``t`` (H, W) int64 (lossless:
@@ -133,7 +133,7 @@ def ls_rows(t, valid, cells, leaves, lcoef, w, pred, rows):
         rc, ra, rb = ra, rb, rc
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def ls_samples(t, valid, x0, x1):
     """The fit's samples of columns x0..x1-1 of a band's targets ``t`` (H, W) int64: from every
     :data:`STEP`-th row from the third on (the rows above the first two are the quadtree's, not

@@ -26,7 +26,6 @@ more in context.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from shared.compress._rans import (
     BIN,
@@ -39,6 +38,7 @@ from shared.compress._rans import (
     put,
     put_value,
 )
+from shared.core.jit import helper, kernel
 
 #: Tables (set by :mod:`shared.compress._quadtree`): the run lengths by state, the edges by state.
 T_RUN = 8
@@ -55,7 +55,7 @@ MASK_CTX = 1
 NCTX_MASK = 1 << 10
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _start_above(ref, j, s, x):
     """The row above's first start of a run of state ``s`` at or after ``x`` (``ref[s]``, ended by
     W), its cursor ``j[s]`` moved on to it: the encoder and the decoder read the same one."""
@@ -66,7 +66,7 @@ def _start_above(ref, j, s, x):
     return ref[s, k]
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def encode_mask(valid, tab, val, nb, n, t_edge):
     """Append the events of the mask ``valid`` (H, W) bool after event ``n``; returns the count
     (or -1 when the buffers are full)."""
@@ -113,7 +113,7 @@ def encode_mask(valid, tab, val, nb, n, t_edge):
     return n
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def decode_mask(xa, xb, pos, words, nw, sym, fb, valid, t_edge):
     """Inverse of :func:`encode_mask` into ``valid`` (H, W) bool (all False on entry); returns
     (ok, xa, xb, pos), ok False for a corrupt stream."""
@@ -170,7 +170,7 @@ def decode_mask(xa, xb, pos, words, nw, sym, fb, valid, t_edge):
     return True, xa, xb, pos
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _template(r0, r1, r2, i):
     """The context of padded index ``i`` (sample i - 2) from the padded rows (W + 4,) int64 of
     0/1: W, WW in its row ``r0``; NWW, NW, N, NE, NEE in ``r1``; NNW, NN, NNE in ``r2``."""
@@ -178,7 +178,7 @@ def _template(r0, r1, r2, i):
             | (r1[i + 2] << 6) | (r2[i - 1] << 7) | (r2[i] << 8) | (r2[i + 1] << 9))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _ctx_state(W):
     """The context coder's state at a band's start: its models, and its three padded rows
     (W + 4,) int64 (the current one and the two above; holes above the band and past its sides)."""
@@ -186,7 +186,7 @@ def _ctx_state(W):
             np.zeros(W + 4, np.int64))
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def encode_mask_ctx(valid, tab, val, nb, n):
     """Append the mask ``valid`` (H, W) bool as a binary event a sample, in the context of its
     template (:func:`_template`), after event ``n``; returns the count (or -1 when the buffers
@@ -205,7 +205,7 @@ def encode_mask_ctx(valid, tab, val, nb, n):
     return n
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def decode_mask_ctx(xa, xb, pos, words, nw, valid):
     """Inverse of :func:`encode_mask_ctx` into ``valid`` (H, W) bool; returns (ok, xa, xb, pos)."""
     H, W = valid.shape

@@ -59,10 +59,7 @@ channel in its own table.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
-# The map, contexts and models (split off by size); their constants are also read from here by
-# the tests and the prior's trainer (tests/bench/train_cloud_prior.py).
 from shared.compress._octree_ctx import (  # noqa: F401
     _CODED,
     _LAST_MIXED,
@@ -142,6 +139,10 @@ from shared.compress._rans import (
     zigzag,
 )
 from shared.core.bits import popcount
+
+# The map, contexts and models (split off by size); their constants are also read from here by
+# the tests and the prior's trainer (tests/bench/train_cloud_prior.py).
+from shared.core.jit import kernel
 from shared.core.morton import compact21, spread21
 
 T_DUPF = 0  # any voxel holding more than one point?
@@ -153,7 +154,7 @@ L_DUP = 2
 MAX_DEPTH = 21
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def morton(q):
     """Morton codes (N,) int64 of non-negative integer coordinates (N, 3) below 2**21 (x lowest)."""
     n = q.shape[0]
@@ -163,7 +164,7 @@ def morton(q):
     return out
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def voxel_centres(codes, ox, oy, oz, precision, x, y, z):
     """The centres of the voxels of Morton codes ``codes`` (N,) int64, offset by the chunk's
     minimum voxel (``ox``, ``oy``, ``oz``) on the grid of step ``precision``, written into ``x``,
@@ -179,7 +180,7 @@ def voxel_centres(codes, ox, oy, oz, precision, x, y, z):
 # Arrays are copied by loops, not slice assignments (``a[i:j] = b``): numba links a shape
 # mismatch's error message (string formatting) into every kernel holding one, 0.2 s more
 # compilation each and 2.4 s once a process.
-@njit(cache=True, nogil=True)
+@kernel
 def _restart(models, sse, prior):
     """Every model back to its prior ``prior`` and every SSE cell to its first state (a level's start)."""
     for i in range(N_MODELS):
@@ -189,7 +190,7 @@ def _restart(models, sse, prior):
             sse[k * SSE_N**3 + i] = SSE_INIT[i]
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _levels(vox, depth):
     """Every level of the octree of sorted distinct codes ``vox``, top-down in one array
     (level d from ``starts[d]`` to ``starts[d + 1]``), and ``starts`` (depth + 2,)."""
@@ -215,7 +216,7 @@ def _levels(vox, depth):
     return levels, starts
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
     """Every event of one chunk: child bits level by level, duplicate counts (when any voxel
     holds more than one point), attribute channels. -1 when the buffers are too small."""
@@ -332,7 +333,7 @@ def encode_chunk(vox: np.ndarray, counts: np.ndarray, depth: int, chan: np.ndarr
     return pack_tables(freq), encode_events(tab, val, nb, n, freq)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, models, sse, atlas, rows, mixed_flag, mixed, last):
     """Decode one level of the octree (see :func:`decode_chunk`): the children of the ``ncur``
     nodes ``cur`` (Morton codes; map indices ``curc``) into ``nxt`` (and ``nxtc`` unless the
@@ -475,7 +476,7 @@ def _decode_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nxtc, nvox, mode
     return m, xa, xb, pos
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _decode_last_level(words, nw, xa, xb, pos, cur, curc, ncur, nxt, nvox, models, sse, atlas, rows):
     """:func:`_decode_level` for the last level: its flags literals (``False``,
     :data:`_LAST_MIXED`, ``True``), for the copy numba compiles for them (called from Python,
@@ -534,7 +535,7 @@ def decode_chunk(tables: np.ndarray, words: np.ndarray, nvox: int, npts: int, de
     return _decode_tail(words, nw, xa, xb, pos, sym, fb, cur, nvox, npts, log2d, codes_out, chan_out)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _decode_tail(words, nw, xa, xb, pos, sym, fb, vox, nvox, npts, log2d, codes_out, chan_out):
     """What follows the octree (see :func:`decode_chunk`): the points per voxel of ``vox``
     (nvox,) into ``codes_out``, the attribute differences into ``chan_out``; 0, or -1 for a

@@ -8,7 +8,6 @@ here is imported there too.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 
 from shared.compress._octree_prior import PRIOR_BOUNDS, PRIOR_P12, PRIOR_SHIFTS
 from shared.compress._rans import (
@@ -23,6 +22,7 @@ from shared.compress._rans import (
     state_p,
 )
 from shared.core.bits import popcount
+from shared.core.jit import helper, kernel
 from shared.core.morton import compact21
 
 #: Neighbour regions: 2**REGION_LOG nodes a side, mapped with an empty border (no bounds
@@ -108,20 +108,21 @@ LOWEST = np.array([(i & -i).bit_length() - 1 for i in range(256)], np.int64)
 
 
 # The scalar helpers below (contexts, cells, counter steps, the SSE cell, the map's marks, and
-# the rANS coder's at/set_at/get_bit/state_* they call) are plain kernels, inlined by LLVM when
-# their callers are optimised; numba's own inlining (inline="always") re-reads the callee's
-# bytecode and deep-copies its IR at every call site (hundreds of copies of ``at`` alone):
-# dropping it took the cloud codec's compilation from 81 s to 28 s, for no speed (A/B in the
-# commits). Inlined by numba still: _bit_context (the decoder's innermost loop), and _around,
-# _learn, _emit, _emit_mixed, which LLVM leaves as calls in the encoder or the decoder.
-@njit(cache=True, nogil=True)
+# the rANS coder's at/set_at/get_bit/state_* they call) are kernel helpers (shared.core.jit),
+# inlined by LLVM when their callers are optimised; numba's own inlining (inline="always")
+# re-reads the callee's bytecode and deep-copies its IR at every call site (hundreds of copies
+# of ``at`` alone): dropping it took the cloud codec's compilation from 81 s to 28 s, for no
+# speed (A/B in the commits). _bit_context (the decoder's innermost loop), _around, _learn,
+# _emit and _emit_mixed, which LLVM's own judgement leaves as calls, are marked alwaysinline
+# (``helper``'s default).
+@helper(inline=False)
 def _cell(key):
     """Index of a node in its region's map."""
     c = key & ((1 << REGION_SHIFT) - 1)
     return ORIGIN + (compact21(c >> 2) * PAD + compact21(c >> 1)) * PAD + compact21(c)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _child_cell(ci, b):
     """Map index of child ``b`` of the node at map index ``ci`` (in the child level's region)."""
     r = ci - ORIGIN
@@ -135,7 +136,7 @@ def _child_cell(ci, b):
     return ORIGIN + (z * PAD + y) * PAD + x
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _neighbours(atlas, ci):
     """The region map's values of the node's face neighbours (0 outside the region) -x, -y,
     -z, +x, +y, +z, of the nodes two back along x and y, and the occupancy of the past x and y
@@ -147,7 +148,7 @@ def _neighbours(atlas, ci):
             | (((at(atlas, ci - PAD + PAD * PAD) >> 8) & 1) << 2) | (((at(atlas, ci - PAD - PAD * PAD) >> 8) & 1) << 3))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _bit_context(b, cur, ncur, xm, ym, zm, xp, yp, zp, slabs):
     """The context of child bit ``b`` of a node whose bits below ``b`` are ``cur`` (``ncur``
     of them set), from its neighbours' map values and ``slabs`` (:func:`_slab_z`; see the
@@ -164,7 +165,7 @@ def _bit_context(b, cur, ncur, xm, ym, zm, xp, yp, zp, slabs):
             + future)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _slab_z(sz0, sz2):
     """Whether more than one of the nine nodes of the slab below a node are occupied (bit 0;
     ``sz0`` of :func:`_around`) and of the slab above (bit 1, ``sz2``): the side of the node the
@@ -175,7 +176,7 @@ def _slab_z(sz0, sz2):
     return (1 if sz0 > 1 else 0) | ((1 if sz2 > 1 else 0) << 1)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _lean(sz0, sz2):
     """Which slab holds more of the 26 nodes around a node: 1 the one above (``sz2`` of
     :func:`_around`), 2 the one below (``sz0``), 0 neither; for the single child's z bit
@@ -183,14 +184,14 @@ def _lean(sz0, sz2):
     return (1 if sz2 > sz0 else 0) | ((1 if sz0 > sz2 else 0) << 1)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _any(v, mask):
     # Callers pass the mask as np.int64(...), not a literal: numba compiles a copy of a kernel
     # per literal argument value (nine copies of this one before).
     return np.int64((v & mask) != 0)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2):
     """Context of "the node has exactly one child": occupied face neighbours (0-6) x the
     children of the past neighbours (0-7+) x whether the nodes two back along x and y are occupied."""
@@ -199,7 +200,7 @@ def _single_context(xm, ym, zm, xp, yp, zp, xm2, ym2):
     return C_SINGLE + ((occ * 8 + kids) * 2 + ((xm2 >> 8) & 1)) * 2 + ((ym2 >> 8) & 1)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _x_context(xm, ym, zm, xp, xm2):
     """Context of a single child's x bit: where the past neighbours' children lie along x."""
     return C_X + (_any(xm, np.int64(0xAA)) | (_any(xm, np.int64(0x55)) << 1) | (((xp >> 8) & 1) << 2) | (_any(ym, np.int64(0xAA)) << 3)
@@ -207,7 +208,7 @@ def _x_context(xm, ym, zm, xp, xm2):
                   | (_any(xm2, np.int64(0xAA)) << 7) | (_any(xm2, np.int64(0x55)) << 8))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _y_context(bx, xm, ym, zm, yp, ym2):
     """Context of a single child's y bit (its x bit ``bx`` known)."""
     return C_Y + (_any(ym, 0x44 << bx) | (_any(ym, 0x11 << bx) << 1) | (((yp >> 8) & 1) << 2)
@@ -215,7 +216,7 @@ def _y_context(bx, xm, ym, zm, yp, ym2):
                   | (((zm >> (6 | bx)) & 1) << 6) | (bx << 7) | (_any(ym2, np.int64(0xCC)) << 8) | (_any(ym2, np.int64(0x33)) << 9))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, slope, lean):
     """Context of a single child's z bit (its x and y bits known): the past neighbours'
     children, the nodes two back, whether the past x neighbour's neighbours above and below are
@@ -234,7 +235,7 @@ def _z_context(bx, by, xm, ym, zm, zp, xm2, ym2, slope, lean):
                   | ((slope & 3) << 13) | (lean << 15))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _emit(tab, val, nb, n, models, ctx, bit, kind):
     """Append a binary event of context ``ctx``'s model and adapt it; -1 when the buffers are full.
     ``kind`` (kept in ``nb``, which binary events do not use) tells the bench's cost breakdown
@@ -248,14 +249,14 @@ def _emit(tab, val, nb, n, models, ctx, bit, kind):
     return n + 1
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _lat(v):
     """The footprint of a map value's children seen along z: 4 bits, bit ``x + 2 y``."""
     v = np.int64(v)
     return (v | (v >> 4)) & 15
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _around(atlas, rows, ci):
     """What the 26 nodes around a node tell a single child's x and y bits and the single-child
     flag: the occupied ones
@@ -282,7 +283,7 @@ def _around(atlas, rows, ci):
             popcount(w & 0o777), popcount(w & 0o777000) - 1, popcount(w >> 18), fx1, fy1, fx2, fy2)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _mark(atlas, rows, ci, on):
     """Mark the node at map index ``ci`` occupied (``on``) or empty, in the map and its bit rows."""
     r = ci // PAD
@@ -295,21 +296,21 @@ def _mark(atlas, rows, ci, on):
         set_at(rows, r, np.uint64(0))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _mixed_x(xm, ym, zm, xp, xm2, sx0, sx1, sx2, fx1, fx2):
     """The three models (A, B, C) of a single child's x bit."""
     return (_x_context(xm, ym, zm, xp, xm2), B_X + (fx1 | (fx2 << 4) | (((xp >> 8) & 1) << 8)),
             C3_X + (sx0 * 10 + sx2) * 10 + (sx1 >> 1))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _mixed_y(bx, xm, ym, zm, yp, ym2, sy0, sy1, sy2, fy1, fy2):
     """The three models (A, B, C) of a single child's y bit (its x bit ``bx`` known)."""
     return (_y_context(bx, xm, ym, zm, yp, ym2), B_Y + (fy1 | (fy2 << 4) | (((yp >> 8) & 1) << 8) | (bx << 9)),
             C3_Y + ((sy0 * 10 + sy2) * 10 + (sy1 >> 1)) * 2 + bx)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1):
     """The three models (A, B, C) of the single-child flag (``sz*``, ``fx1``, ``fy1``: from :func:`_around`)."""
     occ = ((xm >> 8) & 1) + ((ym >> 8) & 1) + ((zm >> 8) & 1) + ((xp >> 8) & 1) + ((yp >> 8) & 1) + ((zp >> 8) & 1)
@@ -317,7 +318,7 @@ def _mixed_single(xm, ym, zm, xp, yp, zp, xm2, ym2, sz0, sz1, sz2, fx1, fy1):
             C3_SINGLE + (sz0 * 9 + sz1) * 10 + sz2)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _sse_cell(models, axis, ca, cb, cc):
     """The secondary-estimation cell (axis 0: x, 1: y, 2: the single-child flag) of an event
     whose models are ``ca``, ``cb``, ``cc``."""
@@ -325,14 +326,14 @@ def _sse_cell(models, axis, ca, cb, cc):
              + np.int64(at(SSE_BUCKET, state_p(at(models, cb))))) * SSE_N + np.int64(at(SSE_BUCKET, state_p(at(models, cc)))))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _sse_next(s, bit):
     """A cell's state ``s`` adapted to ``bit``: as :func:`shared.compress._rans.state_next`,
     the rate slowing further, to 1/128 (a cell sees many events)."""
     return adapt_state(s, bit, np.int64(SSE_LIMIT))  # int64: one copy with state_next's
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _fixed_next(s, bit):
     """A B or C model's state (a 16-bit probability of a one) adapted to ``bit`` at the fixed
     rate 1/32 (these models only pick a bucket; the count-based rate of :func:`state_next` saves
@@ -345,7 +346,7 @@ def _fixed_next(s, bit):
     return np.uint32(p)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _learn(models, sse, ca, cb, cc, cell, bit):
     """Adapt a mixed event's three models and its cell to ``bit``."""
     set_at(models, ca, state_next(at(models, ca), bit))
@@ -354,7 +355,7 @@ def _learn(models, sse, ca, cb, cc, cell, bit):
     set_at(sse, cell, _sse_next(at(sse, cell), bit))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _emit_mixed(tab, val, nb, n, models, sse, axis, ca, cb, cc, bit, kind):
     """Append a mixed binary event (``axis`` 0 the x bit, 1 the y bit, 2 the single-child flag)
     coded with its cell's probability and adapt; -1 when the buffers are full (``kind``: as
@@ -369,7 +370,7 @@ def _emit_mixed(tab, val, nb, n, models, sse, axis, ca, cb, cc, bit, kind):
     return n + 1
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _prior_states():
     """Every model's first state, (N_MODELS,) uint32: the probability of a one of its group in
     :data:`shared.compress._octree_prior.PRIOR_P12` (16 bits), a count of zero. Built once a chunk

@@ -35,7 +35,6 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from shared.compress import _lpred as lp
 from shared.compress._mask import MASK_CTX, encode_mask, encode_mask_ctx
@@ -53,6 +52,7 @@ from shared.compress._rans import (
 )
 from shared.compress._rows import A_SHIFT, F_SHIFT, FINE, MINB, Q_SHIFT
 from shared.compress._tables import pack_codes, quantise_tables
+from shared.core.jit import helper, kernel
 
 TOP = 64  # top block size (a band's height is a multiple of it)
 NCTX = lp.NCTX
@@ -95,7 +95,7 @@ TWO_PI_E = 2.0 * math.pi * math.e
 assert NSYM >= (1 << L_RES) + (64 << lp.M_RES) and NTABLES <= 64 and T_RES + lp.NLEVEL < 128 and lp.NK <= NSYM and 2 * lp.FB_MAX < NSYM
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def model_eval(m, c, X, Y):
     """Prediction in fine units of model ``m`` with integer coefficients ``c`` at half-pixel
     offsets (X, Y) from the block's centre."""
@@ -110,7 +110,7 @@ def model_eval(m, c, X, Y):
     return p
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _cholesky(M, r, kmax, L, y):
     """Cholesky factor ``L`` of the leading kmax x kmax block of the normal equations ``M`` (a
     small ridge added) and the forward solve ``L y = r``; returns how many leading pivots are
@@ -141,7 +141,7 @@ def _cholesky(M, r, kmax, L, y):
     return kmax
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _back(L, y, k, a):
     """The coefficients ``a`` (k,) of the k-parameter model from :func:`_cholesky`'s factors."""
     for i in range(k - 1, -1, -1):
@@ -151,7 +151,7 @@ def _back(L, y, k, a):
         a[i] = s / L[i, i]
 
 
-@njit(cache=True, nogil=True, fastmath=True)  # encoder only: the decoder never fits
+@helper(inline=False, fastmath=True)  # encoder only: the decoder never fits
 def fit_block(t, valid, y0, x0, B, coef, ws):
     """Choose and fit the model of one block: returns (model, estimated bits, valid count);
     ``coef`` receives the integer coefficients. Model -1 and count 0 for an empty block.
@@ -302,7 +302,7 @@ SPLIT_LOSSLESS = (200.0, 1600.0)
 SPLIT_BOUNDED = (50.0, 0.05)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _node(t, valid, S, y0, x0, B, coef, ws, local):
     """:func:`fit_block`, then local prediction's estimated bits (:func:`lp.local_bits`) when
     ``local``: where they are fewer, the block becomes a constant (its model's value at the
@@ -315,7 +315,7 @@ def _node(t, valid, S, y0, x0, B, coef, ws, local):
     return m, cost, cnt
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _predict_coefs(pm, pc, px, py, pB, x0, y0, B, out):
     """The previous leaf's model carried to the centre of block (x0, y0, B)."""
     Xc = 2 * (x0 - px) + B - pB
@@ -335,7 +335,7 @@ def _predict_coefs(pm, pc, px, py, pB, x0, y0, B, out):
     out[5] = c5
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _put_coef(tab, val, nb, n, t, u):
     # A leaf's coefficients, a few a leaf: called, not the coder's IR inlined at six sites of
     # the tree's kernel (numba copies an inlined function's IR at every call site).
@@ -362,7 +362,7 @@ def tree_memo(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int) -> tu
     return S, np.zeros((cells, 8), np.int64), np.zeros(cells)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _memo_node(t, valid, S, y0, x0, B, lev, coef, ws, local, memo, memo_c):
     """:func:`_node` of block (y0, x0, B) at level ``lev``, fitted once (:func:`tree_memo`; an
     empty ``memo``: fitted every time). A block at the band's edge has children past it: they
@@ -388,7 +388,7 @@ def _memo_node(t, valid, S, y0, x0, B, lev, coef, ws, local, memo, memo_c):
     return memo[i, 0], memo_c[i], memo[i, 1] - 1
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def put_mask(valid, tab, val, nb, n, mask):
     """A band's mask coder ``mask`` (:data:`shared.compress._mask.MASK_RUNS` or ``MASK_CTX``) and
     its mask ``valid`` (H, W) bool so coded, from event ``n``; returns the count (-1: full)."""
@@ -398,7 +398,7 @@ def put_mask(valid, tab, val, nb, n, mask):
     return encode_mask(valid, tab, val, nb, n, T_EDGE)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def put_events(tab, val, nb, n, stab, sval, snb):
     """Append the events ``stab``, ``sval``, ``snb`` after event ``n``; returns the count (-1:
     the buffers are full)."""
@@ -412,7 +412,7 @@ def put_events(tab, val, nb, n, stab, sval, snb):
     return n + m
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, lcoef, S, memo, memo_c, mtab, mval,
                  mnb):
     """The mask's and the quadtree's events of one band (its leaves into ``leaves`` (n, 5) and
@@ -527,7 +527,7 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
     return (n if n >= 0 else -1), nleaf
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _put_predictors(tab, val, nb, n, head, leaves, nleaf):
     """The band's flags and weights ``head`` (n,) int64 and each leaf's predictor, from event ``n``."""
     for i in range(head.shape[0]):
@@ -537,7 +537,7 @@ def _put_predictors(tab, val, nb, n, head, leaves, nleaf):
     return n
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def finite_abs_max(z):
     """Largest ``|z|`` over the valid (non-NaN) samples of ``z`` (H, W) float32, as a float, and
     their count; (0.0, 0) when every sample is a hole. One pass, no temporaries."""
@@ -555,7 +555,7 @@ def finite_abs_max(z):
     return float(m), n
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def quantise(z, scale, lossless):
     """Fine-unit targets of a band of depth ``z`` (float32, NaN holes) and its mask: lossless,
     ``round(z / scale) * FINE``; bounded, ``round(z / scale)`` (scale is then the fine unit)."""
@@ -573,7 +573,7 @@ def quantise(z, scale, lossless):
     return t, valid
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _stream_bits(tab, val, nb, n):
     """The coded size in bits of events 0..n-1: their tables' code lengths, raw bits and stored
     tables; not their binary events (a mask in context, :func:`put_mask`: the same in every way
@@ -591,7 +591,7 @@ def _stream_bits(tab, val, nb, n):
     return bits
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _count(ii, y0, x0, B, H, W):
     """Valid MINB x MINB cells in block (y0, x0, B) (clipped to H x W) from the cell-level
     integral image ``ii`` (see :func:`_cell_integral`); blocks are aligned to cells."""
@@ -604,7 +604,7 @@ def _count(ii, y0, x0, B, H, W):
     return ii[c1y, c1x] - ii[c0y, c1x] - ii[c1y, c0x] + ii[c0y, c0x]
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _cell_integral(valid):
     """Integral image over MINB x MINB cells of "the cell holds a valid sample":
     (ceil(H / MINB) + 1, ceil(W / MINB) + 1) int32 (a band's mask is 16x larger)."""
@@ -626,7 +626,7 @@ def _cell_integral(valid):
     return ii
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef, head):
     """A band's quadtree, its mask ``valid`` decoded: the leaves into ``leaves`` (n, 5) (x0, y0,
     B, model, predictor) and ``lcoef`` (n, 6) int64, then the header (:data:`HEAD_N`) into
@@ -732,7 +732,7 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
     return nleaf, xa, xb, pos
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def _leaf_cells(H, W, leaves, nleaf):
     """Which leaf covers each MINB x MINB cell: (ceil(H / MINB), ceil(W / MINB)) int32, -1 for none."""
     ch = (H + MINB - 1) // MINB

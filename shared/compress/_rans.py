@@ -23,7 +23,8 @@ symbols and any unsigned 64-bit value can be coded.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
+
+from shared.core.jit import helper, kernel
 
 #: Frequency precision: probabilities are multiples of 2**-PROB_BITS.
 PROB_BITS = 12
@@ -44,22 +45,22 @@ RAW = -1
 BIN = -2
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def at(a, i):
     """``a[i]`` for an index ``i`` known not to be negative: with an unsigned index numba adds no
     negative-index wraparound (a compare and a select per load), and constant offsets fold into
-    the address. A plain kernel, inlined by LLVM (as :func:`set_at`, :func:`get_bit` and the
+    the address. A kernel helper, inlined by LLVM (as :func:`set_at`, :func:`get_bit` and the
     model helpers): numba's IR inlining of its hundreds of call sites cost seconds of compilation."""
     return a[np.uint64(i)]
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def set_at(a, i, v):
     """``a[i] = v`` for an index ``i`` known not to be negative (see :func:`at`)."""
     a[np.uint64(i)] = v
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def bitlen(u: np.uint64) -> int:
     n = 0
     while u > 0:
@@ -68,7 +69,7 @@ def bitlen(u: np.uint64) -> int:
     return n
 
 
-@njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def put(tab, val, nb, n, t, v, bits):
     """Append one event (table ``t`` symbol ``v``, or ``t == RAW`` with ``bits`` raw bits); returns n+1
     (or -1 when the buffers are full, so the caller retries with larger ones)."""
@@ -80,7 +81,7 @@ def put(tab, val, nb, n, t, v, bits):
     return n + 1
 
 
-@njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def put_value(tab, val, nb, n, t, u, log2d, m):
     """Append unsigned value ``u`` in table ``t`` whose direct part is ``2**log2d`` symbols, an
     escape carrying the ``m`` bits below a value's top bit (:func:`symbol_of`)."""
@@ -92,7 +93,7 @@ def put_value(tab, val, nb, n, t, u, log2d, m):
     return _put_escape(tab, val, nb, np.int64(n), np.int64(t), u, np.int64(log2d), d, np.int64(m))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _put_escape(tab, val, nb, n, t, u, log2d, d, m):
     nbits = bitlen(u)
     rem = nbits - 1 - m  # the raw bits below the top bit and the m bits in the symbol
@@ -107,7 +108,7 @@ def _put_escape(tab, val, nb, n, t, u, log2d, d, m):
     return n
 
 
-@njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def symbol_of(u, log2d, m):
     """The symbol :func:`put_value` codes unsigned value ``u`` (int64 >= 0) with (its raw bits
     aside): the value below ``2**log2d``, else the escape of its bit length and the ``m`` bits
@@ -119,17 +120,17 @@ def symbol_of(u, log2d, m):
     return d + ((nbits - log2d - 1) << m) + ((u >> (nbits - 1 - m)) & ((1 << m) - 1))
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def zigzag(r: np.int64) -> np.uint64:
     return np.uint64(r << 1) if r >= 0 else np.uint64((-r << 1) - 1)
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def unzigzag(u: np.uint64) -> np.int64:
     return np.int64(u >> np.uint64(1)) if (u & np.uint64(1)) == 0 else -np.int64(u >> np.uint64(1)) - 1
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def count_symbols(tab, val, n, ntables):
     counts = np.zeros((ntables, NSYM), np.int64)
     for i in range(n):
@@ -139,7 +140,7 @@ def count_symbols(tab, val, n, ntables):
     return counts
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def normalise(counts):
     """Frequencies summing to PROB_SCALE per used table, every counted symbol at least 1."""
     nt, ns = counts.shape
@@ -184,7 +185,7 @@ def normalise(counts):
     return freq
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def encode_events(tab, val, nb, n, freq):
     """rANS-code events 0..n-1 with two interleaved states (event i on state i % 2, which
     doubles the decoder's instruction-level parallelism), in reverse; returns the 16-bit
@@ -231,7 +232,7 @@ def encode_events(tab, val, nb, n, freq):
     return out[pos:].copy()
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def decode_tables(freq):
     """Per table and slot: the symbol, and ``freq << 16 | (slot - cum)`` packed in 32 bits."""
     nt, ns = freq.shape
@@ -253,7 +254,7 @@ def decode_tables(freq):
 # the compiler keeps them in registers.
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def dec_init(words):
     """Initial (xa, xb, pos) of a stream (pos beyond the end when it is too short)."""
     if words.shape[0] < 4:
@@ -263,7 +264,7 @@ def dec_init(words):
     return xa, xb, 4
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def _next(xa, pos, words, nw):
     # Branch-free renormalisation (the branch would be mispredicted on about a third of the
     # symbols). A corrupt stream may run past its end: the read is clamped to the last word
@@ -274,7 +275,7 @@ def _next(xa, pos, words, nw):
     return xa, pos + need
 
 
-@njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def get_symbol(xa, xb, pos, words, nw, sym, fb, t):
     """Decode a symbol of table t: returns (symbol, xa, xb, pos) for the next event."""
     slot = xa & (PROB_SCALE - 1)
@@ -285,7 +286,7 @@ def get_symbol(xa, xb, pos, words, nw, sym, fb, t):
     return s, xb, xa, pos
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def get_raw(xa, xb, pos, words, nw, k):
     """Decode k <= RAW_PIECE raw bits: returns (value, xa, xb, pos)."""
     slot = xa & (PROB_SCALE - 1)
@@ -300,7 +301,7 @@ def get_raw(xa, xb, pos, words, nw, k):
 BIN_BITS = -np.log2(np.maximum(np.arange(PROB_SCALE + 1), 0.5) / PROB_SCALE)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def binary_bits(tab, val):
     """The bits the coder spends on the :data:`BIN` events among ``tab``, ``val``."""
     bits = 0.0
@@ -311,7 +312,7 @@ def binary_bits(tab, val):
     return bits
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def get_bit(xa, xb, pos, words, nw, p):
     """Decode a :data:`BIN` event of probability ``p / PROB_SCALE`` of a one: returns (bit, xa, xb, pos)."""
     slot = xa & (PROB_SCALE - 1)
@@ -343,19 +344,19 @@ MODEL_LIMIT = 32
 RATE_SHIFT = np.array([max(1, ((2 * (k + 2) ** 2).bit_length() - 1) // 2) for k in range(256)], np.int64)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def state_p(s):
     """The :data:`BIN` event probability (PROB_BITS) of a model's state ``s``."""
     return np.int64(s & 0xFFFF) >> (16 - PROB_BITS)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def state_next(s, bit):
     """A model's state ``s`` adapted to ``bit`` (integers only: encoder and decoder agree)."""
     return adapt_state(s, bit, np.int64(MODEL_LIMIT))  # int64, not a literal: one copy with the SSE cells'
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def adapt_state(s, bit, limit):
     """State ``s`` (16-bit probability of a one, event count above it) adapted to ``bit``: the
     n-th update moves the probability 2**-RATE_SHIFT[min(n, limit)] (about 1 / (n + 2)) of the
@@ -372,19 +373,19 @@ def adapt_state(s, bit, limit):
     return np.uint32(p | (min(n + 1, 255) << 16))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def model_p(models, ctx):
     """The :data:`BIN` event probability (PROB_BITS) of context ``ctx``'s model."""
     return state_p(at(models, ctx))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def model_update(models, ctx, bit):
     """Adapt context ``ctx``'s model to ``bit``."""
     set_at(models, ctx, state_next(at(models, ctx), bit))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _get_escape(xa, xb, pos, words, nw, s, d, log2d, m):
     nbits = ((s - d) >> m) + log2d + 1
     rem = nbits - 1 - m
@@ -401,7 +402,7 @@ def _get_escape(xa, xb, pos, words, nw, s, d, log2d, m):
     return u, xa, xb, pos
 
 
-@njit(cache=True, nogil=True, inline="always")
+@kernel(inline="always")
 def get_value(xa, xb, pos, words, nw, sym, fb, t, log2d, m):
     """Decode a value put by :func:`put_value`: returns (value uint64, xa, xb, pos)."""
     s, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, t)
@@ -411,7 +412,7 @@ def get_value(xa, xb, pos, words, nw, sym, fb, t, log2d, m):
     return _get_escape(xa, xb, np.int64(pos), words, np.int64(nw), s, np.int64(d), np.int64(log2d), np.int64(m))
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def pack_tables(freq):
     """Serialise the frequency tables: per table a varint count of its symbols up to the last
     used one (0 for an unused table), then each frequency as a varint."""
@@ -443,7 +444,7 @@ def pack_tables(freq):
     return out[:n].copy()
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def unpack_tables(buf, ntables):
     """Inverse of :func:`pack_tables`; returns (freq, bytes read) or (freq, -1) when malformed."""
     freq = np.zeros((ntables, NSYM), np.int32)

@@ -8,7 +8,7 @@ ends, and the virtual row above a band's first row is its own model predictions.
 
 from __future__ import annotations
 
-from numba import njit
+from shared.core.jit import helper
 
 MINB = 4
 F_SHIFT = 5
@@ -17,7 +17,7 @@ A_SHIFT = 3  # slope coefficients in 2**-A_SHIFT fine units per half pixel
 Q_SHIFT = 9  # curvature coefficients in 2**-Q_SHIFT fine units per half pixel squared
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def row_prediction(y, W, cells, leaves, lcoef, row, krow):
     """Every leaf's model prediction (fine units) along row y into ``row`` (W,) int64 and its
     residual predictor into ``krow`` (W,) int64: the integers of the model's polynomial, with the
@@ -59,7 +59,7 @@ def row_prediction(y, W, cells, leaves, lcoef, row, krow):
         x = end
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def fill_row(ra, rb, valid, y, W):
     """Holes of the reconstructed row ``rb`` (padded, pixel x at x + 1) take the value before
     them in the row (at the row's start, the one above in ``ra``); the pads repeat the ends."""
@@ -73,7 +73,7 @@ def fill_row(ra, rb, valid, y, W):
     rb[W + 2] = rb[W]
 
 
-@njit(cache=True, nogil=True, inline="always")
+@helper
 def first_row(ra, pf, valid, W):
     """The virtual row above a band's first row: its own model predictions, holes filled."""
     for x in range(W):
@@ -87,7 +87,7 @@ def first_row(ra, pf, valid, W):
     ra[W + 2] = ra[W]
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def target_row(y, t, valid, cells, leaves, lcoef, pf, kr, ra, rb):
     """Row y of a band's targets ``t`` (H, W) int64 into the padded row ``rb``, holes filled (the
     reconstruction in lossless mode, the open-loop estimate in bounded mode), and its leaves'

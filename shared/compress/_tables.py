@@ -16,9 +16,9 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit
 
 from shared.compress._rans import NSYM, PROB_BITS, bitlen, normalise
+from shared.core.jit import helper, kernel
 
 #: Codes per octave of frequency.
 LQ = 8
@@ -28,7 +28,7 @@ C_MAX = 1 + LQ * PROB_BITS
 EXP_LUT = np.array([0] + [max(1, round(2.0 ** ((c - 1) / LQ))) for c in range(1, C_MAX + 1)], np.int64)
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def quantise_tables(freq):
     """The codes (nt, NSYM) int64 of normalised frequencies ``freq`` (nt, NSYM) and the
     frequencies the decoder rebuilds from them (what the coder must use)."""
@@ -46,7 +46,7 @@ def quantise_tables(freq):
     return codes, normalise(w)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _put_gamma(buf, nbit, u):
     """Append the Elias-gamma code of u >= 0 (of u + 1) at bit ``nbit`` of ``buf``; returns the new bit count."""
     v = u + 1
@@ -61,7 +61,7 @@ def _put_gamma(buf, nbit, u):
     return nbit
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def pack_codes(codes):
     """Serialise the tables' codes: per table the gamma code of its symbol count up to the last
     used one (0: unused), then each code's zigzagged difference from the previous one."""
@@ -82,7 +82,7 @@ def pack_codes(codes):
     return buf[: (nbit + 7) >> 3].copy()
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _get_gamma(buf, nbit):
     """(value, new bit position), or (-1, position) past the buffer or for an absurd length."""
     nmax = buf.shape[0] * 8
@@ -103,7 +103,7 @@ def _get_gamma(buf, nbit):
     return np.int64(v) - 1, nbit
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def unpack_codes(buf, ntables):
     """Inverse of :func:`pack_codes` and :func:`quantise_tables`: (freq (ntables, NSYM) int32,
     bytes read), or (freq, -1) when malformed (a code out of range, a used table's last symbol
@@ -133,13 +133,13 @@ def unpack_codes(buf, ntables):
     return normalise(w), nbytes
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _gamma_bits(u):
     """The length of the Elias-gamma code of u >= 0 (:func:`_put_gamma`)."""
     return 2 * bitlen(np.uint64(u + 1)) - 1
 
 
-@njit(cache=True, nogil=True)
+@kernel
 def table_bits(counts):
     """The bits of coding the symbols counted in ``counts`` (1, NSYM) int64 with one table as
     the coder would: their code lengths under the frequencies the decoder rebuilds

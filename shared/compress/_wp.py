@@ -28,10 +28,10 @@ both ends). Holes have zero errors.
 from __future__ import annotations
 
 import numpy as np
-from numba import njit
 from numba.cpython.unsafe.numbers import leading_zeros
 
 from shared.compress._rans import at
+from shared.core.jit import helper
 
 #: Sub-predictor errors in fine units >> ERR_SHIFT (quanta).
 ERR_SHIFT = 5
@@ -44,26 +44,26 @@ D_LIM = 1 << 30
 TE_LIM = 1 << 40
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _floor_log2(v):
     """floor(log2(v)) of an integer v >= 1 (one count-leading-zeros instruction)."""
     return 63 - np.int64(leading_zeros(np.uint64(v)))
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _weight(s, mw):
     """The weight of a sub-predictor of summed recent errors ``s`` >= 0 and largest weight ``mw``."""
     sh = max(_floor_log2(s + 1) - 5, 0)
     return 4 + ((mw * at(RECIP24, s >> sh)) >> sh)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def _err_sum(err_a, err_b, k, i):
     """Sub-predictor k's errors at N, NW, NE, W and WW of pixel index i."""
     return err_a[k, i] + err_a[k, i - 1] + err_a[k, i + 1] + err_b[k, i - 1] + err_b[k, i - 2]
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub):
     """The weighted prediction (fine units) of pixel x from its neighbours W ``a``, N ``b``, NW
     ``c``, NE ``d`` and the error rows (above ``*_a``, current ``*_b``); ``sub`` (4,) int64
@@ -99,7 +99,7 @@ def wp_predict(x, a, b, c, d, err_a, err_b, te_a, te_b, sub):
     return p, m
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def wp_update(x, v, p, sub, err_b, te_b):
     """Record pixel x's reconstructed value ``v`` against its weighted prediction ``p`` and
     sub-predictions ``sub``."""
@@ -111,7 +111,7 @@ def wp_update(x, v, p, sub, err_b, te_b):
     te_b[i] = min(max(p - v, -TE_LIM), TE_LIM)
 
 
-@njit(cache=True, nogil=True)
+@helper(inline=False)
 def wp_hole(x, err_b, te_b):
     """A hole at pixel x: no errors."""
     i = x + 2

@@ -44,10 +44,10 @@ from __future__ import annotations
 import struct
 import zlib
 
-import numba
 import numpy as np
 
 from shared.core.errors import InputError
+from shared.core.jit import kernel
 from shared.core.morton import spread21
 
 #: The metadata.json ``encoding`` of tiles whose nodes this module codes.
@@ -105,7 +105,7 @@ def _codec_dtype(dtype: np.dtype, where: str = "records") -> np.dtype:
 # --------------------------------------------------------------------------- kernels
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _keys(pos: np.ndarray, origin: np.ndarray, drop: int) -> np.ndarray:
     """(N,) uint64 Morton keys (x the high bit of a triple) of ``(pos - origin) >> drop``."""
     n = pos.shape[0]
@@ -118,7 +118,7 @@ def _keys(pos: np.ndarray, origin: np.ndarray, drop: int) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _cells_per_level(keys: np.ndarray, levels: int) -> np.ndarray:
     """(levels + 1,) int64: occupied cells at every level 0..levels of sorted ``keys``."""
     cells = np.zeros(levels + 1, np.int64)
@@ -141,7 +141,7 @@ def _cells_per_level(keys: np.ndarray, levels: int) -> np.ndarray:
     return cells
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _geometry(pos: np.ndarray, origin: np.ndarray, keys: np.ndarray, order: np.ndarray, levels: int,
               depth: int, k: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, int]:  # fmt: skip
     """Occupancy bytes (breadth first, ``depth`` levels), LEB128 counts of the cells at ``depth``,
@@ -193,7 +193,7 @@ def _geometry(pos: np.ndarray, origin: np.ndarray, keys: np.ndarray, order: np.n
     return occ[:total].copy(), counts[:nc].copy(), offsets, cells
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _colour_planes(rgb: np.ndarray, order: np.ndarray, eight: bool) -> np.ndarray:
     """Colour in point ``order``: G, R-G, B-G, each the difference from the previous point
     (mod 256 for 8-bit colour = value / 257, else mod 65536 as a low and a high byte plane)."""
@@ -223,7 +223,7 @@ def _colour_planes(rgb: np.ndarray, order: np.ndarray, eight: bool) -> np.ndarra
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _float_planes(bits: np.ndarray, order: np.ndarray) -> np.ndarray:
     """(N, C) uint32 float bit patterns in point ``order``: per column, the zig-zagged
     difference from the previous point's, as four byte planes (low byte first)."""
@@ -245,7 +245,7 @@ def _float_planes(bits: np.ndarray, order: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _decode_geometry(occ: np.ndarray, counts: np.ndarray, offsets: np.ndarray, origin: np.ndarray,
                      depth: int, k: int, ncells: int, n: int) -> np.ndarray:  # fmt: skip
     """(n, 3) int32 positions from the geometry streams; raises ValueError when they disagree."""
@@ -315,7 +315,7 @@ def _decode_geometry(occ: np.ndarray, counts: np.ndarray, offsets: np.ndarray, o
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _decode_colour(planes: np.ndarray, n: int, eight: bool) -> np.ndarray:
     out = np.empty((n, 3), np.uint16)
     m = 0xFF if eight else 0xFFFF
@@ -335,7 +335,7 @@ def _decode_colour(planes: np.ndarray, n: int, eight: bool) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@kernel
 def _decode_floats(planes: np.ndarray, n: int, ncol: int) -> np.ndarray:
     out = np.empty((n, ncol), np.uint32)
     for c in range(ncol):

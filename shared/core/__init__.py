@@ -1,7 +1,8 @@
 """The bottom layer: errors, atomic files, the shared-data path, lazy exports and the process's
 CPU budget (``cpu_budget``, with numba's threading policy in ``shared.core.threads``); for
-numba kernels, the Morton bit spreading (``shared.core.morton``), ``popcount``
-(``shared.core.bits``) and a start-up without ``scipy.linalg`` (``shared.core.numba_start``).
+numba kernels, how they are compiled (``shared.core.jit``: ``kernel`` and ``helper``), the
+Morton bit spreading (``shared.core.morton``), ``popcount`` (``shared.core.bits``) and a start-up
+without ``scipy.linalg`` (``shared.core.numba_start``).
 
 Everything else in ``shared/`` may import these; they import nothing of Graylight's.
 ``cpu_budget`` resolves lazily: its module imports numba, and importing the package loads none.

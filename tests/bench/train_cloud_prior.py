@@ -1,10 +1,12 @@
 """Train the octree cloud codec's model priors (writes ``shared/compress/_octree_prior.py``).
 
 Usage: ``python -m tests.bench.train_cloud_prior [CLOUD.ply]``. Without an argument it trains on
-the cloud the table in the tree was trained on: the virtual rig's bunny scene at 1024x768, seed 0
+the scene the table in the tree was trained on: the virtual rig's bunny scene at 1024x768, seed 0
 (``graylight simulate --scene bunny --size 1024x768``), scanned in-process (737,863 points; not
-the bench's cloud, which is a synthetic range image); a run from a clean tree rewrites the same
-table. With a PLY it trains on that cloud's ``x``, ``y``, ``z`` (millimetres). The cloud is cut into chunks as :func:`shared.compress.cloud.encode_cloud`
+the bench's cloud, which is a synthetic range image); a run from the tree of 538f101, where
+the table was trained, rewrites the same table. The simulator and the scan have changed since
+(a different training cloud), so a run today writes other values: retraining changes every
+cloud stream's bytes, a codec change to measure on the bench before keeping it. With a PLY it trains on that cloud's ``x``, ``y``, ``z`` (millimetres). The cloud is cut into chunks as :func:`shared.compress.cloud.encode_cloud`
 does and coded at 0.1 and 0.5 mm grids by the kernel's event pass with every model starting
 from 1/2 (:func:`shared.compress._octree._events`, run from its source with each binary
 event's models recorded in the kind array); the ones and events of every model, pooled over
@@ -35,10 +37,22 @@ def _drop_import(src: str, module: str) -> str:
     return src[:i0] + src[src.index(")\n", i0) + 2 :]
 
 
+def _uncached(src: str) -> str:
+    """``src`` with its kernels compiled without numba's cache (source run from text has no file
+    to cache beside): the ``shared.core.jit`` decorators it imports, with ``cache=False``."""
+    lines = [ln for ln in src.splitlines() if ln.startswith("from shared.core.jit import ")]
+    assert lines and "cache=True" not in src
+    for line in lines:
+        names = [n.strip() for n in line.split(" import ", 1)[1].split(",")]
+        defs = "\n".join(f"{n} = functools.partial(_jit.{n}, cache=False)" for n in names)
+        src = src.replace(line, f"import functools\nfrom shared.core import jit as _jit\n{defs}", 1)
+    return src
+
+
 def _kernels() -> dict:
     """The kernels' source run with every binary event's models packed into its ``nb`` entry
     (int64: kind + 8 * (A + B << 20 + C << 40)) and the initial states passed in."""
-    rs = Path(_rans.__file__).read_text().replace("cache=True", "cache=False")
+    rs = _uncached(Path(_rans.__file__).read_text())
     rns: dict = {"__name__": "train_rans"}
     exec(compile(rs, "train_rans", "exec"), rns)
     # the map and contexts (_octree_ctx), then the chunk coder, in one namespace: the latter's
@@ -47,7 +61,7 @@ def _kernels() -> dict:
     s = Path(_octree.__file__).read_text()
     for mod in ("shared.compress._octree_ctx", "shared.compress._rans"):
         s = _drop_import(s, mod)
-    s = (ctx + "\n" + s.replace("from __future__ import annotations\n", "", 1)).replace("cache=True", "cache=False")
+    s = _uncached(ctx + "\n" + s.replace("from __future__ import annotations\n", "", 1))
     for a, b in (
         ("def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):",
          "def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb, prior):"),
