@@ -339,12 +339,6 @@ def _activity(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
     return act
 
 
-@helper
-def _context(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me):
-    """A sample's activity level (:func:`_activity`, :func:`_level_of`)."""
-    return _level_of(_activity(a, b, c, d, ew, en, enw, ene, grad, errs, wp, me))
-
-
 def activity_tables(lut: np.ndarray) -> np.ndarray:
     """The table (4097,) uint8 of each activity (fine units) >> 2, the last for all above, from
     the levels' tables ``lut`` (NLEVEL,): where the level itself is not wanted (no bias
