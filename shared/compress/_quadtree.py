@@ -422,9 +422,8 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
     (Arrays copied by loops, not ``a[:] = b``: numba links a shape mismatch's error message into
     every kernel holding one, 0.2 s more compilation each, 2.4 s once a process.)"""
     H, W = t.shape
-    n = 0
-    # 1. the mask
-    n = put_events(tab, val, nb, n, mtab, mval, mnb)
+    # 1. the mask (n an int64 value, not the literal 0: put_events compiles once, as Python calls it)
+    n = put_events(tab, val, nb, np.int64(0), mtab, mval, mnb)
     n = put(tab, val, nb, n, T_PRED, MODE_RASTER, 0)
     # 2. the quadtree with its leaves' models
     local = (opts & lp.OPT_PRED) != 0
