@@ -569,9 +569,11 @@ def warm(domains: Sequence[str] = DOMAINS, work: Path | None = None, parallel: b
     process of their own, on inputs of their own (:func:`_compress_inputs`,
     :func:`_render_inputs`), beside sim, scan and merge in this one: numba compiles on one core
     a process. No kernel module is compiled by both processes, so their cache indexes are never
-    written by two processes at once. Measured on this 2-core machine from an empty cache:
-    the side process's compress and render 45-48 + 23 s beside sim, scan and merge's
-    5 + 50-52 + 10-11 s, 72-75 s wall (114 s with render in this process, after the scan)."""
+    written by two processes at once. Measured on this 2-core machine from an empty cache
+    (a fresh clone): the side process's compress and render 30.2 + 20.2 s beside sim, scan and
+    merge's 5.0 + 41.7 + 9.7 s, 59.7 s wall (before the codecs' kernel helpers of
+    :mod:`shared.core.jit`: 46.1 + 22.6 s beside 5.9 + 47.3 + 10.5 s, 72.2 s; 114 s once with
+    render in this process, after the scan)."""
     seconds: dict[str, float] = {}
     sided = tuple(d for d in SIDE_DOMAINS if d in domains)
     with contextlib.ExitStack() as stack:

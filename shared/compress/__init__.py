@@ -3,8 +3,9 @@
 Both write the Graylight container (:mod:`shared.formats.container`): ``.glr`` for range
 images (kind ``range``), ``.glo`` for clouds (kind ``cloud``); :mod:`~shared.compress.tilenode`
 codes the nodes of Potree tiles (their opt-in "GRAYLIGHT_OCTREE" encoding). The numba kernels live in
-private modules (``_rans``, ``_quadtree``, ``_octree``); importing this package is cheap,
-its names load on first use.
+private modules (``_rans``, ``_quadtree``, ``_octree``), the functions only kernels call as
+:func:`shared.core.jit.helper` (compiled once, no Python entry point, inlined by LLVM);
+importing this package is cheap, its names load on first use.
 """
 
 from __future__ import annotations
