@@ -112,9 +112,10 @@ LOWEST = np.array([(i & -i).bit_length() - 1 for i in range(256)], np.int64)
 # inlined by LLVM when their callers are optimised; numba's own inlining (inline="always")
 # re-reads the callee's bytecode and deep-copies its IR at every call site (hundreds of copies
 # of ``at`` alone): dropping it took the cloud codec's compilation from 81 s to 28 s, for no
-# speed (A/B in the commits). _bit_context (the decoder's innermost loop), _around, _learn,
-# _emit and _emit_mixed, which LLVM's own judgement leaves as calls, are marked alwaysinline
-# (``helper``'s default).
+# speed (A/B in the commits). Inlined by numba still: _bit_context (the decoder's innermost
+# loop), and _around, _learn, _emit_mixed, which LLVM leaves as calls in the encoder or the
+# decoder: as LLVM-inlined helpers (shared.core.jit.helper), with the rANS renormalisation
+# (shared.compress._rans._next), the cloud decoder ran 2.5-3.5 % slower.
 @helper(inline=False)
 def _cell(key):
     """Index of a node in its region's map."""
@@ -148,7 +149,7 @@ def _neighbours(atlas, ci):
             | (((at(atlas, ci - PAD + PAD * PAD) >> 8) & 1) << 2) | (((at(atlas, ci - PAD - PAD * PAD) >> 8) & 1) << 3))
 
 
-@helper
+@kernel(inline="always")
 def _bit_context(b, cur, ncur, xm, ym, zm, xp, yp, zp, slabs):
     """The context of child bit ``b`` of a node whose bits below ``b`` are ``cur`` (``ncur``
     of them set), from its neighbours' map values and ``slabs`` (:func:`_slab_z`; see the
@@ -256,7 +257,7 @@ def _lat(v):
     return (v | (v >> 4)) & 15
 
 
-@helper
+@kernel(inline="always")
 def _around(atlas, rows, ci):
     """What the 26 nodes around a node tell a single child's x and y bits and the single-child
     flag: the occupied ones
@@ -346,7 +347,7 @@ def _fixed_next(s, bit):
     return np.uint32(p)
 
 
-@helper
+@kernel(inline="always")
 def _learn(models, sse, ca, cb, cc, cell, bit):
     """Adapt a mixed event's three models and its cell to ``bit``."""
     set_at(models, ca, state_next(at(models, ca), bit))
@@ -355,7 +356,7 @@ def _learn(models, sse, ca, cb, cc, cell, bit):
     set_at(sse, cell, _sse_next(at(sse, cell), bit))
 
 
-@helper
+@kernel(inline="always")
 def _emit_mixed(tab, val, nb, n, models, sse, axis, ca, cb, cc, bit, kind):
     """Append a mixed binary event (``axis`` 0 the x bit, 1 the y bit, 2 the single-child flag)
     coded with its cell's probability and adapt; -1 when the buffers are full (``kind``: as

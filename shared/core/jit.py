@@ -8,10 +8,12 @@ LLVM work on its own; for a small function they are most of its compile time (me
 numba 0.63 on this 2-core machine: 39 ms a trivial signature, 32 ms without the C wrapper,
 12 ms without either). A helper needs neither, and numba's ``inline="always"`` copies its IR
 into every call site and types it again there, which costs more than compiling it once:
-the range and cloud codecs' kernels compiled in 39.0-39.7 s with those, 28.5-29.8 s with
+the range and cloud codecs' kernels compiled in 39.0-39.9 s with those, 31.2-32.0 s with
 :func:`kernel` and :func:`helper` (numba's compile events from an empty cache, both codecs in
 one process as the warm-up runs them, three interleaved runs each), into code as fast (the
-same streams; LLVM inlines the helpers instead).
+same streams; LLVM inlines the helpers instead). Not everywhere: five functions on the cloud
+decoder's chain keep numba's inlining (``kernel(inline="always")``), since LLVM-inlined they
+left it 2.5-3.5 % slower (28.2-30.5 s of compilation with them as helpers).
 
 A helper has no Python entry point: calling one from Python would jump to no code, so
 :class:`HelperDispatcher` refuses such a call by name instead.
