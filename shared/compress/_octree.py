@@ -60,6 +60,8 @@ from __future__ import annotations
 
 import numpy as np
 
+# The map, contexts and models (split off by size); their constants are also read from here by
+# the tests and the prior's trainer (tests/bench/train_cloud_prior.py).
 from shared.compress._octree_ctx import (  # noqa: F401
     _CODED,
     _LAST_MIXED,
@@ -139,9 +141,6 @@ from shared.compress._rans import (
     zigzag,
 )
 from shared.core.bits import popcount
-
-# The map, contexts and models (split off by size); their constants are also read from here by
-# the tests and the prior's trainer (tests/bench/train_cloud_prior.py).
 from shared.core.jit import kernel
 from shared.core.morton import compact21, spread21
 
