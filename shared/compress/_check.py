@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.core.jit import helper, kernel
+from shared.core.jit import empty, helper, kernel
 
 #: A hole's bits (any NaN the decoder writes counts as this one).
 HOLE = np.uint32(0x7FC00000)
@@ -64,7 +64,7 @@ def output_check(bits):
 @helper
 def scratch(W):
     """A row of ``W`` float32 samples and its uint32 view: their bits (:func:`add_row`)."""
-    f32 = np.empty(W, np.float32)
+    f32 = empty(W, np.float32)
     return f32, f32.view(np.uint32)
 
 

@@ -65,7 +65,7 @@ from shared.compress._lpred import (
     _level_of,
 )
 from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
-from shared.core.jit import helper, kernel
+from shared.core.jit import helper, kernel, zeros
 
 #: Spacing of the coarsest grid.
 S0 = 16
@@ -213,12 +213,12 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt, s
     the reconstruction (``scale`` the fine unit), the band's check before it is folded.
     Returns the count (or -1 when the buffers are full)."""
     H, W = t.shape
-    rec = np.zeros((H, W), np.int64)
+    rec = zeros((H, W), np.int64)
     # the errors and residuals of the samples coded, int16 (clamped: a quarter of the memory
     # traffic; an error clamped at 32767 still puts its activity at the top level, and the
     # decoder clamps alike)
-    err = np.zeros((H, W), np.int16)
-    rr = np.zeros((H, W), np.int16)
+    err = zeros((H, W), np.int16)
+    rr = zeros((H, W), np.int16)
     half = FINE >> 1
     last = 0
     count = hist.shape[0] > 1
@@ -240,7 +240,7 @@ def interp_events(t, valid, tab, val, nb, n, t_res, fbw, sgn, cofs, hist, alt, s
             eprev = min(abs(v - p), E_LIM)
             rprev = r
             rr[y, x] = min(max(r, -I16), I16)
-    sc = np.zeros(NCAND, np.int64)  # each candidate weight's own feedback along the row
+    sc = zeros(NCAND, np.int64)  # each candidate weight's own feedback along the row
     s = S0
     lv = NLV - 1
     while s > 1:
@@ -315,9 +315,9 @@ def interp_decode(xa, xb, pos, words, nw, sym, fb, valid, cofs, cshift, sgn, fbw
     ``sgn``; in level mode the tables merged by ``cshift``) into ``out``
     (H, W) float32 (depth ``rec * scale``, NaN where invalid); returns (xa, xb, pos)."""
     H, W = valid.shape
-    rec = np.zeros((H, W), np.int64)
-    err = np.zeros((H, W), np.int16)
-    rr = np.zeros((H, W), np.int16)
+    rec = zeros((H, W), np.int64)
+    err = zeros((H, W), np.int16)
+    rr = zeros((H, W), np.int16)
     last = 0
     nan = np.float32(np.nan)
     for y in range(H):

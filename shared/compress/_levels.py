@@ -20,7 +20,7 @@ import numpy as np
 from shared.compress._lpred import MAX_COFS, NCTX, NLEVEL, NRES, NSUB
 from shared.compress._rans import NSYM
 from shared.compress._tables import table_bits
-from shared.core.jit import helper, kernel
+from shared.core.jit import empty, full, helper, kernel, zeros
 
 
 @helper(inline=False)
@@ -64,7 +64,7 @@ def context_choice(tab, val, nb, n0, n1, t0):
 def level_counts(tab, val, nb, n0, n1, t0):
     """The symbol counts (NLEVEL, NSYM) int64 of the residual events n0..n1-1 by activity level
     (their tables ``t0 + level``), and the escapes' raw bits (the same whatever the tables)."""
-    counts = np.zeros((NLEVEL, NSYM), np.int64)
+    counts = zeros((NLEVEL, NSYM), np.int64)
     raw = 0.0
     for i in range(n0, n1):
         t = tab[i] - t0
@@ -78,7 +78,7 @@ def level_counts(tab, val, nb, n0, n1, t0):
 @kernel
 def choice_of(counts, raw):
     """:func:`context_choice` of the residuals counted by :func:`level_counts`."""
-    merged = np.zeros((NCTX, NSYM), np.int64)
+    merged = zeros((NCTX, NSYM), np.int64)
     best = 1e300
     best_o = 0
     best_s = 0
@@ -110,7 +110,7 @@ def pattern_bits(alt, first, tab, nb, n0, n1, exact):
     :func:`level_partition` counts them); the escapes' raw bits taken as they are (a residual's
     sign changes them by at most one bit)."""
     m = alt.shape[0] // NLEVEL
-    counts = np.zeros((NRES, NSYM), np.int64)
+    counts = zeros((NRES, NSYM), np.int64)
     bits = 0.0
     for i in range(n0, n1):
         if tab[i] < 0:
@@ -158,7 +158,7 @@ def apply_levels(tab, n0, n1, t0, lut):
 def level_tables(cofs, cshift):
     """The table (NLEVEL,) int64 of each activity level: slid by ``cofs`` and merged by
     ``cshift`` (0..2, :func:`context_choice`)."""
-    lut = np.empty(NLEVEL, np.int64)
+    lut = empty(NLEVEL, np.int64)
     for lev in range(NLEVEL):
         lut[lev] = min(max(lev - cofs, 0), NCTX - 1) >> cshift
     return lut
@@ -168,7 +168,7 @@ def level_tables(cofs, cshift):
 def partition_tables(starts):
     """The table (NLEVEL,) int64 of each level from the flags ``starts`` (NLEVEL - 1,) of 0 or 1
     (1: level k + 1 starts a new table; the decoder checks them, as it reads them)."""
-    lut = np.zeros(NLEVEL, np.int64)
+    lut = zeros(NLEVEL, np.int64)
     for k in range(NLEVEL - 1):
         lut[k + 1] = lut[k] + starts[k]
     return lut
@@ -184,7 +184,7 @@ def level_partition(counts, raw):
     header's flags, coded either way; lut (NLEVEL,) int64). Where the
     sliding and merging of :func:`context_choice` keeps tables of a few hundred samples (a real
     capture's quiet levels: each stored at some hundreds of bits), neighbouring levels share one."""
-    used = np.zeros(NLEVEL, np.int64)  # the levels holding residuals
+    used = zeros(NLEVEL, np.int64)  # the levels holding residuals
     nu = 0
     for lev in range(NLEVEL):
         for s in range(NSYM):
@@ -192,12 +192,12 @@ def level_partition(counts, raw):
                 used[nu] = lev
                 nu += 1
                 break
-    lut = np.zeros(NLEVEL, np.int64)
+    lut = zeros(NLEVEL, np.int64)
     if nu == 0:
         return raw, lut
     # cost[i, j]: the used levels i..j in one table
-    cost = np.zeros((nu, nu))
-    acc = np.zeros((1, NSYM), np.int64)
+    cost = zeros((nu, nu), np.float64)
+    acc = zeros((1, NSYM), np.int64)
     for i in range(nu):
         for s in range(NSYM):
             acc[0, s] = 0
@@ -205,8 +205,8 @@ def level_partition(counts, raw):
             for s in range(NSYM):
                 acc[0, s] += counts[used[j], s]
             cost[i, j] = table_bits(acc)
-    best = np.full(nu + 1, 1e300)
-    first = np.zeros(nu + 1, np.int64)  # where the last run of used levels 0..j-1 starts
+    best = full(nu + 1, 1e300, np.float64)
+    first = zeros(nu + 1, np.int64)  # where the last run of used levels 0..j-1 starts
     best[0] = 0.0
     for j in range(1, nu + 1):
         for i in range(j):
@@ -216,7 +216,7 @@ def level_partition(counts, raw):
                 first[j] = i
     # the runs from the top down, then each level's table counted from the bottom: a level
     # holding no residual takes the table of the next used level above it (the last, past them)
-    run_of = np.zeros(nu, np.int64)
+    run_of = zeros(nu, np.int64)
     j = nu
     runs = 0
     while j > 0:

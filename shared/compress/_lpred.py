@@ -47,7 +47,7 @@ from shared.compress._ls import ls_predict
 from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
 from shared.compress._rows import F_SHIFT, FINE, MINB, fill_row, first_row, row_prediction, target_row
 from shared.compress._wp import wp_hole, wp_predict, wp_update
-from shared.core.jit import helper, kernel
+from shared.core.jit import helper, kernel, zeros
 
 #: Residual predictors a leaf may choose (see :func:`local_pred`; :data:`K_WP` is the weighted
 #: predictor of :mod:`shared.compress._wp` and :data:`K_LS` the least-squares predictor of
@@ -168,9 +168,9 @@ def local_cost_integral(t, valid, lossless):
     clamped) under LOCO-I's median predictor over the targets ``t``: the quadtree's estimate of
     what local prediction would cost in a block (:func:`local_bits`)."""
     H, W = t.shape
-    S = np.zeros((H + 1, W + 1), np.int64)
-    ra = np.zeros(W + 3, np.int64)
-    rb = np.zeros(W + 3, np.int64)
+    S = zeros((H + 1, W + 1), np.int64)
+    ra = zeros(W + 3, np.int64)
+    rb = zeros(W + 3, np.int64)
     # open loop: the targets themselves (measured better than rounding them in bounded mode),
     # the first row its own row above
     first_row(ra, t[0], valid, W)
@@ -227,10 +227,10 @@ def choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw,
             if not (some and known[i]):
                 for k in range(K_WP):
                     cost[i, k] = 0
-        pf = np.zeros(W, np.int64)
-        kr = np.zeros(W, np.int64)
-        ra = np.zeros(W + 3, np.int64)
-        rb = np.zeros(W + 3, np.int64)
+        pf = zeros(W, np.int64)
+        kr = zeros(W, np.int64)
+        ra = zeros(W + 3, np.int64)
+        rb = zeros(W + 3, np.int64)
         for y in range(H):
             target_row(y, t, valid, cells, leaves, lcoef, pf, kr, ra, rb)
             cy = y // MINB
@@ -282,12 +282,12 @@ def feedback_weights(t, valid, cells, leaves, lcoef, pw, pls):
     and least-squares predictors' predictions where a leaf takes them (:func:`wp_band`,
     :func:`shared.compress._ls.ls_band`)."""
     H, W = t.shape
-    pf = np.zeros(W, np.int64)
-    kr = np.zeros(W, np.int64)
-    ra = np.zeros(W + 3, np.int64)
-    rb = np.zeros(W + 3, np.int64)
-    ea = np.zeros(W + 3, np.float64)
-    eb = np.zeros(W + 3, np.float64)
+    pf = zeros(W, np.int64)
+    kr = zeros(W, np.int64)
+    ra = zeros(W + 3, np.int64)
+    rb = zeros(W + 3, np.int64)
+    ea = zeros(W + 3, np.float64)
+    eb = zeros(W + 3, np.float64)
     sww = swn = snn = swe = sne = 0.0
     lim = float(64 * FINE)
     for y in range(H):
@@ -390,17 +390,17 @@ def wp_band(t, valid, cells, leaves, lcoef):
     """The weighted predictor over a band's targets (lossless mode: they are the reconstruction):
     its prediction (H, W) int64 and its largest neighbour error (H, W) int64, fine units."""
     H, W = t.shape
-    pw = np.zeros((H, W), np.int64)
-    pe = np.zeros((H, W), np.int64)
-    pf = np.zeros(W, np.int64)
-    kr = np.zeros(W, np.int64)
-    ra = np.zeros(W + 3, np.int64)
-    rb = np.zeros(W + 3, np.int64)
-    err_a = np.zeros((4, W + 4), np.int64)
-    err_b = np.zeros((4, W + 4), np.int64)
-    te_a = np.zeros(W + 4, np.int64)
-    te_b = np.zeros(W + 4, np.int64)
-    sub = np.zeros(4, np.int64)
+    pw = zeros((H, W), np.int64)
+    pe = zeros((H, W), np.int64)
+    pf = zeros(W, np.int64)
+    kr = zeros(W, np.int64)
+    ra = zeros(W + 3, np.int64)
+    rb = zeros(W + 3, np.int64)
+    err_a = zeros((4, W + 4), np.int64)
+    err_b = zeros((4, W + 4), np.int64)
+    te_a = zeros(W + 4, np.int64)
+    te_b = zeros(W + 4, np.int64)
+    sub = zeros(4, np.int64)
     for y in range(H):
         if y == 0:
             row_prediction(y, W, cells, leaves, lcoef, pf, kr)
@@ -444,19 +444,19 @@ def encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, bias, aw, a
     unit) makes the decoder's samples: the band's check before it is folded.
     Returns the count (or -1 when the buffers are full)."""
     H, W = t.shape
-    pf = np.zeros(W, np.int64)
-    kr = np.zeros(W, np.int64)
-    ra = np.zeros(W + 3, np.int64)  # reconstructed samples (fine units) of the row above, padded
-    rb = np.zeros(W + 3, np.int64)
-    ea = np.zeros(W + 3, np.int64)  # |prediction error| (fine units) of the row above
-    eb = np.zeros(W + 3, np.int64)
-    sa = np.zeros(W + 3, np.int64)  # signed errors of the local predictors (feedback), row above
-    sb = np.zeros(W + 3, np.int64)
-    qa = np.zeros(W + 3, np.int64)  # residuals (quanta) of the row above (sign contexts)
-    qb = np.zeros(W + 3, np.int64)
-    bsum = np.zeros(NBIAS, np.int64)
-    bcnt = np.zeros(NBIAS, np.int64)
-    bcor = np.zeros(NBIAS, np.int64)
+    pf = zeros(W, np.int64)
+    kr = zeros(W, np.int64)
+    ra = zeros(W + 3, np.int64)  # reconstructed samples (fine units) of the row above, padded
+    rb = zeros(W + 3, np.int64)
+    ea = zeros(W + 3, np.int64)  # |prediction error| (fine units) of the row above
+    eb = zeros(W + 3, np.int64)
+    sa = zeros(W + 3, np.int64)  # signed errors of the local predictors (feedback), row above
+    sb = zeros(W + 3, np.int64)
+    qa = zeros(W + 3, np.int64)  # residuals (quanta) of the row above (sign contexts)
+    qb = zeros(W + 3, np.int64)
+    bsum = zeros(NBIAS, np.int64)
+    bcnt = zeros(NBIAS, np.int64)
+    bcor = zeros(NBIAS, np.int64)
     grad = (opts & OPT_GRAD) != 0
     errs = (opts & OPT_ERR) != 0
     count_alt = sc == 0 and alt.shape[0] > 1
@@ -568,25 +568,25 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
     weights ``lsw`` (NLS,) int64 for the leaves that take them, the curvature in the activity
     when ``grad``; returns (xa, xb, pos)."""
     H, W = valid.shape
-    pf = np.zeros(W, np.int64)
-    kr = np.zeros(W, np.int64)
-    ra = np.zeros(W + 3, np.int64)
-    rb = np.zeros(W + 3, np.int64)
-    rc = np.zeros(W + 3, np.int64)  # the row two above (the least-squares predictor)
-    ea = np.zeros(W + 3, np.int64)
-    eb = np.zeros(W + 3, np.int64)
-    sa = np.zeros(W + 3, np.int64)
-    sb = np.zeros(W + 3, np.int64)
-    qa = np.zeros(W + 3, np.int64)
-    qb = np.zeros(W + 3, np.int64)
-    bsum = np.zeros(NBIAS, np.int64)
-    bcnt = np.zeros(NBIAS, np.int64)
-    bcor = np.zeros(NBIAS, np.int64)
-    err_a = np.zeros((4, W + 4), np.int64)  # the weighted predictor's state (shared.compress._wp)
-    err_b = np.zeros((4, W + 4), np.int64)
-    te_a = np.zeros(W + 4, np.int64)
-    te_b = np.zeros(W + 4, np.int64)
-    sub = np.zeros(4, np.int64)
+    pf = zeros(W, np.int64)
+    kr = zeros(W, np.int64)
+    ra = zeros(W + 3, np.int64)
+    rb = zeros(W + 3, np.int64)
+    rc = zeros(W + 3, np.int64)  # the row two above (the least-squares predictor)
+    ea = zeros(W + 3, np.int64)
+    eb = zeros(W + 3, np.int64)
+    sa = zeros(W + 3, np.int64)
+    sb = zeros(W + 3, np.int64)
+    qa = zeros(W + 3, np.int64)
+    qb = zeros(W + 3, np.int64)
+    bsum = zeros(NBIAS, np.int64)
+    bcnt = zeros(NBIAS, np.int64)
+    bcor = zeros(NBIAS, np.int64)
+    err_a = zeros((4, W + 4), np.int64)  # the weighted predictor's state (shared.compress._wp)
+    err_b = zeros((4, W + 4), np.int64)
+    te_a = zeros(W + 4, np.int64)
+    te_b = zeros(W + 4, np.int64)
+    sub = zeros(4, np.int64)
     half = FINE >> 1
     nan = np.float32(np.nan)
     sh = F_SHIFT if lossless else 0

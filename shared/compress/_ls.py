@@ -32,7 +32,7 @@ import numpy as np
 
 from shared.compress._rans import at
 from shared.compress._rows import FINE, fill_row, target_row
-from shared.core.jit import helper, kernel
+from shared.core.jit import empty, helper, kernel, zeros
 
 #: Neighbours of a sample (rows above, column offset): W, NW, NE, WW, NWW, NEE, NN, NNW, NNE,
 #: WWW, NNWW, NNEE, then the row above out to 3 and 4 columns (N is the origin of the
@@ -117,11 +117,11 @@ def ls_rows(t, valid, cells, leaves, lcoef, w, pred, rows):
     the reconstruction), the rows kept as the decoder keeps them; the first ``rows`` rows only."""
     H, W = t.shape
     H = min(H, rows)
-    pf = np.zeros(W, np.int64)
-    kr = np.zeros(W, np.int64)
-    ra = np.zeros(W + 3, np.int64)
-    rb = np.zeros(W + 3, np.int64)
-    rc = np.zeros(W + 3, np.int64)
+    pf = zeros(W, np.int64)
+    kr = zeros(W, np.int64)
+    ra = zeros(W + 3, np.int64)
+    rb = zeros(W + 3, np.int64)
+    rc = zeros(W + 3, np.int64)
     for y in range(H):
         target_row(y, t, valid, cells, leaves, lcoef, pf, kr, ra, rb)
         if y == 0:
@@ -142,12 +142,12 @@ def ls_samples(t, valid, x0, x1):
     of them filled, and n."""
     H, W = t.shape
     cap = ((H + STEP - 1) // STEP) * (x1 - x0)
-    F = np.empty((cap, NLS))
-    e = np.empty(cap)
-    f = np.zeros(NLS, np.int64)
-    ra = np.zeros(W + 3, np.int64)
-    rb = np.zeros(W + 3, np.int64)
-    rc = np.zeros(W + 3, np.int64)
+    F = empty((cap, NLS), np.float64)
+    e = empty(cap, np.float64)
+    f = zeros(NLS, np.int64)
+    ra = zeros(W + 3, np.int64)
+    rb = zeros(W + 3, np.int64)
+    rc = zeros(W + 3, np.int64)
     n = 0
     for y in range(H):
         for x in range(W):

@@ -38,7 +38,7 @@ from shared.compress._rans import (
     put,
     put_value,
 )
-from shared.core.jit import helper, kernel
+from shared.core.jit import empty, full, helper, kernel, zeros
 
 #: Tables (set by :mod:`shared.compress._quadtree`): the run lengths by state, the edges by state.
 T_RUN = 8
@@ -71,9 +71,9 @@ def encode_mask(valid, tab, val, nb, n, t_edge):
     """Append the events of the mask ``valid`` (H, W) bool after event ``n``; returns the count
     (or -1 when the buffers are full)."""
     H, W = valid.shape
-    ref = np.empty((2, W + 2), np.int64)
-    j = np.zeros(2, np.int64)  # cursors into ref[0] and ref[1]
-    cur = np.empty((2, W + 2), np.int64)
+    ref = empty((2, W + 2), np.int64)
+    j = zeros(2, np.int64)  # cursors into ref[0] and ref[1]
+    cur = empty((2, W + 2), np.int64)
     ref[0, 0] = W  # the row above the first: no runs
     ref[1, 0] = W
     for y in range(H):
@@ -118,9 +118,9 @@ def decode_mask(xa, xb, pos, words, nw, sym, fb, valid, t_edge):
     """Inverse of :func:`encode_mask` into ``valid`` (H, W) bool (all False on entry); returns
     (ok, xa, xb, pos), ok False for a corrupt stream."""
     H, W = valid.shape
-    ref = np.empty((2, W + 2), np.int64)
-    j = np.zeros(2, np.int64)  # cursors into ref[0] and ref[1]
-    cur = np.empty((2, W + 2), np.int64)
+    ref = empty((2, W + 2), np.int64)
+    j = zeros(2, np.int64)  # cursors into ref[0] and ref[1]
+    cur = empty((2, W + 2), np.int64)
     ref[0, 0] = W
     ref[1, 0] = W
     for y in range(H):
@@ -182,8 +182,8 @@ def _template(r0, r1, r2, i):
 def _ctx_state(W):
     """The context coder's state at a band's start: its models, and its three padded rows
     (W + 4,) int64 (the current one and the two above; holes above the band and past its sides)."""
-    return (np.full(NCTX_MASK, MODEL_INIT, np.uint32), np.zeros(W + 4, np.int64), np.zeros(W + 4, np.int64),
-            np.zeros(W + 4, np.int64))
+    return (full(NCTX_MASK, MODEL_INIT, np.uint32), zeros(W + 4, np.int64), zeros(W + 4, np.int64),
+            zeros(W + 4, np.int64))
 
 
 @kernel

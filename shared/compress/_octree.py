@@ -141,7 +141,7 @@ from shared.compress._rans import (
     zigzag,
 )
 from shared.core.bits import popcount
-from shared.core.jit import kernel
+from shared.core.jit import empty, kernel, zeros
 from shared.core.morton import compact21, spread21
 
 T_DUPF = 0  # any voxel holding more than one point?
@@ -157,7 +157,7 @@ MAX_DEPTH = 21
 def morton(q):
     """Morton codes (N,) int64 of non-negative integer coordinates (N, 3) below 2**21 (x lowest)."""
     n = q.shape[0]
-    out = np.empty(n, np.int64)
+    out = empty(n, np.int64)
     for i in range(n):
         out[i] = spread21(q[i, 0]) | (spread21(q[i, 1]) << 1) | (spread21(q[i, 2]) << 2)
     return out
@@ -197,17 +197,17 @@ def _levels(vox, depth):
     for _ in range(depth):
         prev = tmp[-1]
         m = 0
-        nxt = np.empty(prev.shape[0], np.int64)
+        nxt = empty(prev.shape[0], np.int64)
         for i in range(prev.shape[0]):
             k = prev[i] >> 3
             if m == 0 or nxt[m - 1] != k:
                 nxt[m] = k
                 m += 1
         tmp.append(nxt[:m])
-    starts = np.zeros(depth + 2, np.int64)
+    starts = zeros(depth + 2, np.int64)
     for d in range(depth + 1):
         starts[d + 1] = starts[d] + tmp[depth - d].shape[0]
-    levels = np.empty(starts[depth + 1], np.int64)
+    levels = empty(starts[depth + 1], np.int64)
     for d in range(depth + 1):
         lev = tmp[depth - d]
         for i in range(lev.shape[0]):
@@ -220,11 +220,11 @@ def _events(levels, starts, counts, depth, chan, log2d, tab, val, nb):
     """Every event of one chunk: child bits level by level, duplicate counts (when any voxel
     holds more than one point), attribute channels. -1 when the buffers are too small."""
     n = np.int64(0)  # not the literal 0: _emit is compiled for int64 alone
-    cells = np.empty(counts.shape[0], np.int64)
-    models = np.empty(N_MODELS, np.uint32)
-    sse = np.empty(N_SSE, np.uint32)
-    atlas = np.zeros(PAD * PAD * PAD, np.int16)
-    rows = np.zeros(MAP_ROWS, np.uint64)
+    cells = empty(counts.shape[0], np.int64)
+    models = empty(N_MODELS, np.uint32)
+    sse = empty(N_SSE, np.uint32)
+    atlas = zeros(PAD * PAD * PAD, np.int16)
+    rows = zeros(MAP_ROWS, np.uint64)
     prior = _prior_states()
     for d in range(depth):
         _restart(models, sse, prior)

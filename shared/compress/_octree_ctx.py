@@ -22,7 +22,7 @@ from shared.compress._rans import (
     state_p,
 )
 from shared.core.bits import popcount
-from shared.core.jit import helper, kernel
+from shared.core.jit import empty, helper, kernel
 from shared.core.morton import compact21
 
 #: Neighbour regions: 2**REGION_LOG nodes a side, mapped with an empty border (no bounds
@@ -376,7 +376,7 @@ def _prior_states():
     """Every model's first state, (N_MODELS,) uint32: the probability of a one of its group in
     :data:`shared.compress._octree_prior.PRIOR_P12` (16 bits), a count of zero. Built once a chunk
     (a few hundred microseconds: the table in the source is 13 k groups, not 400 k models)."""
-    out = np.empty(N_MODELS, np.uint32)
+    out = empty(N_MODELS, np.uint32)
     g = 0
     for r in range(PRIOR_SHIFTS.shape[0]):
         a = PRIOR_BOUNDS[r]

@@ -52,7 +52,7 @@ from shared.compress._rans import (
 )
 from shared.compress._rows import A_SHIFT, F_SHIFT, FINE, MINB, Q_SHIFT
 from shared.compress._tables import pack_codes, quantise_tables
-from shared.core.jit import helper, kernel
+from shared.core.jit import empty, full, helper, kernel, zeros
 
 TOP = 64  # top block size (a band's height is a multiple of it)
 NCTX = lp.NCTX
@@ -428,21 +428,21 @@ def _encode_tree(t, valid, lossless, opts, margin, share, tab, val, nb, leaves, 
     # 2. the quadtree with its leaves' models
     local = (opts & lp.OPT_PRED) != 0
     nleaf = 0
-    st_xyb = np.empty((64, 4), np.int64)  # x0, y0, B, level
-    st_fit = np.empty((64, 6), np.int64)
-    st_m = np.empty(64, np.int64)
-    st_cost = np.empty(64, np.float64)
+    st_xyb = empty((64, 4), np.int64)  # x0, y0, B, level
+    st_fit = empty((64, 6), np.int64)
+    st_m = empty(64, np.int64)
+    st_cost = empty(64, np.float64)
     pm = 0
-    pc = np.zeros(6, np.int64)
+    pc = zeros(6, np.int64)
     px = 0
     py = 0
     pB = TOP
-    pred = np.zeros(6, np.int64)
-    coef = np.zeros(6, np.int64)
-    kids = np.zeros((4, 6), np.int64)
-    kid_m = np.zeros(4, np.int64)
-    kid_cost = np.zeros(4)
-    ws = np.empty(WS_SIZE)
+    pred = zeros(6, np.int64)
+    coef = zeros(6, np.int64)
+    kids = zeros((4, 6), np.int64)
+    kid_m = zeros(4, np.int64)
+    kid_cost = zeros(4, np.float64)
+    ws = empty(WS_SIZE, np.float64)
     for ty in range(0, H, TOP):
         for tx in range(0, W, TOP):
             m, cost, cnt = _memo_node(t, valid, S, np.int64(ty), np.int64(tx), np.int64(TOP), np.int64(0), coef, ws, local,
@@ -559,8 +559,8 @@ def quantise(z, scale, lossless):
     """Fine-unit targets of a band of depth ``z`` (float32, NaN holes) and its mask: lossless,
     ``round(z / scale) * FINE``; bounded, ``round(z / scale)`` (scale is then the fine unit)."""
     H, W = z.shape
-    t = np.zeros((H, W), np.int64)
-    valid = np.zeros((H, W), np.bool_)
+    t = zeros((H, W), np.int64)
+    valid = zeros((H, W), np.bool_)
     for y in range(H):
         for x in range(W):
             v = z[y, x]
@@ -610,8 +610,8 @@ def _cell_integral(valid):
     H, W = valid.shape
     ch = (H + MINB - 1) // MINB
     cw = (W + MINB - 1) // MINB
-    occ = np.zeros(cw, np.int32)
-    ii = np.zeros((ch + 1, cw + 1), np.int32)
+    occ = zeros(cw, np.int32)
+    ii = zeros((ch + 1, cw + 1), np.int32)
     for cy in range(ch):
         occ[:] = 0
         for y in range(cy * MINB, min(cy * MINB + MINB, H)):
@@ -636,13 +636,13 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
     H, W = valid.shape
     ii = _cell_integral(valid)
     nleaf = 0
-    stack = np.empty((64, 4), np.int64)
+    stack = empty((64, 4), np.int64)
     pm = 0
-    pc = np.zeros(6, np.int64)
+    pc = zeros(6, np.int64)
     px = 0
     py = 0
     pB = TOP
-    pred = np.zeros(6, np.int64)
+    pred = zeros(6, np.int64)
     for ty in range(0, H, TOP):
         for tx in range(0, W, TOP):
             if _count(ii, ty, tx, np.int64(TOP), H, W) == 0:
@@ -736,7 +736,7 @@ def _leaf_cells(H, W, leaves, nleaf):
     """Which leaf covers each MINB x MINB cell: (ceil(H / MINB), ceil(W / MINB)) int32, -1 for none."""
     ch = (H + MINB - 1) // MINB
     cw = (W + MINB - 1) // MINB
-    cells = np.full((ch, cw), -1, np.int32)
+    cells = full((ch, cw), -1, np.int32)
     for i in range(nleaf):
         cx0 = leaves[i, 0] // MINB
         cy0 = leaves[i, 1] // MINB

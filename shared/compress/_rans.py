@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.core.jit import helper, kernel
+from shared.core.jit import empty, full, helper, kernel, zeros
 
 #: Frequency precision: probabilities are multiples of 2**-PROB_BITS.
 PROB_BITS = 12
@@ -132,7 +132,7 @@ def unzigzag(u: np.uint64) -> np.int64:
 
 @kernel
 def count_symbols(tab, val, n, ntables):
-    counts = np.zeros((ntables, NSYM), np.int64)
+    counts = zeros((ntables, NSYM), np.int64)
     for i in range(n):
         t = tab[i]
         if t >= 0:
@@ -144,7 +144,7 @@ def count_symbols(tab, val, n, ntables):
 def normalise(counts):
     """Frequencies summing to PROB_SCALE per used table, every counted symbol at least 1."""
     nt, ns = counts.shape
-    freq = np.zeros((nt, ns), np.int32)
+    freq = zeros((nt, ns), np.int32)
     for t in range(nt):
         total = 0
         used = 0
@@ -191,15 +191,15 @@ def encode_events(tab, val, nb, n, freq):
     doubles the decoder's instruction-level parallelism), in reverse; returns the 16-bit
     words in decoding order."""
     nt, ns = freq.shape
-    cum = np.zeros((nt, ns), np.int64)
+    cum = zeros((nt, ns), np.int64)
     for t in range(nt):
         c = 0
         for s in range(ns):
             cum[t, s] = c
             c += freq[t, s]
-    out = np.empty(n + 8, np.uint16)
+    out = empty(n + 8, np.uint16)
     pos = out.shape[0]
-    st = np.full(2, RANS_L, np.int64)
+    st = full(2, RANS_L, np.int64)
     for i in range(n - 1, -1, -1):
         t = tab[i]
         if t >= 0:
@@ -236,8 +236,8 @@ def encode_events(tab, val, nb, n, freq):
 def decode_tables(freq):
     """Per table and slot: the symbol, and ``freq << 16 | (slot - cum)`` packed in 32 bits."""
     nt, ns = freq.shape
-    sym = np.zeros((nt, PROB_SCALE), np.int16)
-    fb = np.zeros((nt, PROB_SCALE), np.uint32)
+    sym = zeros((nt, PROB_SCALE), np.int16)
+    fb = zeros((nt, PROB_SCALE), np.uint32)
     for t in range(nt):
         c = 0
         for s in range(ns):
@@ -420,7 +420,7 @@ def pack_tables(freq):
     """Serialise the frequency tables: per table a varint count of its symbols up to the last
     used one (0 for an unused table), then each frequency as a varint."""
     nt, ns = freq.shape
-    out = np.empty(nt * (ns * 3 + 3), np.uint8)
+    out = empty(nt * (ns * 3 + 3), np.uint8)
     n = 0
     for t in range(nt):
         last = -1
@@ -450,7 +450,7 @@ def pack_tables(freq):
 @kernel
 def unpack_tables(buf, ntables):
     """Inverse of :func:`pack_tables`; returns (freq, bytes read) or (freq, -1) when malformed."""
-    freq = np.zeros((ntables, NSYM), np.int32)
+    freq = zeros((ntables, NSYM), np.int32)
     n = 0
     for t in range(ntables):
         v = 0

@@ -18,7 +18,7 @@ import math
 import numpy as np
 
 from shared.compress._rans import NSYM, PROB_BITS, bitlen, normalise
-from shared.core.jit import helper, kernel
+from shared.core.jit import helper, kernel, zeros
 
 #: Codes per octave of frequency.
 LQ = 8
@@ -33,8 +33,8 @@ def quantise_tables(freq):
     """The codes (nt, NSYM) int64 of normalised frequencies ``freq`` (nt, NSYM) and the
     frequencies the decoder rebuilds from them (what the coder must use)."""
     nt, ns = freq.shape
-    codes = np.zeros((nt, ns), np.int64)
-    w = np.zeros((nt, ns), np.int64)
+    codes = zeros((nt, ns), np.int64)
+    w = zeros((nt, ns), np.int64)
     for t in range(nt):
         for s in range(ns):
             f = freq[t, s]
@@ -66,7 +66,7 @@ def pack_codes(codes):
     """Serialise the tables' codes: per table the gamma code of its symbol count up to the last
     used one (0: unused), then each code's zigzagged difference from the previous one."""
     nt, ns = codes.shape
-    buf = np.zeros(nt * (ns + 1) * 4 + 16, np.uint8)
+    buf = zeros(nt * (ns + 1) * 4 + 16, np.uint8)
     nbit = np.int64(0)  # not the literal 0: the gamma coder is compiled for int64 alone
     for t in range(nt):
         last = -1
@@ -108,27 +108,27 @@ def unpack_codes(buf, ntables):
     """Inverse of :func:`pack_codes` and :func:`quantise_tables`: (freq (ntables, NSYM) int32,
     bytes read), or (freq, -1) when malformed (a code out of range, a used table's last symbol
     absent, nonzero padding)."""
-    w = np.zeros((ntables, NSYM), np.int64)
+    w = zeros((ntables, NSYM), np.int64)
     nbit = np.int64(0)  # not the literal 0: the gamma coder is compiled for int64 alone
     for t in range(ntables):
         cnt, nbit = _get_gamma(buf, nbit)
         if cnt < 0 or cnt > NSYM:
-            return np.zeros((ntables, NSYM), np.int32), -1
+            return zeros((ntables, NSYM), np.int32), -1
         c = 0
         for s in range(cnt):
             u, nbit = _get_gamma(buf, nbit)
             if u < 0:
-                return np.zeros((ntables, NSYM), np.int32), -1
+                return zeros((ntables, NSYM), np.int32), -1
             c += (u >> 1) if (u & 1) == 0 else -((u + 1) >> 1)
             if c < 0 or c > C_MAX:
-                return np.zeros((ntables, NSYM), np.int32), -1
+                return zeros((ntables, NSYM), np.int32), -1
             w[t, s] = EXP_LUT[c]
         if cnt > 0 and c == 0:
-            return np.zeros((ntables, NSYM), np.int32), -1
+            return zeros((ntables, NSYM), np.int32), -1
     nbytes = (nbit + 7) >> 3
     while nbit < nbytes * 8:
         if (buf[nbit >> 3] >> (7 - (nbit & 7))) & 1:
-            return np.zeros((ntables, NSYM), np.int32), -1
+            return zeros((ntables, NSYM), np.int32), -1
         nbit += 1
     return normalise(w), nbytes
 

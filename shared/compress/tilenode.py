@@ -47,7 +47,7 @@ import zlib
 import numpy as np
 
 from shared.core.errors import InputError
-from shared.core.jit import kernel
+from shared.core.jit import empty, kernel, zeros
 from shared.core.morton import spread21
 
 #: The metadata.json ``encoding`` of tiles whose nodes this module codes.
@@ -109,7 +109,7 @@ def _codec_dtype(dtype: np.dtype, where: str = "records") -> np.dtype:
 def _keys(pos: np.ndarray, origin: np.ndarray, drop: int) -> np.ndarray:
     """(N,) uint64 Morton keys (x the high bit of a triple) of ``(pos - origin) >> drop``."""
     n = pos.shape[0]
-    out = np.empty(n, np.uint64)
+    out = empty(n, np.uint64)
     for i in range(n):
         x = (np.int64(pos[i, 0]) - origin[0]) >> drop
         y = (np.int64(pos[i, 1]) - origin[1]) >> drop
@@ -121,11 +121,11 @@ def _keys(pos: np.ndarray, origin: np.ndarray, drop: int) -> np.ndarray:
 @kernel
 def _cells_per_level(keys: np.ndarray, levels: int) -> np.ndarray:
     """(levels + 1,) int64: occupied cells at every level 0..levels of sorted ``keys``."""
-    cells = np.zeros(levels + 1, np.int64)
+    cells = zeros(levels + 1, np.int64)
     n = keys.shape[0]
     if n == 0:
         return cells
-    split = np.zeros(levels + 1, np.int64)  # pairs of neighbours first apart at that level
+    split = zeros(levels + 1, np.int64)  # pairs of neighbours first apart at that level
     for i in range(1, n):
         d = keys[i] ^ keys[i - 1]
         if d == 0:
@@ -150,7 +150,7 @@ def _geometry(pos: np.ndarray, origin: np.ndarray, keys: np.ndarray, order: np.n
     Morton keys at ``levels`` levels, ``order`` the sorting permutation of ``pos``."""
     n = keys.shape[0]
     total = 0
-    occ = np.zeros(max(1, n * depth + 1), np.uint8)
+    occ = zeros(max(1, n * depth + 1), np.uint8)
     for lv in range(depth):
         s_node = np.uint64(3 * (levels - lv))
         s_child = np.uint64(3 * (levels - lv - 1))
@@ -163,7 +163,7 @@ def _geometry(pos: np.ndarray, origin: np.ndarray, keys: np.ndarray, order: np.n
                 i += 1
             occ[total] = b
             total += 1
-    counts = np.zeros(max(1, 5 * n), np.uint8)
+    counts = zeros(max(1, 5 * n), np.uint8)
     nc = 0
     cells = 0
     s_leaf = np.uint64(3 * (levels - depth))
@@ -183,7 +183,7 @@ def _geometry(pos: np.ndarray, origin: np.ndarray, keys: np.ndarray, order: np.n
         cells += 1
         i = j
     nb = (k + 7) // 8
-    offsets = np.empty(3 * nb * n, np.uint8)
+    offsets = empty(3 * nb * n, np.uint8)
     mask = np.int64((1 << k) - 1)
     for a in range(3):
         for i in range(n):
@@ -199,7 +199,7 @@ def _colour_planes(rgb: np.ndarray, order: np.ndarray, eight: bool) -> np.ndarra
     (mod 256 for 8-bit colour = value / 257, else mod 65536 as a low and a high byte plane)."""
     n = order.shape[0]
     planes = 3 if eight else 6
-    out = np.empty(planes * n, np.uint8)
+    out = empty(planes * n, np.uint8)
     pg = pr = pb = 0
     for i in range(n):
         p = order[i]
@@ -229,7 +229,7 @@ def _float_planes(bits: np.ndarray, order: np.ndarray) -> np.ndarray:
     difference from the previous point's, as four byte planes (low byte first)."""
     n = order.shape[0]
     ncol = bits.shape[1]
-    out = np.empty(4 * ncol * n, np.uint8)
+    out = empty(4 * ncol * n, np.uint8)
     for c in range(ncol):
         prev = np.int64(0)
         base = 4 * c * n
@@ -249,9 +249,9 @@ def _float_planes(bits: np.ndarray, order: np.ndarray) -> np.ndarray:
 def _decode_geometry(occ: np.ndarray, counts: np.ndarray, offsets: np.ndarray, origin: np.ndarray,
                      depth: int, k: int, ncells: int, n: int) -> np.ndarray:  # fmt: skip
     """(n, 3) int32 positions from the geometry streams; raises ValueError when they disagree."""
-    cx = np.zeros(1, np.int64)
-    cy = np.zeros(1, np.int64)
-    cz = np.zeros(1, np.int64)
+    cx = zeros(1, np.int64)
+    cy = zeros(1, np.int64)
+    cz = zeros(1, np.int64)
     at = 0
     for _lv in range(depth):
         m = cx.shape[0]
@@ -265,9 +265,9 @@ def _decode_geometry(occ: np.ndarray, counts: np.ndarray, offsets: np.ndarray, o
             for j in range(8):
                 if b & (1 << j):
                     nxt += 1
-        nx = np.empty(nxt, np.int64)
-        ny = np.empty(nxt, np.int64)
-        nz = np.empty(nxt, np.int64)
+        nx = empty(nxt, np.int64)
+        ny = empty(nxt, np.int64)
+        nz = empty(nxt, np.int64)
         w = 0
         for i in range(m):
             b = occ[at + i]
@@ -281,7 +281,7 @@ def _decode_geometry(occ: np.ndarray, counts: np.ndarray, offsets: np.ndarray, o
         cx, cy, cz = nx, ny, nz
     if at != occ.shape[0] or cx.shape[0] != ncells:
         raise ValueError("occupancy stream does not match the cell count")
-    out = np.empty((n, 3), np.int32)
+    out = empty((n, 3), np.int32)
     p = 0
     c_at = 0
     nb = (k + 7) // 8
@@ -317,7 +317,7 @@ def _decode_geometry(occ: np.ndarray, counts: np.ndarray, offsets: np.ndarray, o
 
 @kernel
 def _decode_colour(planes: np.ndarray, n: int, eight: bool) -> np.ndarray:
-    out = np.empty((n, 3), np.uint16)
+    out = empty((n, 3), np.uint16)
     m = 0xFF if eight else 0xFFFF
     g = r = b = 0
     for i in range(n):
@@ -337,7 +337,7 @@ def _decode_colour(planes: np.ndarray, n: int, eight: bool) -> np.ndarray:
 
 @kernel
 def _decode_floats(planes: np.ndarray, n: int, ncol: int) -> np.ndarray:
-    out = np.empty((n, ncol), np.uint32)
+    out = empty((n, ncol), np.uint32)
     for c in range(ncol):
         base = 4 * c * n
         prev = np.int64(0)

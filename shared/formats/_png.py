@@ -28,6 +28,8 @@ import zlib
 import numba
 import numpy as np
 
+from shared.core.jit import zeros
+
 log = logging.getLogger(__name__)
 
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
@@ -90,7 +92,7 @@ def _unfilter(raw, h, rb, bpp, out):  # pragma: no cover
     """Undo the PNG row filters. raw: (h * (rb + 1),) uint8, each row's filter byte then its
     rb bytes; bpp: bytes per pixel (filter distance); out: (h, rb) uint8. Returns False on an
     unknown filter type."""
-    zero = np.zeros(rb, np.uint8)
+    zero = zeros(rb, np.uint8)
     for y in range(h):
         f = raw[y * (rb + 1)]
         src = raw[y * (rb + 1) + 1 : (y + 1) * (rb + 1)]

@@ -12,6 +12,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from shared.core.jit import full
+
 
 @numba.njit(cache=True, nogil=True)
 def free_space_violations(xyz, size, rel, K, dist, zmin, size_k, tol_factor, tol_mm, bad):  # pragma: no cover
@@ -66,8 +68,8 @@ def cell_keys(xyz, size, normals, s0, cell_factor, keys, level):  # pragma: no c
     offset to start at 0) and level (N,) int64 (not offset).
     """
     n = xyz.shape[0]
-    lo = np.full(3, np.iinfo(np.int64).max, np.int64)
-    hi = np.full(3, np.iinfo(np.int64).min, np.int64)
+    lo = full(3, np.iinfo(np.int64).max, np.int64)
+    hi = full(3, np.iinfo(np.int64).min, np.int64)
     lmin = np.iinfo(np.int64).max
     for p in range(n):
         s = max(np.float64(size[p]), s0)

@@ -5,6 +5,8 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from shared.core.jit import empty, zeros
+
 
 @numba.njit(cache=True, nogil=True)
 def point_to_plane_system(p, m, r, w):  # pragma: no cover
@@ -15,10 +17,10 @@ def point_to_plane_system(p, m, r, w):  # pragma: no cover
     ``p + omega x p + v``; residual ``r + J x`` with ``J = [p x m, m]``.
     Returns H (6, 6) = sum w J^T J, g (6,) = sum w J^T r, and the weighted squared-residual sum.
     """
-    H = np.zeros((6, 6))
-    g = np.zeros(6)
+    H = zeros((6, 6), np.float64)
+    g = zeros(6, np.float64)
     e = 0.0
-    J = np.empty(6)
+    J = empty(6, np.float64)
     for k in range(p.shape[0]):
         wk = w[k]
         if wk <= 0.0:
@@ -53,10 +55,10 @@ def grid_reduce(order, starts, xyz, normals, rgb, conf, view, out_xyz, out_n, ou
     """
     C = starts.shape[0] - 1
     # Scratch allocated once: an allocation per cell costs more than the cell's arithmetic.
-    sx = np.zeros(3)
-    sn = np.zeros(3)
-    sc = np.zeros(3)
-    seen = np.zeros(64, np.bool_)
+    sx = zeros(3, np.float64)
+    sn = zeros(3, np.float64)
+    sc = zeros(3, np.float64)
+    seen = zeros(64, np.bool_)
     for c in range(C):
         sw = 0.0
         for a in range(3):

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numba
 import numpy as np
 
+from shared.core.jit import empty, full, zeros
 from shared.core.morton import spread21
 
 MORTON_BITS = 21  # bits an axis in a 63-bit Morton code
@@ -41,7 +42,7 @@ def morton_codes(ipos: np.ndarray, qsize: int) -> np.ndarray:
     (N,) int64 codes, 3 x 21 bits, x the most significant bit of every triple (Potree order).
     """
     n = ipos.shape[0]
-    out = np.empty(n, np.int64)
+    out = empty(n, np.int64)
     scale = (1 << MORTON_BITS) / qsize
     top = np.int64((1 << MORTON_BITS) - 1)
     for i in range(n):
@@ -86,13 +87,13 @@ def _take_all(assigned: np.ndarray, lo: int, hi: int, node: int) -> int:
 @numba.njit(cache=True, nogil=True)
 def _counting_order(keys: np.ndarray, nkeys: int) -> tuple[np.ndarray, np.ndarray]:
     """Stable order sorting small non-negative integer ``keys``; also the (nkeys + 1,) bucket starts."""
-    starts = np.zeros(nkeys + 1, np.int64)
+    starts = zeros(nkeys + 1, np.int64)
     for k in keys:
         starts[k + 1] += 1
     for k in range(nkeys):
         starts[k + 1] += starts[k]
     fill = starts[:-1].copy()
-    order = np.empty(keys.shape[0], np.int64)
+    order = empty(keys.shape[0], np.int64)
     for i in range(keys.shape[0]):
         k = keys[i]
         order[fill[k]] = i
@@ -181,7 +182,7 @@ def _distribute_kernel(
     top = np.int64(qsize - 1)
     mscale = (1 << MORTON_BITS) / qsize
     mtop = np.int64((1 << MORTON_BITS) - 1)
-    starts = np.zeros(nchunks + 1, np.int64)
+    starts = zeros(nchunks + 1, np.int64)
     for i in range(n):
         qx = _quantise1(x[i], offset[0], inv, top)
         qy = _quantise1(y[i], offset[1], inv, top)
@@ -215,7 +216,7 @@ def _distribute_kernel(
 
 @numba.njit(cache=True, nogil=True)
 def _pack_keys(codes: np.ndarray, base: int, drop: int, idx_bits: int) -> np.ndarray:
-    out = np.empty(codes.shape[0], np.uint64)
+    out = empty(codes.shape[0], np.uint64)
     for i in range(codes.shape[0]):
         out[i] = (np.uint64((codes[i] - base) >> drop) << np.uint64(idx_bits)) | np.uint64(i)
     return out
@@ -225,8 +226,8 @@ def _pack_keys(codes: np.ndarray, base: int, drop: int, idx_bits: int) -> np.nda
 def _unpack_keys(keys: np.ndarray, base: int, drop: int, idx_bits: int) -> tuple[np.ndarray, np.ndarray]:
     """Point index and Morton code (its dropped bits zero) of every sorted key."""
     mask = np.uint64((1 << idx_bits) - 1)
-    index = np.empty(keys.shape[0], np.int64)
-    codes = np.empty(keys.shape[0], np.int64)
+    index = empty(keys.shape[0], np.int64)
+    codes = empty(keys.shape[0], np.int64)
     for i in range(keys.shape[0]):
         index[i] = np.int64(keys[i] & mask)
         codes[i] = (np.int64(keys[i] >> np.uint64(idx_bits)) << drop) + base
@@ -236,8 +237,11 @@ def _unpack_keys(keys: np.ndarray, base: int, drop: int, idx_bits: int) -> tuple
 @numba.njit(cache=True, nogil=True)
 def _push(arr: np.ndarray, count: int, value: int) -> np.ndarray:
     if count == arr.shape[0]:
-        grown = np.empty(2 * arr.shape[0], arr.dtype)
-        grown[:count] = arr
+        grown = empty(2 * arr.shape[0], arr.dtype)
+        # element by element: a slice assignment compiles numba's shape-mismatch message (its
+        # string formatting, 2.5 s of the warm-up) for a mismatch that cannot happen here
+        for i in range(count):
+            grown[i] = arr[i]
         arr = grown
     arr[count] = value
     return arr
@@ -273,10 +277,10 @@ def _build_nodes(
     chunk's ancestors root first, then its subtree depth first, child 0 first.
     """
     n = codes.shape[0]
-    assigned = np.full(n, -1, np.int32)
-    levels = np.empty(64, np.int64)
-    prefixes = np.empty(64, np.int64)
-    own = np.empty(64, np.int64)
+    assigned = full(n, -1, np.int32)
+    levels = empty(64, np.int64)
+    prefixes = empty(64, np.int64)
+    own = empty(64, np.int64)
     nodes = 0
     # Upper nodes: this chunk's share of every ancestor's grid sample.
     for level in range(level_c):
@@ -287,12 +291,12 @@ def _build_nodes(
         nodes += 1
 
     # Depth first, child 0 first; an entry is level, prefix, lo, hi and the points left there.
-    stack = np.empty((64, 5), np.int64)
+    stack = empty((64, 5), np.int64)
     stack[0, 0], stack[0, 1], stack[0, 2], stack[0, 3] = level_c, prefix_c, 0, n
     stack[0, 4] = _count_unassigned(assigned, 0, n)
     top = 1
-    edges = np.empty(9, np.int64)
-    child_left = np.zeros(8, np.int64)
+    edges = empty(9, np.int64)
+    child_left = zeros(8, np.int64)
     while top > 0:
         top -= 1
         level, prefix, lo, hi, remaining = (
@@ -322,8 +326,10 @@ def _build_nodes(
         for k in range(7, -1, -1):
             if child_left[k] > 0:
                 if top == stack.shape[0]:
-                    grown = np.empty((2 * top, 5), np.int64)
-                    grown[:top] = stack
+                    grown = empty((2 * top, 5), np.int64)
+                    for i in range(top):  # not a slice assignment: see _push
+                        for j in range(5):
+                            grown[i, j] = stack[i, j]
                     stack = grown
                 stack[top, 0], stack[top, 1], stack[top, 2] = level + 1, prefix * 8 + k, edges[k]
                 stack[top, 3], stack[top, 4] = edges[k + 1], child_left[k]

@@ -43,6 +43,7 @@ from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
 
+from shared.core.jit import empty
 from shared.core.threads import cpu_budget, pin_threading_layer
 
 # The scan's threading policy, for processes that render without scanning.
@@ -235,8 +236,8 @@ def _splat(
         cx = Ks[task, 2]
         cy = Ks[task, 3]
         near = Ks[task, 4]
-        pix = np.empty(_BATCH, np.int64)
-        dbits = np.empty(_BATCH, np.uint32)
+        pix = empty(_BATCH, np.int64)
+        dbits = empty(_BATCH, np.uint32)
         depth = dbits.view(np.float32)
         r_end = task_bounds[task + 1]
         bx0 = width
@@ -318,7 +319,7 @@ def _resolve(buffers, boxes, background, out_rgb, words, packed, out_depth):  # 
     nrows = nf * height
     row_words = 3 * width // 4
     for task in numba.prange((nrows + _ROWS - 1) // _ROWS):
-        cols = np.empty(width, np.uint32)  # the row's colours, 0x00BBGGRR
+        cols = empty(width, np.uint32)  # the row's colours, 0x00BBGGRR
         for row in range(task * _ROWS, min(nrows, (task + 1) * _ROWS)):
             f = row // height
             yy = row - f * height
@@ -339,9 +340,9 @@ def _resolve(buffers, boxes, background, out_rgb, words, packed, out_depth):  # 
                     kt = buffers[t, p]
                     buffers[t, p] = EMPTY
                     k = kt if kt < k else k
-                empty = k == EMPTY
-                cols[xx] = bg if empty else np.uint32(k & np.uint64(0xFFFFFF))
-                out_depth[f, yy, xx] = inf_bits if empty else np.uint32(k >> np.uint64(32))
+                vacant = k == EMPTY
+                cols[xx] = bg if vacant else np.uint32(k & np.uint64(0xFFFFFF))
+                out_depth[f, yy, xx] = inf_bits if vacant else np.uint32(k >> np.uint64(32))
             for xx in range(x1 + 1, width):
                 cols[xx] = bg
                 out_depth[f, yy, xx] = inf_bits

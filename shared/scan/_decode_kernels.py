@@ -10,6 +10,7 @@ import numba
 import numpy as np
 
 from shared.core.bits import popcount
+from shared.core.jit import empty, zeros
 from shared.scan._bands import next_item, prefetch
 from shared.scan._i32 import (
     LANES,
@@ -470,10 +471,10 @@ def _row_scratch(W, q, levels):  # pragma: no cover
     (int32; sel is also the sub-pixel step's eidx), qa, qb (q's dtype), mk (int32), frac
     (float64), slow (bool), all (W,), blocks (2, W // LANES + 1) int64, ep (W + 2 _NEAR,)
     float64, ek (W + 2 _NEAR,) int32, and the level histogram (levels,) int64."""
-    return (np.empty(W, np.int32), np.empty(W, np.int32), np.empty(W, q.dtype), np.empty(W, q.dtype),
-            np.empty(W, np.int32), np.empty((2, W // LANES + 1), np.int64), np.empty(W, np.float64),
-            np.empty(W + 2 * _NEAR, np.float64), np.empty(W + 2 * _NEAR, np.int32), np.empty(W, np.bool_),
-            np.zeros(levels, np.int64))  # fmt: skip
+    return (empty(W, np.int32), empty(W, np.int32), empty(W, q.dtype), empty(W, q.dtype),
+            empty(W, np.int32), empty((2, W // LANES + 1), np.int64), empty(W, np.float64),
+            empty(W + 2 * _NEAR, np.float64), empty(W + 2 * _NEAR, np.int32), empty(W, np.bool_),
+            zeros(levels, np.int64))  # fmt: skip
 
 
 @numba.njit(inline="always", error_model="numpy")
@@ -528,16 +529,16 @@ def _decode_rows(pats, refs, with_inverse, bits, white, black, mid2, lit_thr, no
     half = np.float32(dmax // 2)  # weak bounds are capped here (they fit diff's dtype)
     n_bands = (H + _BAND - 1) // _BAND
     line = 64 // white.itemsize  # image elements per cache line
-    counter = np.zeros(1, np.int64)
+    counter = zeros(1, np.int64)
     for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
-        sg = np.empty(W, np.uint16)
-        wk = np.empty(W, np.uint16)
-        ithr = np.empty(W, diff.dtype)
-        wb = np.empty(W, diff.dtype)
-        kq = np.empty(W, np.float32)
-        dd = np.empty(W, diff.dtype)  # one plane's differences at a time
-        a1 = np.empty(W, diff.dtype)
-        a2 = np.empty(W, diff.dtype)
+        sg = empty(W, np.uint16)
+        wk = empty(W, np.uint16)
+        ithr = empty(W, diff.dtype)
+        wb = empty(W, diff.dtype)
+        kq = empty(W, np.float32)
+        dd = empty(W, diff.dtype)  # one plane's differences at a time
+        a1 = empty(W, diff.dtype)
+        a2 = empty(W, diff.dtype)
         blk, sel, qa, qb, mk, blocks, frac, ep, ek, slow, hist = _row_scratch(W, dd, max_level - lowest + 1)
         while True:
             band = next_item(counter)
@@ -656,9 +657,9 @@ def _finish_rows(signs, weak, lit, m2, has_q, q, nbits, lowest, max_level, n_pro
     ``has_q``; outputs as in :func:`_decode_rows` (``counts[:, 0]`` is left alone)."""
     H, W = lit.shape
     full = (1 << nbits) - 1
-    kq = np.zeros(W, np.float32)  # unread: q is already scaled
+    kq = zeros(W, np.float32)  # unread: q is already scaled
     n_bands = (H + _BAND - 1) // _BAND
-    counter = np.zeros(1, np.int64)
+    counter = zeros(1, np.int64)
     for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
         blk, sel, qa, qb, mk, blocks, frac, ep, ek, slow, hist = _row_scratch(W, q, max_level - lowest + 1)
         while True:

@@ -36,6 +36,7 @@ import numba
 import numpy as np
 
 from shared.core.files import atomic_file
+from shared.core.jit import empty, zeros
 from shared.core.threads import cpu_budget
 from shared.formats.rig import Device, Rig
 from shared.scan._bands import next_item
@@ -283,18 +284,18 @@ def _intersect_grid(column, row, row_span, has_row, row_tol, cam_ab, cam_stride,
     p2 = distp[3]
     k3 = distp[4]
     n_bands = (H + _TRI_BAND - 1) // _TRI_BAND
-    counter = np.zeros(1, np.int64)
+    counter = zeros(1, np.int64)
     for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
         # Row buffers: ray (rx, ry), projector column and current row, the point, the state
         # (0 not decoded, 1 going, 2 geometry failed) and the last projected row.
-        rxb = np.empty(W, np.float64)
-        ryb = np.empty(W, np.float64)
-        pcb = np.empty(W, np.float64)
-        qb = np.empty(W, np.float64)
-        Xb = np.empty(W, np.float64)
-        Yb = np.empty(W, np.float64)
-        Zb = np.empty(W, np.float64)
-        st = np.empty(W, np.uint8)
+        rxb = empty(W, np.float64)
+        ryb = empty(W, np.float64)
+        pcb = empty(W, np.float64)
+        qb = empty(W, np.float64)
+        Xb = empty(W, np.float64)
+        Yb = empty(W, np.float64)
+        Zb = empty(W, np.float64)
+        st = empty(W, np.uint8)
         while True:
             band = next_item(counter)
             if band >= n_bands:
@@ -395,7 +396,7 @@ def _gather(keep, P, normals, colour, offsets, inv_f, xyz, nrm, rgb, size, pixel
     """Compact the kept pixels of the images into point arrays, row by row (offsets: per-row start)."""
     H, W = keep.shape
     n_bands = (H + _TRI_BAND - 1) // _TRI_BAND
-    counter = np.zeros(1, np.int64)
+    counter = zeros(1, np.int64)
     for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
         while True:
             band = next_item(counter)
@@ -423,7 +424,7 @@ def _support_and_normals(P, valid, rel_tol, min_support, keep, normals, n_thread
     of their depth; compute normals from neighbouring points' differences."""
     H, W = valid.shape
     n_bands = (H + _TRI_BAND - 1) // _TRI_BAND
-    counter = np.zeros(1, np.int64)
+    counter = zeros(1, np.int64)
     for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
         while True:
             band = next_item(counter)
@@ -448,7 +449,7 @@ def _support_and_normals(P, valid, rel_tol, min_support, keep, normals, n_thread
                             if valid[yy, xx] and abs(P[yy, xx, 2] - z) <= tol:
                                 cnt += 1
                     keep[y, x] = cnt >= min_support
-    counter2 = np.zeros(1, np.int64)  # a fresh counter: the second pass hands out the same bands again
+    counter2 = zeros(1, np.int64)  # a fresh counter: the second pass hands out the same bands again
     for _thread2 in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
         while True:
             band = next_item(counter2)
@@ -507,10 +508,10 @@ def load_kernels(rig: Rig, tables: RigTables | None = None) -> RigTables:
     have the real ones' signatures (a decode's arrays are C-ordered float32 and int8)."""
     tb = tables if tables is not None else rig_tables(rig)
     nan = np.full((4, 4), np.nan, np.float32)
-    empty = Decoded(column=nan, row=nan.copy(), confidence=np.zeros((4, 4), np.float32),
+    blank = Decoded(column=nan, row=nan.copy(), confidence=np.zeros((4, 4), np.float32),
                     colour=np.zeros((4, 4, 3), np.uint8), lit=np.zeros((4, 4), np.bool_),
                     column_level=np.full((4, 4), -1, np.int8), row_level=np.full((4, 4), -1, np.int8))  # fmt: skip
-    triangulate(empty, rig, tables=tb)
+    triangulate(blank, rig, tables=tb)
     return tb
 
 

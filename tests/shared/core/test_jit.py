@@ -1,12 +1,20 @@
 """shared.core.jit: kernels and kernel helpers compile, run from kernels, and a helper called
-from Python is refused by name (its compiled code has no Python entry point to jump to)."""
+from Python is refused by name (its compiled code has no Python entry point to jump to); the
+kernels' allocations make what numpy's make, and are freed."""
 
 from __future__ import annotations
+
+import ast
+import os
+import re
+import subprocess
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from shared.core.jit import HelperDispatcher, helper, kernel
+from shared.core.jit import HelperDispatcher, empty, full, helper, kernel, zeros
 
 
 @helper(cache=False)
@@ -53,3 +61,72 @@ def test_the_codecs_helpers_are_helpers() -> None:
     assert isinstance(_rans.at, HelperDispatcher) and isinstance(_lpred.local_pred, HelperDispatcher)
     assert not isinstance(_tables.quantise_tables, HelperDispatcher)
     assert not isinstance(_lpred.decode_residuals, HelperDispatcher)
+
+
+@kernel(cache=False)
+def _allocations(n, like):
+    a = empty((n, 2), np.int16)
+    a[:] = 3
+    return a, zeros(n, like.dtype), full((2, n), -1, np.uint32), full(n, True, np.bool_), full(n, 1e300, np.float64)
+
+
+def test_allocations_make_what_numpy_makes() -> None:
+    a, z, f, b, big = _allocations(3, np.ones(1, np.uint8))
+    expected = (np.full((3, 2), 3, np.int16), np.zeros(3, np.uint8), np.full((2, 3), -1, np.int64).astype(np.uint32),
+                np.ones(3, np.bool_), np.full(3, 1e300))  # fmt: skip
+    for got, want in zip((a, z, f, b, big), expected, strict=True):
+        assert got.dtype == want.dtype and got.shape == want.shape and got.flags.c_contiguous
+        assert np.array_equal(got, want)
+    z0 = _allocations(0, np.ones(1))[1]
+    assert z0.shape == (0,) and z0.dtype == np.float64
+    with pytest.raises(ValueError, match="negative dimensions"):
+        _allocations(-1, np.ones(1))
+
+
+def test_allocations_are_freed() -> None:
+    # numba's allocation counters are switched on only at start-up: a process of its own
+    code = """
+import numpy as np
+from numba.core.runtime import rtsys
+from shared.core.jit import empty, full, kernel, zeros
+
+@kernel(cache=False)
+def f(n):
+    a = empty(n, np.int64)
+    b = zeros((n, 2), np.float32)
+    c = full(n, 7, np.uint8)
+    a[:] = 1
+    return b, c
+
+f(3)
+s0 = rtsys.get_allocation_stats()
+for _ in range(10):
+    f(5)
+s1 = rtsys.get_allocation_stats()
+print(s1.alloc - s0.alloc, s1.free - s0.free)
+"""
+    root = Path(__file__).resolve().parents[3]
+    out = subprocess.run([sys.executable, "-c", code], cwd=root, env={**os.environ, "NUMBA_NRT_STATS": "1"},
+                         capture_output=True, text=True, check=True).stdout.split()  # fmt: skip
+    assert int(out[0]) == 30 and int(out[1]) == 30  # three arrays a call, each freed
+
+
+def test_kernels_allocate_with_the_jit_functions() -> None:
+    # numpy's np.empty / np.zeros / np.full in a kernel compile an overload of their own per
+    # caller's flags (see shared.core.jit): the kernels of shared/ use empty, zeros and full.
+    root = Path(__file__).resolve().parents[3] / "shared"
+    found = []
+    for path in sorted(root.rglob("*.py")):
+        tree = ast.parse(path.read_text())
+        for fn in ast.walk(tree):
+            if not isinstance(fn, ast.FunctionDef):
+                continue
+            decorators = [ast.unparse(d) for d in fn.decorator_list]
+            if not any(re.match(r"(numba\.)?njit|kernel|helper", d) for d in decorators):
+                continue
+            for node in ast.walk(fn):
+                if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute)
+                        and isinstance(node.func.value, ast.Name) and node.func.value.id == "np"
+                        and node.func.attr in ("empty", "zeros", "full")):  # fmt: skip
+                    found.append(f"{path.relative_to(root)}:{node.lineno} {fn.name}: {ast.unparse(node)}")
+    assert not found, found
