@@ -1,39 +1,51 @@
-"""Dynamic scheduling of the scan kernels' work items (bands of camera rows).
+"""Dynamic scheduling of the scan kernels' work items (bands of camera rows), and their launch
+on threads.
 
-numba's ``prange`` splits its range into one equal chunk per thread, fixed at the launch. On
-a machine whose cores are shared (other processes, or this one's own image readers), one
-descheduled thread then holds up the whole launch while the others wait: two threads
-measured slower than one (47 ms against 33 ms for the 1.3 MP 42-frame decode beside two
-busy processes). The kernels here run ``prange`` over the threads instead, and every thread
-takes the next band from a shared counter (an atomic fetch-and-add) until none is left: a
-thread that runs takes the work of one that does not, and a quiet machine still splits the
-work evenly. (A launch still ends only when every thread has arrived, so on a machine with
-no core free a worker's wait for one still costs: ``kernel_threads()`` counts free cores.)
+A fixed split of the rows (numba's ``prange`` splits its range into one equal chunk per
+thread at the launch) lets one descheduled thread hold up the whole launch on a machine whose
+cores are shared (other processes, or this one's own image readers): two threads measured
+slower than one (47 ms against 33 ms for the 1.3 MP 42-frame decode beside two busy
+processes). So every thread takes the next band from a shared counter (an atomic
+fetch-and-add) until none is left: a thread that runs takes the work of one that does not,
+and a quiet machine still splits the work evenly. (A launch still ends only when every thread
+has arrived, so on a machine with no core free a worker's wait for one still costs:
+``kernel_threads()`` counts free cores.)
 
-Use in a kernel::
+A kernel is one thread's share, a plain ``nogil`` kernel that takes the counter last, and
+:func:`run_bands` runs it on this thread and ``numba.get_num_threads() - 1`` threads of a pool::
 
-    counter = np.zeros(1, np.int64)
-    for _ in numba.prange(numba.get_num_threads()):
+    @kernel
+    def _work(..., counter):
         while True:
             band = next_item(counter)
             if band >= n_bands:
                 break
             ...  # the band's rows
 
-Importing this module also fixes numba's threading layer
-(:func:`shared.core.threads.pin_threading_layer`).
+    run_bands(_work, ...)
+
+Not numba's ``prange``: a parallel kernel goes through numba's parfor passes and compiles its
+loop body as a function of its own, linked back and optimised again. The decoder's kernel
+compiled in 13.7 s a signature that way, 3.7 s as a plain kernel (numba 0.63, this 2-core
+machine), and the scan is the longest part of a fresh machine's set-up. Python threads
+calling a ``nogil`` kernel run the same machine code; a launch costs tens of microseconds
+more, a few a decode.
 """
 
 from __future__ import annotations
 
+import os
+import threading
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from typing import Any
 
+import numba
+import numpy as np
 from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
-
-from shared.core.threads import pin_threading_layer
 
 
 @intrinsic
@@ -79,4 +91,38 @@ def prefetch(typingctx: Any, ary: Any, index: Any) -> Any:  # pragma: no cover -
     return sig, codegen
 
 
-pin_threading_layer()
+
+_pool: ThreadPoolExecutor | None = None
+_pool_pid = 0
+_pool_lock = threading.Lock()
+
+
+def _threads_pool() -> ThreadPoolExecutor:
+    """The pool of band threads, made on first use in each process (a worker forked from a
+    parent that had one inherits no threads with it)."""
+    global _pool, _pool_pid
+    with _pool_lock:
+        if _pool is None or _pool_pid != os.getpid():
+            # numba's thread count is at most NUMBA_NUM_THREADS: the caller is one of them
+            _pool = ThreadPoolExecutor(max(1, int(numba.config.NUMBA_NUM_THREADS) - 1), thread_name_prefix="scan-bands")
+            _pool_pid = os.getpid()
+        return _pool
+
+
+def run_bands(kernel: Callable[..., Any], *args: Any) -> None:
+    """Run ``kernel(*args, counter)`` on ``numba.get_num_threads()`` threads at once (this one
+    and the pool's), all with one int64 (1,) ``counter`` from which :func:`next_item` hands out
+    work items; returns when every thread has finished. ``kernel`` releases the GIL (``nogil``).
+    The count is numba's, so :func:`shared.scan.decode.kernel_thread_scope` sets it for these
+    launches as for numba's own."""
+    counter = np.zeros(1, np.int64)
+    n = numba.get_num_threads()
+    if n <= 1:
+        kernel(*args, counter)
+        return
+    futures = [_threads_pool().submit(kernel, *args, counter) for _ in range(n - 1)]
+    try:
+        kernel(*args, counter)
+    finally:
+        for f in futures:
+            f.result()

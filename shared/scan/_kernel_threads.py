@@ -80,7 +80,7 @@ def kernel_threads() -> int:
     the runnable threads of other processes at this moment), at least one, at most numba's.
 
     Two costs decide it. A thread that another process deschedules mid-launch used to hold
-    up the whole launch with numba's fixed split of a prange; the kernels now hand bands out
+    up the whole launch with a fixed split of the rows (numba's prange); the kernels now hand bands out
     dynamically (:mod:`shared.scan._bands`), so the others take its work. But every launch
     still ends when all its threads have arrived, and a worker waiting for a core holds up
     the end by a scheduler time slice: on 2 cores beside 4-5 busy processes, two threads

@@ -51,7 +51,6 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
-import numba
 import numpy as np
 
 from shared.core.errors import InputError
@@ -60,6 +59,7 @@ from shared.core.threads import cpu_budget
 from shared.formats.capture import Capture, CodeImage, code_bits
 from shared.formats.images import prepare_png_reading, probe_image, read_grey, read_grey_and_colour
 from shared.formats.rig import load_rig
+from shared.scan._bands import run_bands
 from shared.scan._decode_kernels import _bit_planes, _decode_rows, _finish_rows, _grey_rgb
 from shared.scan._kernel_threads import kernel_thread_scope, kernel_threads
 from shared.scan.albedo import CameraResponse, response_for_rig
@@ -360,12 +360,13 @@ def _decode_axis(
             tick(1 + (inv is not None))
         with_inverse = bool(invs)
         bits = np.array([e.bit for e in entries], np.uint16)
-        _decode_rows(
+        run_bands(
+            _decode_rows,
             _padded(pats, _MAX_PLANES), _padded(invs if with_inverse else pats, _MAX_PLANES), with_inverse, bits,
             white, black, mid2, np.float32(params.lit_threshold * scale), np.float32(params.noise * scale),
             np.float32(params.weak_ratio), int(nbits), int(lowest), int(max_level), int(n_proj), bool(store_q),
             bool(subpixel), np.zeros(0, np.int16 if itemsize == 1 else np.int32),
-            out.lit, out.value, out.level, out.conf, counts, numba.get_num_threads(),
+            out.lit, out.value, out.level, out.conf, counts,
         )
         if lit_known:
             counts[:, 0] = 0
@@ -401,7 +402,7 @@ def _decode_axis(
             ref = (refs.mid,) * _MAX_BATCH
         bits = np.array([e.bit for e, _, _ in batch], np.uint16)
         qs = q[first : first + len(batch)] if store_q else q
-        _bit_planes(pats, ref, bits, thr, kq, signs, weak, qs, bool(store_q), m1, m2)
+        run_bands(_bit_planes, pats, ref, bits, thr, kq, signs, weak, qs, bool(store_q), m1, m2)
         first += len(batch)
         tick(sum(1 + (i is not None) for _, _, i in batch))
         batch.clear()
@@ -416,10 +417,11 @@ def _decode_axis(
     flush()
     refs.release()
     q3 = q.reshape(len(entries), h, w) if store_q else np.zeros((1, 1, 1), np.int8)
-    _finish_rows(
+    run_bands(
+        _finish_rows,
         signs.reshape(h, w), weak.reshape(h, w), out.lit, m2.reshape(h, w) if store_q else np.zeros((1, w), np.uint8),
         bool(store_q), q3, int(nbits), int(lowest), int(max_level), int(n_proj), bool(subpixel), out.value,
-        out.level, out.conf, counts, numba.get_num_threads(),
+        out.level, out.conf, counts,
     )
     return counts
 
@@ -590,7 +592,7 @@ def _decode_inner(
     slab = _Slab(h * w, ([3] if colour is None else []) + [1, 4, 1, 4] + ([4, 1] if row_planes else []))
     if colour is None:  # an in-memory stack without colour: the grey white frame
         colour = slab.take((h, w, 3), np.uint8)
-        _grey_rgb(white, 8 if white.dtype == np.uint16 else 0, colour)
+        run_bands(_grey_rgb, white, 8 if white.dtype == np.uint16 else 0, colour)
     lit = slab.take((h, w), np.bool_)
     itemsize = 2 if scale > 1 else 1
     if readers is not None:  # queued by decode_capture as soon as the size was known

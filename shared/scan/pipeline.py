@@ -26,7 +26,6 @@ from dataclasses import replace
 from pathlib import Path
 from typing import Any
 
-import numba
 import numpy as np
 
 from shared.core.errors import InputError
@@ -38,7 +37,7 @@ from shared.formats.ply import write_ply
 from shared.formats.rig import Rig, check_rig_matches, load_rig
 from shared.scan.albedo import AlbedoParams, SampleAlbedo, estimate_albedo, params_for_rig, smooth_normals
 from shared.scan.decode import Decoded, decode_capture, load_decoded, save_decoded
-from shared.scan.triangulate import Triangulated, rig_tables, triangulate
+from shared.scan.triangulate import Triangulated, triangulate
 from shared.scan.triangulate import load_kernels as load_triangulation_kernels
 
 log = logging.getLogger(__name__)
@@ -263,12 +262,11 @@ def scan(
     report_progress(0.02)
     # The rig's undistortion tables (about a second of CPU, OpenCV without the GIL, unless
     # cached) are made and the triangulation kernels loaded while the images are read and
-    # decoded, on a core shared with the readers.
-    # (numba's workqueue layer, if the user chose it, aborts on parallel launches from two
-    # threads at once: then only the tables are made beside the decode.)
-    beside = rig_tables if numba.config.THREADING_LAYER == "workqueue" else load_triangulation_kernels
+    # decoded, on a core shared with the readers. (The decoder's kernels run on threads of
+    # their own, not numba's parallel layer, which is the triangulation's alone: its workqueue
+    # layer, if the user chose it, would abort on parallel launches from two threads at once.)
     with ThreadPoolExecutor(max_workers=1) as pool:
-        tables = pool.submit(beside, rig_model)
+        tables = pool.submit(load_triangulation_kernels, rig_model)
         # One image-reading thread a core: PNG inflation releases the GIL.
         decoded = decode_capture(capture, progress=lambda f: report_progress(0.02 + 0.73 * f),
                                  threads=cpu_budget())

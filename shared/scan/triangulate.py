@@ -36,13 +36,16 @@ import numba
 import numpy as np
 
 from shared.core.files import atomic_file
-from shared.core.jit import empty, zeros
-from shared.core.threads import cpu_budget
+from shared.core.jit import empty, kernel, zeros
+from shared.core.threads import cpu_budget, pin_threading_layer
 from shared.formats.rig import Device, Rig
-from shared.scan._bands import next_item
+from shared.scan._bands import next_item, run_bands
 from shared.scan.decode import Decoded, kernel_thread_scope
 
 log = logging.getLogger(__name__)
+
+# _intersect_grid is a numba parallel loop: every process that triangulates runs it on one layer
+pin_threading_layer()
 
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12)
 #: Margin in pixels around a device's image covered by its undistortion table.
@@ -257,6 +260,10 @@ def _lerp(tab, i, j, fu, fv, c):  # pragma: no cover
 _TRI_BAND = 8
 
 
+# numba's parallel loop, not a plain kernel on run_bands' threads as the others: numba compiles
+# a parallel loop's body with its arrays marked as not aliasing each other (none here does),
+# which this long loop's code needs: as a plain kernel it ran 200 ms against 126 ms (one
+# thread, the bench's 2048x1536 capture). It costs 4-5 s more to compile.
 @numba.njit(parallel=True, cache=True)
 def _intersect_grid(column, row, row_span, has_row, row_tol, cam_ab, cam_stride, cam_org,
                     p4, p_org, R, T, Kp, distp, iters, P, valid, reasons, n_threads):  # pragma: no cover
@@ -391,113 +398,116 @@ def _intersect_grid(column, row, row_span, has_row, row_tol, cam_ab, cam_stride,
                 reasons[y, 1] = n_row
 
 
-@numba.njit(parallel=True, cache=True)
-def _gather(keep, P, normals, colour, offsets, inv_f, xyz, nrm, rgb, size, pixel, n_threads):  # pragma: no cover
-    """Compact the kept pixels of the images into point arrays, row by row (offsets: per-row start)."""
+@kernel(error_model="numpy")  # what numba's parallel loops compiled with
+def _gather(keep, P, normals, colour, offsets, inv_f, xyz, nrm, rgb, size, pixel, counter):  # pragma: no cover
+    """Compact the kept pixels of the images into point arrays, row by row (offsets: per-row
+    start). One thread's share (:func:`shared.scan._bands.run_bands`)."""
     H, W = keep.shape
     n_bands = (H + _TRI_BAND - 1) // _TRI_BAND
-    counter = zeros(1, np.int64)
-    for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
-        while True:
-            band = next_item(counter)
-            if band >= n_bands:
-                break
-            for yu in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
-                y = np.int64(yu)
-                k = offsets[y]
-                for x in range(W):
-                    if not keep[y, x]:
-                        continue
-                    for c in range(3):
-                        xyz[k, c] = P[y, x, c]
-                        nrm[k, c] = normals[y, x, c]
-                        rgb[k, c] = colour[y, x, c]
-                    size[k] = P[y, x, 2] * inv_f
-                    pixel[k, 0] = x
-                    pixel[k, 1] = y
-                    k += 1
+    while True:
+        band = next_item(counter)
+        if band >= n_bands:
+            break
+        for yu in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
+            y = np.int64(yu)
+            k = offsets[y]
+            for x in range(W):
+                if not keep[y, x]:
+                    continue
+                for c in range(3):
+                    xyz[k, c] = P[y, x, c]
+                    nrm[k, c] = normals[y, x, c]
+                    rgb[k, c] = colour[y, x, c]
+                size[k] = P[y, x, 2] * inv_f
+                pixel[k, 0] = x
+                pixel[k, 1] = y
+                k += 1
 
 
-@numba.njit(parallel=True, cache=True)
-def _support_and_normals(P, valid, rel_tol, min_support, keep, normals, n_threads):  # pragma: no cover
+@kernel(error_model="numpy")  # what numba's parallel loops compiled with
+def _support(P, valid, rel_tol, min_support, keep, counter):  # pragma: no cover
     """Reject points without ``min_support`` neighbours (8-neighbourhood) within ``rel_tol * Z``
-    of their depth; compute normals from neighbouring points' differences."""
+    of their depth: ``keep`` (H, W) bool. One thread's share (:func:`shared.scan._bands.run_bands`)."""
     H, W = valid.shape
     n_bands = (H + _TRI_BAND - 1) // _TRI_BAND
-    counter = zeros(1, np.int64)
-    for _thread in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
-        while True:
-            band = next_item(counter)
-            if band >= n_bands:
-                break
-            for y in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
-                for x in range(W):
-                    keep[y, x] = False
-                    if not valid[y, x]:
+    while True:
+        band = next_item(counter)
+        if band >= n_bands:
+            break
+        for y in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
+            for x in range(W):
+                keep[y, x] = False
+                if not valid[y, x]:
+                    continue
+                z = P[y, x, 2]
+                tol = rel_tol * z
+                cnt = 0
+                for dy in range(-1, 2):
+                    yy = y + dy
+                    if yy < 0 or yy >= H:
                         continue
-                    z = P[y, x, 2]
-                    tol = rel_tol * z
-                    cnt = 0
-                    for dy in range(-1, 2):
-                        yy = y + dy
-                        if yy < 0 or yy >= H:
+                    for dx in range(-1, 2):
+                        xx = x + dx
+                        if (dx == 0 and dy == 0) or xx < 0 or xx >= W:
                             continue
-                        for dx in range(-1, 2):
-                            xx = x + dx
-                            if (dx == 0 and dy == 0) or xx < 0 or xx >= W:
-                                continue
-                            if valid[yy, xx] and abs(P[yy, xx, 2] - z) <= tol:
-                                cnt += 1
-                    keep[y, x] = cnt >= min_support
-    counter2 = zeros(1, np.int64)  # a fresh counter: the second pass hands out the same bands again
-    for _thread2 in numba.prange(n_threads):  # bands handed out by next_item (see _bands)
-        while True:
-            band = next_item(counter2)
-            if band >= n_bands:
-                break
-            for yu in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
-                y = np.int64(yu)
-                for x in range(W):
-                    if not keep[y, x]:
-                        continue
-                    z = P[y, x, 2]
-                    tol = rel_tol * z
-                    # Horizontal and vertical differences: central where both sides agree, else one-sided.
-                    hx0 = x - 1 if x > 0 and keep[y, x - 1] and abs(P[y, x - 1, 2] - z) <= tol else x
-                    hx1 = x + 1 if x + 1 < W and keep[y, x + 1] and abs(P[y, x + 1, 2] - z) <= tol else x
-                    vy0 = y - 1 if y > 0 and keep[y - 1, x] and abs(P[y - 1, x, 2] - z) <= tol else y
-                    vy1 = y + 1 if y + 1 < H and keep[y + 1, x] and abs(P[y + 1, x, 2] - z) <= tol else y
-                    X0 = P[y, x, 0]
-                    Y0 = P[y, x, 1]
-                    if hx0 == hx1 or vy0 == vy1:
-                        # No tangent estimate: face the camera.
-                        nrm = np.sqrt(X0 * X0 + Y0 * Y0 + z * z)
-                        normals[y, x, 0] = -X0 / nrm
-                        normals[y, x, 1] = -Y0 / nrm
-                        normals[y, x, 2] = -z / nrm
-                        continue
-                    ax = P[y, hx1, 0] - P[y, hx0, 0]
-                    ay = P[y, hx1, 1] - P[y, hx0, 1]
-                    az = P[y, hx1, 2] - P[y, hx0, 2]
-                    bx = P[vy1, x, 0] - P[vy0, x, 0]
-                    by = P[vy1, x, 1] - P[vy0, x, 1]
-                    bz = P[vy1, x, 2] - P[vy0, x, 2]
-                    nx = ay * bz - az * by
-                    ny = az * bx - ax * bz
-                    nz = ax * by - ay * bx
-                    nrm = np.sqrt(nx * nx + ny * ny + nz * nz)
-                    if nrm == 0.0:
-                        nrm = np.sqrt(X0 * X0 + Y0 * Y0 + z * z)
-                        nx = -X0
-                        ny = -Y0
-                        nz = -z
-                    if nx * X0 + ny * Y0 + nz * z > 0.0:
-                        nx = -nx
-                        ny = -ny
-                        nz = -nz
-                    normals[y, x, 0] = nx / nrm
-                    normals[y, x, 1] = ny / nrm
-                    normals[y, x, 2] = nz / nrm
+                        if valid[yy, xx] and abs(P[yy, xx, 2] - z) <= tol:
+                            cnt += 1
+                keep[y, x] = cnt >= min_support
+
+
+@kernel(error_model="numpy")  # what numba's parallel loops compiled with
+def _normals(P, rel_tol, keep, normals, counter):  # pragma: no cover
+    """Normals of the kept points from their kept neighbours' differences, after :func:`_support`
+    (which every row's neighbours must have finished): ``normals`` (H, W, 3). One thread's share."""
+    H, W = keep.shape
+    n_bands = (H + _TRI_BAND - 1) // _TRI_BAND
+    while True:
+        band = next_item(counter)
+        if band >= n_bands:
+            break
+        for yu in range(band * _TRI_BAND, min(H, band * _TRI_BAND + _TRI_BAND)):
+            y = np.int64(yu)
+            for x in range(W):
+                if not keep[y, x]:
+                    continue
+                z = P[y, x, 2]
+                tol = rel_tol * z
+                # Horizontal and vertical differences: central where both sides agree, else one-sided.
+                hx0 = x - 1 if x > 0 and keep[y, x - 1] and abs(P[y, x - 1, 2] - z) <= tol else x
+                hx1 = x + 1 if x + 1 < W and keep[y, x + 1] and abs(P[y, x + 1, 2] - z) <= tol else x
+                vy0 = y - 1 if y > 0 and keep[y - 1, x] and abs(P[y - 1, x, 2] - z) <= tol else y
+                vy1 = y + 1 if y + 1 < H and keep[y + 1, x] and abs(P[y + 1, x, 2] - z) <= tol else y
+                X0 = P[y, x, 0]
+                Y0 = P[y, x, 1]
+                if hx0 == hx1 or vy0 == vy1:
+                    # No tangent estimate: face the camera.
+                    nrm = np.sqrt(X0 * X0 + Y0 * Y0 + z * z)
+                    normals[y, x, 0] = -X0 / nrm
+                    normals[y, x, 1] = -Y0 / nrm
+                    normals[y, x, 2] = -z / nrm
+                    continue
+                ax = P[y, hx1, 0] - P[y, hx0, 0]
+                ay = P[y, hx1, 1] - P[y, hx0, 1]
+                az = P[y, hx1, 2] - P[y, hx0, 2]
+                bx = P[vy1, x, 0] - P[vy0, x, 0]
+                by = P[vy1, x, 1] - P[vy0, x, 1]
+                bz = P[vy1, x, 2] - P[vy0, x, 2]
+                nx = ay * bz - az * by
+                ny = az * bx - ax * bz
+                nz = ax * by - ay * bx
+                nrm = np.sqrt(nx * nx + ny * ny + nz * nz)
+                if nrm == 0.0:
+                    nrm = np.sqrt(X0 * X0 + Y0 * Y0 + z * z)
+                    nx = -X0
+                    ny = -Y0
+                    nz = -z
+                if nx * X0 + ny * Y0 + nz * z > 0.0:
+                    nx = -nx
+                    ny = -ny
+                    nz = -nz
+                normals[y, x, 0] = nx / nrm
+                normals[y, x, 1] = ny / nrm
+                normals[y, x, 2] = nz / nrm
 
 
 def load_kernels(rig: Rig, tables: RigTables | None = None) -> RigTables:
@@ -574,8 +584,8 @@ def _triangulate(
     n_geom, n_row_reject = (int(v) for v in reasons.sum(axis=0))
     keep = np.empty((h, w), bool)
     normals_img = np.zeros((h, w, 3), np.float32)
-    _support_and_normals(P, vmask, np.float32(support_tolerance), min_support, keep, normals_img,
-                         numba.get_num_threads())
+    run_bands(_support, P, vmask, np.float32(support_tolerance), min_support, keep)
+    run_bands(_normals, P, np.float32(support_tolerance), keep, normals_img)
     n_valid = int(np.count_nonzero(vmask))
     del vmask
     counts = np.count_nonzero(keep, axis=1)
@@ -588,8 +598,8 @@ def _triangulate(
     size = np.empty(n_pts, np.float32)
     pixel = np.empty((n_pts, 2), np.int32)
     f_cam = 0.5 * (cam.fx + cam.fy)
-    _gather(keep, P, normals_img, np.ascontiguousarray(decoded.colour), offsets, np.float32(1.0 / f_cam),
-            xyz, normals, rgb, size, pixel, numba.get_num_threads())
+    run_bands(_gather, keep, P, normals_img, np.ascontiguousarray(decoded.colour), offsets, np.float32(1.0 / f_cam),
+              xyz, normals, rgb, size, pixel)
     del normals_img
     # The range image: Z where a point was kept (P is reused in place to save memory).
     range_image = np.ascontiguousarray(P[..., 2])
