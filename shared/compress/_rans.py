@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from shared.core.jit import empty, full, helper, kernel, zeros
+from shared.core.jit import at, empty, full, helper, kernel, set_at, zeros
 
 #: Frequency precision: probabilities are multiples of 2**-PROB_BITS.
 PROB_BITS = 12
@@ -43,21 +43,6 @@ RAW = -1
 #: ``p / PROB_SCALE`` (1 <= p < PROB_SCALE) is the probability of a one (an adaptive model's
 #: estimate, the same integers in encoder and decoder).
 BIN = -2
-
-
-@helper(inline=False)
-def at(a, i):
-    """``a[i]`` for an index ``i`` known not to be negative: with an unsigned index numba adds no
-    negative-index wraparound (a compare and a select per load), and constant offsets fold into
-    the address. A kernel helper, inlined by LLVM (as :func:`set_at`, :func:`get_bit` and the
-    model helpers): numba's IR inlining of its hundreds of call sites cost seconds of compilation."""
-    return a[np.uint64(i)]
-
-
-@helper(inline=False)
-def set_at(a, i, v):
-    """``a[i] = v`` for an index ``i`` known not to be negative (see :func:`at`)."""
-    a[np.uint64(i)] = v
 
 
 @helper

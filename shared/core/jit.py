@@ -42,7 +42,7 @@ from numba.extending import intrinsic
 # tests/shared/core/test_jit.py checks the arrays it makes)
 from numba.np.arrayobj import _empty_nd_impl, _parse_shape
 
-__all__ = ["HelperDispatcher", "empty", "full", "helper", "kernel", "zeros"]
+__all__ = ["HelperDispatcher", "at", "empty", "full", "helper", "kernel", "set_at", "zeros"]
 
 
 def kernel(fn: Callable[..., Any] | None = None, *, cache: bool = True, **options: Any) -> Any:
@@ -137,3 +137,45 @@ zeros = _allocation("zeros", "zero")
 #: ``np.full(shape, value, dtype)`` in a kernel, as :func:`empty`, every element ``value`` (a
 #: number, cast to ``dtype`` as numpy's assignment casts it).
 full = _allocation("full", "value")
+
+
+def _element_pointer(context: Any, builder: Any, aryty: Any, ary_value: Any, index: Any, index_type: Any) -> Any:
+    """The address of element ``index`` (an integer known not to be negative) of a 1-D array."""
+    ary = context.make_array(aryty)(context, builder, ary_value)
+    idx = context.cast(builder, index, index_type, types.intp)
+    return cgutils.get_item_pointer(context, builder, aryty, ary, [idx], wraparound=False)
+
+
+@intrinsic
+def at(typingctx: Any, a: Any, i: Any) -> Any:
+    """``a[i]`` of a 1-D array for an index ``i`` known not to be negative: numba's own indexing
+    adds a negative-index wraparound (a compare and a select a load) that LLVM cannot remove
+    where it cannot prove the index positive; here constant offsets fold into the address. Code
+    in the caller, nothing compiled on its own (as a kernel helper it compiled once per array
+    type: 10 signatures in the codecs)."""
+    if not (isinstance(a, types.Array) and a.ndim == 1 and isinstance(i, types.Integer)):
+        return None
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        aryty = signature.args[0]
+        ptr = _element_pointer(context, builder, aryty, args[0], args[1], signature.args[1])
+        return context.unpack_value(builder, aryty.dtype, ptr)
+
+    return a.dtype(a, i), codegen
+
+
+@intrinsic
+def set_at(typingctx: Any, a: Any, i: Any, v: Any) -> Any:
+    """``a[i] = v`` of a writable 1-D array for an index ``i`` known not to be negative (see
+    :func:`at`); ``v`` a number, cast to the array's dtype as numba's assignment casts it."""
+    if not (isinstance(a, types.Array) and a.ndim == 1 and a.mutable and isinstance(i, types.Integer)
+            and isinstance(v, types.Number | types.Boolean)):  # fmt: skip
+        return None
+
+    def codegen(context: Any, builder: Any, signature: Any, args: Any) -> Any:
+        aryty, _, valty = signature.args
+        ptr = _element_pointer(context, builder, aryty, args[0], args[1], signature.args[1])
+        context.pack_value(builder, aryty.dtype, context.cast(builder, args[2], valty, aryty.dtype), ptr)
+        return context.get_dummy_value()
+
+    return types.void(a, i, v), codegen

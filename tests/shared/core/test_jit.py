@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from shared.core.jit import HelperDispatcher, empty, full, helper, kernel, zeros
+from shared.core.jit import HelperDispatcher, at, empty, full, helper, kernel, set_at, zeros
 
 
 @helper(cache=False)
@@ -58,7 +58,7 @@ def test_the_codecs_helpers_are_helpers() -> None:
     # and the kernels the Python glue calls keep theirs.
     from shared.compress import _lpred, _rans, _tables
 
-    assert isinstance(_rans.at, HelperDispatcher) and isinstance(_lpred.local_pred, HelperDispatcher)
+    assert isinstance(_rans.adapt_state, HelperDispatcher) and isinstance(_lpred.local_pred, HelperDispatcher)
     assert not isinstance(_tables.quantise_tables, HelperDispatcher)
     assert not isinstance(_lpred.decode_residuals, HelperDispatcher)
 
@@ -130,3 +130,21 @@ def test_kernels_allocate_with_the_jit_functions() -> None:
                         and node.func.attr in ("empty", "zeros", "full")):  # fmt: skip
                     found.append(f"{path.relative_to(root)}:{node.lineno} {fn.name}: {ast.unparse(node)}")
     assert not found, found
+
+
+@kernel(cache=False)
+def _element_access(a, b, flags, i):
+    set_at(b, i, at(a, i) * 2.75)  # a float into an int array: cast as numba's assignment casts
+    set_at(flags, i + 1, at(a, i) > 0)
+    return at(a, i + 1), at(b, i), at(flags, 0)
+
+
+def test_element_access_reads_and_writes_what_indexing_does() -> None:
+    a = np.array([3, -4, 5], np.int64)
+    a.setflags(write=False)  # a read-only array (a kernel's global constant) reads alike
+    b = np.zeros(3, np.int32)
+    flags = np.zeros(3, np.bool_)
+    assert _element_access(a, b, flags, 0) == (-4, 8, False)
+    assert b[0] == np.int32(3 * 2.75) and flags.tolist() == [False, True, False]
+    assert _element_access(a, b, flags, 1) == (5, -11, False)
+    assert b[1] == np.int32(-4 * 2.75) and flags.tolist() == [False, True, False]
