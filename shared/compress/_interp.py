@@ -134,7 +134,7 @@ def _coarse(rec, valid, y, x, last):
     return last, 16 * FINE
 
 
-@kernel(inline="always")
+@helper
 def _table(t_res, act, sgn, cofs, rprev, rnb, cls):
     """(table, flip) of a residual of activity ``act``: in level mode (``sgn`` 0) the table
     ``t_res`` plus its level (made tables after the pass by
@@ -154,7 +154,7 @@ def _table(t_res, act, sgn, cofs, rprev, rnb, cls):
     return sgn * tb + (1 - sgn) * (t_res + lev), flip * sgn
 
 
-@kernel(inline="always")
+@helper
 def _group(lev, cofs):
     """The sign contexts' group (0..NI_GRP - 1) of activity level ``lev`` from offset ``cofs``."""
     return (min(max(lev - cofs, 0), NCTX - 1) * NI_GRP) >> 4

@@ -22,6 +22,7 @@ from shared.compress._rans import (
     symbol_of,
 )
 from shared.compress._tables import pack_codes, quantise_tables, table_bits
+from shared.core.jit import kernel
 
 
 def laplacian(n: int, scale: float, rng: np.random.Generator) -> np.ndarray:
@@ -84,13 +85,25 @@ def test_quiet_levels_share_a_table_and_busy_ones_keep_their_own() -> None:
     assert len({lut[14], lut[20], lut[21]}) == 3
 
 
+# put_value and symbol_of are kernel helpers (no Python entry point): called here through
+# kernels of the test's own
+@kernel(cache=False)
+def _put_value(tab, val, nb, n, t, u, log2d, m):
+    return put_value(tab, val, nb, n, t, u, log2d, m)
+
+
+@kernel(cache=False)
+def _symbol_of(u, log2d, m):
+    return symbol_of(u, log2d, m)
+
+
 def _coded_values(values: np.ndarray, log2d: int, m: int) -> np.ndarray:
     """``values`` put by ``put_value`` in one table and decoded back."""
     cap = 8 * values.size + 64
     tab, val, nb = np.zeros(cap, np.int8), np.zeros(cap, np.int16), np.zeros(cap, np.int8)
     n = np.int64(0)
     for u in values:
-        n = put_value(tab, val, nb, n, np.int64(0), np.uint64(u), np.int64(log2d), np.int64(m))
+        n = _put_value(tab, val, nb, n, np.int64(0), np.uint64(u), np.int64(log2d), np.int64(m))
     freq = quantise_tables(normalise(count_symbols(tab, val, n, np.int64(1))))[1]
     words = encode_events(tab, val, nb, n, freq)
     sym, fb = decode_tables(freq)
@@ -113,5 +126,5 @@ def test_values_with_bits_in_their_escape_symbol_round_trip(log2d: int, m: int) 
     # the symbols counted for the sign contexts' estimate are the ones put
     tab, val, nb = np.zeros(8, np.int8), np.zeros(8, np.int16), np.zeros(8, np.int8)
     for u in values[values < (1 << 62)]:
-        put_value(tab, val, nb, np.int64(0), np.int64(0), np.uint64(u), np.int64(log2d), np.int64(m))
-        assert symbol_of(np.int64(u), np.int64(log2d), np.int64(m)) == val[0]
+        _put_value(tab, val, nb, np.int64(0), np.int64(0), np.uint64(u), np.int64(log2d), np.int64(m))
+        assert _symbol_of(np.int64(u), np.int64(log2d), np.int64(m)) == val[0]
