@@ -569,11 +569,12 @@ def warm(domains: Sequence[str] = DOMAINS, work: Path | None = None, parallel: b
     process of their own, on inputs of their own (:func:`_compress_inputs`,
     :func:`_render_inputs`), beside sim, scan and merge in this one: numba compiles on one core
     a process. No kernel module is compiled by both processes, so their cache indexes are never
-    written by two processes at once. Measured on this 2-core machine from an empty cache
-    (a fresh clone): the side process's compress and render 30.2 + 20.2 s beside sim, scan and
-    merge's 5.0 + 41.7 + 9.7 s, 59.7 s wall (before the codecs' kernel helpers of
-    :mod:`shared.core.jit`: 46.1 + 22.6 s beside 5.9 + 47.3 + 10.5 s, 72.2 s; 114 s once with
-    render in this process, after the scan)."""
+    written by two processes at once. Measured on this 2-core machine from an empty cache: the
+    side process's compress and render 35.9-38.1 + 19.0-22.9 s beside sim, scan and merge's
+    5.6-5.9 + 21.1-23.1 + 10.1-12.8 s, 59.0-65.5 s wall, since the scan's band kernels left
+    numba's parallel loops and kernels stopped compiling numpy's allocations (the same machine,
+    before: compress and render 45.6 + 29.8 s beside 6.7 + 61.2 + 12.5 s, 85.6-93.8 s wall). The
+    side process is now the longer: render's kernels are still numba parallel loops."""
     seconds: dict[str, float] = {}
     sided = tuple(d for d in SIDE_DOMAINS if d in domains)
     with contextlib.ExitStack() as stack:
