@@ -24,6 +24,9 @@ A kernel is one thread's share, a plain ``nogil`` kernel that takes the counter 
 
     run_bands(_work, ...)
 
+Importing this module also fixes numba's threading layer
+(:func:`shared.core.threads.pin_threading_layer`).
+
 Not numba's ``prange``: a parallel kernel goes through numba's parfor passes and compiles its
 loop body as a function of its own, linked back and optimised again. The decoder's kernel
 compiled in 13.7 s a signature that way, 3.7 s as a plain kernel (numba 0.63, this 2-core
@@ -46,6 +49,8 @@ from llvmlite import ir
 from numba import types
 from numba.core import cgutils
 from numba.extending import intrinsic
+
+from shared.core.threads import pin_threading_layer
 
 
 @intrinsic
@@ -91,6 +96,9 @@ def prefetch(typingctx: Any, ary: Any, index: Any) -> Any:  # pragma: no cover -
     return sig, codegen
 
 
+# The thread count is numba's (get_num_threads starts its threading layer, and the
+# triangulation's _intersect_grid is a numba parallel loop): the same layer in every process.
+pin_threading_layer()
 
 _pool: ThreadPoolExecutor | None = None
 _pool_pid = 0

@@ -37,15 +37,12 @@ import numpy as np
 
 from shared.core.files import atomic_file
 from shared.core.jit import empty, kernel, zeros
-from shared.core.threads import cpu_budget, pin_threading_layer
+from shared.core.threads import cpu_budget
 from shared.formats.rig import Device, Rig
 from shared.scan._bands import next_item, run_bands
 from shared.scan.decode import Decoded, kernel_thread_scope
 
 log = logging.getLogger(__name__)
-
-# _intersect_grid is a numba parallel loop: every process that triangulates runs it on one layer
-pin_threading_layer()
 
 _UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 60, 1e-12)
 #: Margin in pixels around a device's image covered by its undistortion table.
