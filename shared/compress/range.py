@@ -1,8 +1,9 @@
 """Range images (depth on the camera grid) coded by a quadtree of surface models, local
 prediction (LOCO-I/CALIC-style, a least-squares predictor fitted per band, JPEG-XL's weighted
 predictor) or, error-bounded, hierarchical interpolation (SZ3's order), and rANS: codec
-``quadtree-lp-8`` (``quadtree-lp-7``'s streams, each band with the check of the samples it
-decodes to, :mod:`shared.compress._check`).
+``quadtree-lp-9`` (``quadtree-lp-7``'s streams, each band with the check of the samples it
+decodes to, :mod:`shared.compress._check`, bound to the band's place: ``quadtree-lp-8``'s check was
+not, so a file whose chunks were swapped or repeated, each with its CRC, decoded to another image).
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -62,10 +63,10 @@ log = logging.getLogger(__name__)
 
 #: Rows per chunk (a multiple of the quadtree's top block).
 BAND_ROWS = 256
-CODEC = "quadtree-lp-8"
+CODEC = "quadtree-lp-9"
 #: Range codecs of earlier releases, refused by name (their streams are not read any more).
 OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3", "quadtree-lp-4", "quadtree-lp-5", "quadtree-lp-6",
-              "quadtree-lp-7")
+              "quadtree-lp-7", "quadtree-lp-8")
 #: The encoder's options per effort. 1 (the default): every tool but JPEG-XL's weighted
 #: predictor (the least-squares predictor included: its bands encode about half as fast,
 #: 5 MP per CPU second against 9-10 on the relief and the bunny); 2: the weighted predictor
@@ -202,11 +203,18 @@ def _short(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def _encode_band(zb: np.ndarray, plan: _Plan) -> bytes:
+def _band_key(i: int) -> int:
+    """What band ``i``'s check is XORed with: a different 32-bit value for every band (an odd
+    multiplier is a bijection modulo 2**32), so that a band's chunk in another band's place (a
+    writer's mix-up, each chunk with its CRC) fails the check of its decoded samples."""
+    return (i * 0x9E3779B1) & 0xFFFFFFFF
+
+
+def _encode_band(zb: np.ndarray, plan: _Plan, i: int) -> bytes:
     t, valid = qt.quantise(zb, plan.scale, plan.lossless)
     tables, words, check = encode_band(t, valid, plan.lossless, plan.opts, plan.scale)
-    # the check of the samples the band decodes to (:mod:`._check`) after the tables' length
-    return _BAND_HEAD.pack(len(tables), check) + tables.tobytes() + words.astype("<u2").tobytes()
+    # the check of the samples band i decodes to (:mod:`._check`) after the tables' length
+    return _BAND_HEAD.pack(len(tables), check ^ _band_key(i)) + tables.tobytes() + words.astype("<u2").tobytes()
 
 
 def _bands(h: int) -> list[tuple[int, int]]:
@@ -218,12 +226,12 @@ def _encoded_chunks(z: np.ndarray, plan: _Plan) -> Iterator[bytes]:
     with ThreadPoolExecutor(_threads()) as pool:
         # At most two bands per thread in flight: memory stays a few bands' worth.
         window = 2 * _threads()
-        futures = [pool.submit(_encode_band, z[a:b], plan) for a, b in bands[:window]]
+        futures = [pool.submit(_encode_band, z[a:b], plan, i) for i, (a, b) in enumerate(bands[:window])]
         for i in range(len(bands)):
             nxt = i + window
             if nxt < len(bands):
                 a, b = bands[nxt]
-                futures.append(pool.submit(_encode_band, z[a:b], plan))
+                futures.append(pool.submit(_encode_band, z[a:b], plan, nxt))
             yield futures[i].result()
             futures[i] = None  # type: ignore[call-overload]
 
@@ -316,7 +324,7 @@ def read_range(source: str | os.PathLike[str] | bytes) -> RangeImage:
         words = np.frombuffer(payload, "<u2", (len(payload) - start - nt) // 2, start + nt).astype(np.uint16)
         if decode_band(tables, words, b - a, w, lossless, scale, z[a:b]) != 0:
             raise InputError(where, f"corrupt chunk {i} (the coded stream does not decode)")
-        if output_check(z[a:b].view(np.uint32)) != check:
+        if output_check(z[a:b].view(np.uint32)) ^ _band_key(i) != check:
             raise InputError(where, f"corrupt chunk {i} (its decoded samples fail their check)")
 
     with ThreadPoolExecutor(_threads()) as pool:

@@ -138,6 +138,54 @@ def test_damaged_cloud_files(tmp_path: Path) -> None:
         decode_cloud(p)
 
 
+def test_chunks_rewritten_with_a_fresh_crc_are_refused(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Damage the container's CRC-32 cannot see (a buggy tool rewrote it): a chunk's offset
+    changed (``octree-rans-4`` decoded it, every point of the chunk shifted), chunks swapped (each
+    an intact stream), and one random byte a copy, in the head, the tables or the words: each
+    refused by the chunk's check of what it decodes to, or decoded to exactly the intact cloud."""
+    import struct
+    import zlib
+
+    import shared.compress.cloud as cloud
+    from tests.support.range_checks import chunk_spans
+
+    monkeypatch.setattr(cloud, "CHUNK_POINTS", 4000)
+    blob = encode_cloud(surface_cloud(100), 0.5)  # 10,000 points: two equal chunks and a short one
+    good = decode_cloud(blob)
+    spans = chunk_spans(blob)
+    assert len(spans) == 3
+
+    def framed(payload: bytes) -> bytes:
+        return struct.pack("<II", len(payload), zlib.crc32(payload)) + payload
+
+    def rebuilt(payloads: list[bytes]) -> bytes:
+        return blob[: spans[0][0] - 8] + b"".join(framed(p) for p in payloads) + blob[spans[-1][1] :]
+
+    payloads = [blob[a:b] for a, b in spans]
+    assert decode_cloud(rebuilt(payloads)).tobytes() == good.tobytes()
+    shifted = bytearray(payloads[1])
+    struct.pack_into("<q", shifted, 24, struct.unpack_from("<q", shifted, 24)[0] + 3)  # the x offset
+    with pytest.raises(InputError, match=r"corrupt chunk 1 \(what it decodes to fails its check\)"):
+        decode_cloud(rebuilt([payloads[0], bytes(shifted), payloads[2]]))
+    with pytest.raises(InputError, match=r"corrupt chunk 0 \(what it decodes to fails its check\)"):
+        decode_cloud(rebuilt([payloads[1], payloads[0], payloads[2]]))
+    rng = np.random.default_rng(2)
+    refused = 0
+    for _ in range(60):
+        i = int(rng.integers(3))
+        bad = bytearray(payloads[i])
+        pos = int(rng.integers(len(bad)))
+        bad[pos] ^= int(rng.integers(1, 256))
+        try:
+            out = decode_cloud(rebuilt([bytes(bad) if j == i else p for j, p in enumerate(payloads)]))
+        except InputError as exc:
+            assert f"corrupt chunk {i}" in str(exc), exc
+            refused += 1
+        else:
+            assert out.tobytes() == good.tobytes(), f"chunk {i}: byte {pos} damaged decoded to another cloud"
+    assert refused >= 50, refused
+
+
 def test_a_header_claiming_a_huge_cloud_is_refused_before_allocating(tmp_path: Path,
                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
     """A decompression bomb: equal points code in almost no bits (4 M points in about a kilobyte,
@@ -198,10 +246,10 @@ def test_other_codec_versions_fail_clearly(monkeypatch: pytest.MonkeyPatch) -> N
     import shared.compress.cloud as cloud
 
     rec = surface_cloud(20, dtype=CLOUD_DTYPE)
-    monkeypatch.setattr(cloud, "CODEC", "octree-rans-3")  # what the previous version wrote
+    monkeypatch.setattr(cloud, "CODEC", "octree-rans-4")  # what the previous version wrote
     old = encode_cloud(rec, 0.5)
     monkeypatch.undo()
-    with pytest.raises(InputError, match=r"cloud codec 'octree-rans-3' is not supported \(this build reads 'octree-rans-4'"):
+    with pytest.raises(InputError, match=r"cloud codec 'octree-rans-4' is not supported \(this build reads 'octree-rans-5'"):
         decode_cloud(old)
 
 
