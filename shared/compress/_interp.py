@@ -64,7 +64,7 @@ from shared.compress._lpred import (
     NLEVEL,
     _level_of,
 )
-from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
+from shared.compress._rans import at, put_value, read_value, set_at, symbol_of, unzigzag, zigzag
 from shared.core.jit import helper, kernel, zeros
 
 #: Spacing of the coarsest grid.
@@ -304,7 +304,7 @@ def _get(xa, xb, pos, words, nw, sym, fb, t_res, act, cofs, cshift, sgn, rprev, 
     """A residual coded by :func:`_table` (level mode: levels merged by ``cshift``)."""
     tb, flip = _table(t_res, act, sgn, cofs, rprev, rnb, cls)
     lt = t_res + (min(max(tb - t_res - cofs, 0), NCTX - 1) >> cshift)  # level mode's table
-    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, sgn * tb + (1 - sgn) * lt, L_RES, M_RES)
+    u, xa, xb, pos = read_value(xa, xb, pos, words, nw, sym, fb, sgn * tb + (1 - sgn) * lt, L_RES, M_RES)
     r = unzigzag(u)
     return (r ^ flip) - flip, xa, xb, pos
 

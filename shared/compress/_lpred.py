@@ -44,7 +44,7 @@ from numba.cpython.unsafe.numbers import leading_zeros
 
 from shared.compress._check import add_row, scratch
 from shared.compress._ls import ls_predict
-from shared.compress._rans import at, get_value, put_value, set_at, symbol_of, unzigzag, zigzag
+from shared.compress._rans import at, put_value, read_value, set_at, symbol_of, unzigzag, zigzag
 from shared.compress._rows import F_SHIFT, FINE, MINB, fill_row, first_row, row_prediction, target_row
 from shared.compress._wp import wp_hole, wp_predict, wp_update
 from shared.core.jit import helper, kernel, zeros
@@ -640,7 +640,7 @@ def decode_residuals(xa, xb, pos, words, nw, sym, fb, valid, cells, leaves, lcoe
                 tb = (min(max(lev - cofs, 0), NCTX - 1) >> 2) * NSUB + pat
             else:
                 tb = at(lut, min(act >> 2, 4096))
-            u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, t_res + tb, L_RES, M_RES)
+            u, xa, xb, pos = read_value(xa, xb, pos, words, nw, sym, fb, t_res + tb, L_RES, M_RES)
             r = unzigzag(u)
             r = (r ^ flip) - flip
             set_at(qb, x + 1, r)

@@ -31,12 +31,12 @@ from shared.compress._rans import (
     BIN,
     MODEL_INIT,
     get_bit,
-    get_symbol,
-    get_value,
     model_p,
     model_update,
     put,
     put_value,
+    read_symbol,
+    read_value,
 )
 from shared.core.jit import empty, full, helper, kernel, zeros
 
@@ -133,13 +133,13 @@ def decode_mask(xa, xb, pos, words, nw, sym, fb, valid, t_edge):
         state = False
         while True:
             s = 1 if state else 0
-            c, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, t_edge + s)
+            c, xa, xb, pos = read_symbol(xa, xb, pos, words, nw, sym, fb, t_edge + s)
             if pos > nw or c > END:
                 return False, xa, xb, pos
             if c == END:
                 e = W
             elif c == EXPLICIT:
-                u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, T_RUN + s, L_RUN, 0)
+                u, xa, xb, pos = read_value(xa, xb, pos, words, nw, sym, fb, T_RUN + s, L_RUN, 0)
                 if u >= np.uint64(W):
                     return False, xa, xb, pos
                 e = x + np.int64(u)

@@ -42,11 +42,11 @@ from shared.compress._rans import (
     NSYM,
     PROB_BITS,
     count_symbols,
-    get_symbol,
-    get_value,
     normalise,
     put,
     put_value,
+    read_symbol,
+    read_value,
     unzigzag,
     zigzag,
 )
@@ -661,7 +661,7 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
                 if pos > nw:
                     return -1, xa, xb, pos
                 if B > MINB:
-                    split, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_SPLIT + lev)
+                    split, xa, xb, pos = read_symbol(xa, xb, pos, words, nw, sym, fb, T_SPLIT + lev)
                     if split > 1:
                         return -1, xa, xb, pos
                     if split == 1:
@@ -677,7 +677,7 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
                             stack[sp, 3] = lev + 1
                             sp += 1
                         continue
-                m, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_MODEL)
+                m, xa, xb, pos = read_symbol(xa, xb, pos, words, nw, sym, fb, T_MODEL)
                 if m > 3:
                     return -1, xa, xb, pos
                 _predict_coefs(pm, pc, px, py, pB, x0, y0, B, pred)
@@ -685,7 +685,7 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
                 # the K_OF[m] coefficients: one inlined value decoder, not six (numba copies its IR per site)
                 for i in range(K_OF[m]):
                     tc = T_C0 if i == 0 else (T_C12 if i < 3 else T_C345)
-                    u, xa, xb, pos = get_value(xa, xb, pos, words, nw, sym, fb, tc, L_COEF, 0)
+                    u, xa, xb, pos = read_value(xa, xb, pos, words, nw, sym, fb, tc, L_COEF, 0)
                     c[i] = pred[i] + unzigzag(u)
                 leaves[nleaf, 0] = x0
                 leaves[nleaf, 1] = y0
@@ -705,7 +705,7 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
     nh = HEAD_N
     i = 0
     while i < nh:
-        v, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+        v, xa, xb, pos = read_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
         head[i] = v
         if i == N_FLAGS - 1 and v == 1:
             nh = head.shape[0]
@@ -722,7 +722,7 @@ def _decode_tree(xa, xb, pos, words, nw, sym, fb, valid, lossless, leaves, lcoef
         if head[i] > 255:
             return -1, xa, xb, pos
     for i in range(nleaf):
-        k, xa, xb, pos = get_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
+        k, xa, xb, pos = read_symbol(xa, xb, pos, words, nw, sym, fb, T_PRED)
         if k >= lp.NK or (k == lp.K_WP and not wp) or (k == lp.K_LS and not ls):
             return -1, xa, xb, pos
         leaves[i, 4] = k

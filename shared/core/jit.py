@@ -14,7 +14,8 @@ one process as the warm-up runs them, three interleaved runs each), into code as
 same streams; LLVM inlines the helpers instead). Not everywhere: seven functions on the
 decoders' chains keep numba's inlining (``kernel(inline="always")``), since LLVM-inlined they
 left the cloud decoder 2.5-3.5 % slower (28.2-30.5 s of compilation with them as helpers), and
-its duplicate counts a fifth slower.
+its duplicate counts a fifth slower; the range decoders' kernels call helper twins of two of them
+instead (:func:`shared.compress._rans.read_symbol`), 3-6 % faster there.
 
 A helper has no Python entry point: calling one from Python would jump to no code, so
 :class:`HelperDispatcher` refuses such a call by name instead.
