@@ -228,7 +228,8 @@ def parse_rig(doc: Any, where: Path | str = "rig.json") -> Rig:
         if key not in doc:
             raise InputError(where, f'missing field "{key}"')
     R = _matrix(doc["R"], (3, 3), where, "R")
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
+    # a rotation's entries lie in [-1, 1]: larger ones are refused before R @ R.T overflows
+    if np.abs(R).max() > 1.0 + 1e-6 or not np.allclose(R @ R.T, np.eye(3), atol=1e-6) or np.linalg.det(R) < 0:
         raise InputError(where, 'field "R" is not a rotation matrix')
     T = _matrix(doc["T"], (3,), where, "T")
     if np.abs(T).max() > MAX_BASELINE:  # before the norm, which would overflow
