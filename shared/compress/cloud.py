@@ -35,7 +35,7 @@ import numpy as np
 from shared.compress import _octree as ot
 from shared.core.errors import InputError
 from shared.core.threads import cpu_budget
-from shared.formats.container import header_int, open_container, write_container, write_stream
+from shared.formats.container import header_crc, header_int, open_container, write_container, write_stream
 from shared.formats.ply import iter_ply_records, read_header, write_ply_records
 
 log = logging.getLogger(__name__)
@@ -62,16 +62,18 @@ _CHUNK_HEAD = struct.Struct("<qqqqqqI")  # points, voxels, depth, offset xyz, ra
 _CHECK = struct.Struct("<I")  # after the head: the chunk's check (_chunk_check)
 
 
-def _chunk_check(first: int, head: bytes, raw: bytes, codes: np.ndarray, chan: np.ndarray) -> int:
-    """The check of what a chunk decodes to: CRC-32 of the index of its ``first`` point, its
-    ``head`` (:data:`_CHUNK_HEAD`), its ``raw`` fields and what the octree stream gives, the
-    points' Morton codes ``codes`` (N,) int64 (sorted, repeated per duplicate) and attribute
-    differences ``chan`` (N, C) int64, from which every record is rebuilt. The container's
-    CRC-32 covers the bytes; this covers a chunk rewritten with a fresh CRC (a buggy tool),
-    which ``octree-rans-4`` decoded to another cloud in 12 of 114 random one-byte and table
-    damages (a changed offset in the head shifts every point; the rANS stream's end state
-    catches most of the rest), and a chunk in another chunk's place."""
-    c = zlib.crc32(struct.pack("<Q", first) + head)
+def _chunk_check(header: int, first: int, head: bytes, raw: bytes, codes: np.ndarray, chan: np.ndarray) -> int:
+    """The check of what a chunk decodes to: CRC-32 of the container header's CRC-32
+    ``header`` (:func:`shared.formats.container.header_crc`: the precision and the fields), the
+    index of the chunk's ``first`` point, its ``head`` (:data:`_CHUNK_HEAD`), its ``raw``
+    fields and what the octree stream gives, the points' Morton codes ``codes`` (N,) int64
+    (sorted, repeated per duplicate) and attribute differences ``chan`` (N, C) int64, from which
+    every record is rebuilt. The container's CRC-32 covers the bytes; this covers a chunk
+    rewritten with a fresh CRC (a buggy tool), which ``octree-rans-4`` decoded to another cloud
+    in 12 of 114 random one-byte and table damages (a changed offset in the head shifts every
+    point; the rANS stream's end state catches most of the rest), a chunk in another chunk's
+    place, and a header rewritten with its CRC (another precision scaled every point)."""
+    c = zlib.crc32(struct.pack("<IQ", header, first) + head)
     c = zlib.crc32(raw, c)
     c = zlib.crc32(np.ascontiguousarray(codes, "<i8"), c)
     return zlib.crc32(np.ascontiguousarray(chan, "<i8"), c)
@@ -179,7 +181,8 @@ def _channels(rec: np.ndarray, plan: list[tuple[str, str]], precision: float) ->
     return np.ascontiguousarray(chan), np.array(log2d, np.int64), raw
 
 
-def _encode_chunk(rec: np.ndarray, plan: list[tuple[str, str]], precision: float, where: str, first: int) -> bytes:
+def _encode_chunk(rec: np.ndarray, plan: list[tuple[str, str]], precision: float, where: str, first: int,
+                  header: int) -> bytes:
     xyz = np.stack([rec["x"], rec["y"], rec["z"]], axis=1).astype(np.float64)
     bad = ~np.isfinite(xyz).all(axis=1)
     if bad.any():
@@ -202,7 +205,7 @@ def _encode_chunk(rec: np.ndarray, plan: list[tuple[str, str]], precision: float
     chan, log2d, raw = _channels(srec, plan, precision)
     tables, words = ot.encode_chunk(vox, counts, depth, chan, log2d)
     head = _CHUNK_HEAD.pack(len(rec), len(vox), depth, *(int(v) for v in off), len(raw))
-    check = _CHECK.pack(_chunk_check(first, head, raw, codes, chan))
+    check = _CHECK.pack(_chunk_check(header, first, head, raw, codes, chan))
     return head + check + raw + struct.pack("<I", len(tables)) + tables.tobytes() + words.astype("<u2").tobytes()
 
 
@@ -261,12 +264,13 @@ def _units_of(comments: tuple[str, ...]) -> str:
     return "mm"
 
 
-def _chunk_stream(chunks: Iterator[np.ndarray], plan: list[tuple[str, str]], precision: float, where: str) -> Iterator[bytes]:
+def _chunk_stream(chunks: Iterator[np.ndarray], plan: list[tuple[str, str]], precision: float, where: str,
+                  header: int) -> Iterator[bytes]:
     with ThreadPoolExecutor(_threads()) as pool:
         pending = []
         first = 0
         for rec in chunks:
-            pending.append(pool.submit(_encode_chunk, np.asarray(rec), plan, precision, where, first))
+            pending.append(pool.submit(_encode_chunk, np.asarray(rec), plan, precision, where, first, header))
             first += len(rec)
             if len(pending) > _threads():
                 yield pending.pop(0).result()
@@ -282,7 +286,7 @@ def write_cloud(path: str | os.PathLike[str], ply: str | os.PathLike[str], preci
     plan = _plan_fields(header.dtype, str(ply))
     meta = _meta(header.dtype, header.count, precision, _units_of(header.comments), header.comments)
     chunks = iter_ply_records(ply, meta["chunk_points"])
-    return write_container(path, "cloud", meta, _chunk_stream(chunks, plan, precision, str(ply)))
+    return write_container(path, "cloud", meta, _chunk_stream(chunks, plan, precision, str(ply), header_crc(meta)))
 
 
 def encode_cloud(rec: np.ndarray, precision: float, units: str = "mm", comments: tuple[str, ...] = ()) -> bytes:
@@ -294,15 +298,15 @@ def encode_cloud(rec: np.ndarray, precision: float, units: str = "mm", comments:
     per = meta["chunk_points"]
     parts = (rec[i : i + per] for i in range(0, len(rec), per))
     buf = io.BytesIO()
-    write_stream(buf, "cloud", meta, _chunk_stream(parts, plan, precision, "cloud"))
+    write_stream(buf, "cloud", meta, _chunk_stream(parts, plan, precision, "cloud", header_crc(meta)))
     return buf.getvalue()
 
 
-def _decode_chunk(payload: bytes, i: int, first: int, dtype: np.dtype, plan: list[tuple[str, str]],
+def _decode_chunk(payload: bytes, i: int, first: int, header: int, dtype: np.dtype, plan: list[tuple[str, str]],
                   precision: float, log2d: np.ndarray, where: str, out: np.ndarray | None = None) -> np.ndarray:
     """Chunk ``i``'s points (the cloud's from index ``first`` on) as records of ``dtype``, into
     ``out`` when given (a slice of the whole cloud: (points of the chunk,), or the chunk is
-    corrupt) or a new array."""
+    corrupt) or a new array; ``header`` the container header's CRC-32 (:func:`_chunk_check`)."""
     if len(payload) < _CHUNK_HEAD.size + _CHECK.size + 4:
         raise InputError(where, f"corrupt chunk {i} (too short)")
     npts, nvox, depth, ox, oy, oz, nraw = _CHUNK_HEAD.unpack_from(payload)
@@ -323,7 +327,7 @@ def _decode_chunk(payload: bytes, i: int, first: int, dtype: np.dtype, plan: lis
     chan = np.empty((npts, len(log2d)), np.int64)
     if ot.decode_chunk(tables, words, nvox, npts, depth, log2d, codes, chan) != 0:
         raise InputError(where, f"corrupt chunk {i} (the coded stream does not decode)")
-    if _chunk_check(first, payload[: _CHUNK_HEAD.size], raw, codes, chan) != check:
+    if _chunk_check(header, first, payload[: _CHUNK_HEAD.size], raw, codes, chan) != check:
         raise InputError(where, f"corrupt chunk {i} (what it decodes to fails its check)")
     if out is None:
         out = np.empty(npts, dtype)
@@ -368,7 +372,7 @@ def _decode_chunk(payload: bytes, i: int, first: int, dtype: np.dtype, plan: lis
     return out
 
 
-def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Iterator[bytes], np.dtype, str]:
+def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Iterator[bytes], np.dtype, str, int]:
     where = "<bytes>" if isinstance(source, bytes | bytearray | memoryview) else str(source)
     header, chunks = open_container(source, kind="cloud")
     meta = header.meta
@@ -389,15 +393,15 @@ def _open(source: str | os.PathLike[str] | bytes) -> tuple[dict[str, Any], Itera
         claim = f"{points / 1e6:.0f} M points" if points < 10**15 else "over 10^15 points"
         raise InputError(where, f"corrupt or hostile cloud header: it claims {claim}, more than the codec's "
                                 f"{MAX_POINTS / 1e6:.0f} M")
-    return meta, chunks, dtype, where
+    return meta, chunks, dtype, where, header.crc
 
 
-def _decode_chunks(opened: tuple[dict[str, Any], Iterator[bytes], np.dtype, str],
+def _decode_chunks(opened: tuple[dict[str, Any], Iterator[bytes], np.dtype, str, int],
                    whole: np.ndarray | None = None) -> Iterator[np.ndarray]:
     """Decode the chunks of a container (``opened``: what :func:`_open` returns) on the thread
     pool, yielding each in order; into its slice of ``whole`` (``(points,)`` of the cloud's
     dtype) when given, else into a new array."""
-    meta, chunks, dtype, where = opened
+    meta, chunks, dtype, where, header = opened
     plan = _plan_fields(dtype, where)
     log2d = _chunk_log2d(plan)
     precision = float(meta["precision"])
@@ -408,7 +412,8 @@ def _decode_chunks(opened: tuple[dict[str, Any], Iterator[bytes], np.dtype, str]
         # each must fill its slice of ``whole`` exactly (checked by _decode_chunk).
         for i, payload in enumerate(chunks):
             into = None if whole is None else whole[i * per : (i + 1) * per]
-            pending.append(pool.submit(_decode_chunk, payload, i, i * per, dtype, plan, precision, log2d, where, into))
+            pending.append(pool.submit(_decode_chunk, payload, i, i * per, header, dtype, plan, precision, log2d, where,
+                                       into))
             if len(pending) > _threads():
                 yield pending.pop(0).result()
         for f in pending:
@@ -431,7 +436,7 @@ def decode_cloud(source: str | os.PathLike[str] | bytes) -> np.ndarray:
 
 def read_cloud_to_ply(source: str | os.PathLike[str], out: str | os.PathLike[str]) -> Path:
     """Decode a cloud container into a binary PLY (the cloud contract), atomically."""
-    meta, _, dtype, _ = _open(source)
+    meta, _, dtype, _, _ = _open(source)
     out = Path(out)
     # the records' bytes, checked before minutes of decoding end in a full disk
     need = int(meta["points"]) * dtype.itemsize

@@ -2,8 +2,9 @@
 prediction (LOCO-I/CALIC-style, a least-squares predictor fitted per band, JPEG-XL's weighted
 predictor) or, error-bounded, hierarchical interpolation (SZ3's order), and rANS: codec
 ``quadtree-lp-9`` (``quadtree-lp-7``'s streams, each band with the check of the samples it
-decodes to, :mod:`shared.compress._check`, bound to the band's place: ``quadtree-lp-8``'s check was
-not, so a file whose chunks were swapped or repeated, each with its CRC, decoded to another image).
+decodes to, :mod:`shared.compress._check`, bound to the band's place and to the header:
+``quadtree-lp-8``'s check was not, so a file whose chunks were swapped or repeated, each with its
+CRC, or whose header was rewritten with its CRC, decoded to another image).
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -56,7 +57,7 @@ from shared.compress._check import output_check
 from shared.core.errors import InputError
 from shared.core.files import atomic_file
 from shared.core.threads import cpu_budget
-from shared.formats.container import header_int, open_container, write_container, write_stream
+from shared.formats.container import header_crc, header_int, open_container, write_container, write_stream
 from shared.formats.rig import DIST_LENGTHS, MAX_DISTORTION
 
 log = logging.getLogger(__name__)
@@ -203,35 +204,38 @@ def _short(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
-def _band_key(i: int) -> int:
-    """What band ``i``'s check is XORed with: a different 32-bit value for every band (an odd
-    multiplier is a bijection modulo 2**32), so that a band's chunk in another band's place (a
-    writer's mix-up, each chunk with its CRC) fails the check of its decoded samples."""
-    return (i * 0x9E3779B1) & 0xFFFFFFFF
+def _band_key(i: int, header: int) -> int:
+    """What band ``i``'s check is XORed with, ``header`` the CRC-32 of the container's header
+    (:func:`shared.formats.container.header_crc`): a different 32-bit value for every band (an
+    odd multiplier is a bijection modulo 2**32) and every header, so that a band's chunk in
+    another band's place (a writer's mix-up, each chunk with its CRC) and a header rewritten
+    with its CRC (another quantum or scale: every sample decodes scaled) fail the check of the
+    decoded samples."""
+    return ((i * 0x9E3779B1) ^ header) & 0xFFFFFFFF
 
 
-def _encode_band(zb: np.ndarray, plan: _Plan, i: int) -> bytes:
+def _encode_band(zb: np.ndarray, plan: _Plan, i: int, header: int) -> bytes:
     t, valid = qt.quantise(zb, plan.scale, plan.lossless)
     tables, words, check = encode_band(t, valid, plan.lossless, plan.opts, plan.scale)
     # the check of the samples band i decodes to (:mod:`._check`) after the tables' length
-    return _BAND_HEAD.pack(len(tables), check ^ _band_key(i)) + tables.tobytes() + words.astype("<u2").tobytes()
+    return _BAND_HEAD.pack(len(tables), check ^ _band_key(i, header)) + tables.tobytes() + words.astype("<u2").tobytes()
 
 
 def _bands(h: int) -> list[tuple[int, int]]:
     return [(y, min(y + BAND_ROWS, h)) for y in range(0, h, BAND_ROWS)]
 
 
-def _encoded_chunks(z: np.ndarray, plan: _Plan) -> Iterator[bytes]:
+def _encoded_chunks(z: np.ndarray, plan: _Plan, header: int) -> Iterator[bytes]:
     bands = _bands(z.shape[0])
     with ThreadPoolExecutor(_threads()) as pool:
         # At most two bands per thread in flight: memory stays a few bands' worth.
         window = 2 * _threads()
-        futures = [pool.submit(_encode_band, z[a:b], plan, i) for i, (a, b) in enumerate(bands[:window])]
+        futures = [pool.submit(_encode_band, z[a:b], plan, i, header) for i, (a, b) in enumerate(bands[:window])]
         for i in range(len(bands)):
             nxt = i + window
             if nxt < len(bands):
                 a, b = bands[nxt]
-                futures.append(pool.submit(_encode_band, z[a:b], plan, nxt))
+                futures.append(pool.submit(_encode_band, z[a:b], plan, nxt, header))
             yield futures[i].result()
             futures[i] = None  # type: ignore[call-overload]
 
@@ -267,7 +271,8 @@ def write_range(path: str | os.PathLike[str], img: RangeImage, *, quantum: float
     z = check_range(img.z)
     check_camera(img.K, img.dist, img.units, "range image")
     plan = _plan(z, quantum, max_error, effort)
-    return write_container(path, "range", _meta(img, z, plan, quantum, max_error), _encoded_chunks(z, plan))
+    meta = _meta(img, z, plan, quantum, max_error)
+    return write_container(path, "range", meta, _encoded_chunks(z, plan, header_crc(meta)))
 
 
 def encode_range(img: RangeImage, *, quantum: float | None = None, max_error: float | None = None,
@@ -277,7 +282,8 @@ def encode_range(img: RangeImage, *, quantum: float | None = None, max_error: fl
     check_camera(img.K, img.dist, img.units, "range image")
     plan = _plan(z, quantum, max_error, effort)
     buf = io.BytesIO()
-    write_stream(buf, "range", _meta(img, z, plan, quantum, max_error), _encoded_chunks(z, plan))
+    meta = _meta(img, z, plan, quantum, max_error)
+    write_stream(buf, "range", meta, _encoded_chunks(z, plan, header_crc(meta)))
     return buf.getvalue()
 
 
@@ -324,7 +330,7 @@ def read_range(source: str | os.PathLike[str] | bytes) -> RangeImage:
         words = np.frombuffer(payload, "<u2", (len(payload) - start - nt) // 2, start + nt).astype(np.uint16)
         if decode_band(tables, words, b - a, w, lossless, scale, z[a:b]) != 0:
             raise InputError(where, f"corrupt chunk {i} (the coded stream does not decode)")
-        if output_check(z[a:b].view(np.uint32)) ^ _band_key(i) != check:
+        if output_check(z[a:b].view(np.uint32)) ^ _band_key(i, header.crc) != check:
             raise InputError(where, f"corrupt chunk {i} (its decoded samples fail their check)")
 
     with ThreadPoolExecutor(_threads()) as pool:

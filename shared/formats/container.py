@@ -50,16 +50,29 @@ MAX_CHUNK = (1 << 32) - 1
 
 @dataclass(frozen=True)
 class ContainerHeader:
-    """What a container's header says: ``kind`` ("range" or "cloud"), ``version`` and the
-    header document ``meta`` (``meta["chunks"]`` is the number of chunks)."""
+    """What a container's header says: ``kind`` ("range" or "cloud"), ``version``, the
+    header document ``meta`` (``meta["chunks"]`` is the number of chunks) and its CRC-32
+    ``crc`` (:func:`header_crc`: the codecs bind each chunk's check to it)."""
 
     kind: str
     version: int
     meta: dict[str, Any]
+    crc: int = 0
 
     @property
     def chunks(self) -> int:
         return int(self.meta["chunks"])
+
+
+def _document(meta: dict[str, Any]) -> bytes:
+    return json.dumps(meta, separators=(",", ":")).encode("utf-8")
+
+
+def header_crc(meta: dict[str, Any]) -> int:
+    """The CRC-32 :func:`write_stream` stores for the header document ``meta``: a codec binds
+    each chunk's own check to it (and the reader's :attr:`ContainerHeader.crc`), so that a
+    header rewritten with a fresh CRC (another quantum, another size) fails every chunk."""
+    return zlib.crc32(_document(meta))
 
 
 def write_stream(f: BinaryIO, kind: str, meta: dict[str, Any], chunks: Iterable[bytes]) -> int:
@@ -67,7 +80,7 @@ def write_stream(f: BinaryIO, kind: str, meta: dict[str, Any], chunks: Iterable[
     ``chunks`` yielded (checked). Returns the bytes written."""
     if kind not in KINDS:
         raise ValueError(f"unknown container kind {kind!r}")
-    doc = json.dumps(meta, separators=(",", ":")).encode("utf-8")
+    doc = _document(meta)
     f.write(MAGIC + _FIXED.pack(CONTAINER_VERSION, KINDS[kind], 0, len(doc), zlib.crc32(doc)) + doc)
     total = len(MAGIC) + _FIXED.size + len(doc)
     n = 0
@@ -123,7 +136,7 @@ def read_header(f: BinaryIO, where: str, kind: str | None = None) -> ContainerHe
     name = _KIND_NAMES[kind_id]
     if kind is not None and name != kind:
         raise InputError(where, f"holds a {name}, not a {kind}")
-    return ContainerHeader(name, version, meta)
+    return ContainerHeader(name, version, meta, crc)
 
 
 def header_int(meta: dict[str, Any], key: str) -> int:

@@ -141,8 +141,10 @@ def test_damaged_cloud_files(tmp_path: Path) -> None:
 def test_chunks_rewritten_with_a_fresh_crc_are_refused(monkeypatch: pytest.MonkeyPatch) -> None:
     """Damage the container's CRC-32 cannot see (a buggy tool rewrote it): a chunk's offset
     changed (``octree-rans-4`` decoded it, every point of the chunk shifted), chunks swapped (each
-    an intact stream), and one random byte a copy, in the head, the tables or the words: each
+    an intact stream), the header's precision (every point scaled), and one random byte a copy,
+    in the head, the tables or the words: each
     refused by the chunk's check of what it decodes to, or decoded to exactly the intact cloud."""
+    import io
     import struct
     import zlib
 
@@ -169,6 +171,12 @@ def test_chunks_rewritten_with_a_fresh_crc_are_refused(monkeypatch: pytest.Monke
         decode_cloud(rebuilt([payloads[0], bytes(shifted), payloads[2]]))
     with pytest.raises(InputError, match=r"corrupt chunk 0 \(what it decodes to fails its check\)"):
         decode_cloud(rebuilt([payloads[1], payloads[0], payloads[2]]))
+    # the header rewritten with its CRC: another precision would scale every point
+    header, _ = open_container(blob, kind="cloud")
+    buf = io.BytesIO()
+    write_stream(buf, "cloud", {**header.meta, "precision": 1.0}, payloads)
+    with pytest.raises(InputError, match=r"corrupt chunk 0 \(what it decodes to fails its check\)"):
+        decode_cloud(buf.getvalue())
     rng = np.random.default_rng(2)
     refused = 0
     for _ in range(60):

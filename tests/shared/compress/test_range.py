@@ -316,8 +316,14 @@ def test_a_header_or_npz_with_a_malformed_camera_or_size_is_refused_by_name(tmp_
             ("units", "mm\nend_header", "units must be a short printable name")):
         with pytest.raises(InputError, match=rf"^<bytes>: corrupt range header: {re.escape(message)}"):
             read_range(with_meta(**{key: value}))
-    # the unknown camera as a scan without a rig writes it (all NaN) and no camera at all pass
-    assert np.isnan(read_range(with_meta(K=None, dist=None)).z).sum() == np.isnan(z).sum()
+    # no camera at all passes (each band's check is bound to the header: its own file, not
+    # this one's header edited)
+    cameraless = read_range(encode_range(RangeImage(z), quantum=0.02))
+    assert cameraless.K is None and np.isnan(cameraless.z).sum() == np.isnan(z).sum()
+    # a valid header rewritten with its CRC: another scale would decode every sample scaled
+    for key, value in (("scale", 0.04), ("K", None), ("units", "m")):
+        with pytest.raises(InputError, match=r"^<bytes>: corrupt chunk 0 \(its decoded samples fail their check\)$"):
+            read_range(with_meta(**{key: value}))
     unknown = save_range_npz(tmp_path / "unknown.npz", RangeImage(z))
     assert np.isnan(load_range_npz(unknown).K).all()
     bad = tmp_path / "bad" / "range.npz"
