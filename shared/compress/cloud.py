@@ -13,7 +13,9 @@ origin: every decoded coordinate is the centre of its input point's voxel, withi
 Points come back in Morton order within each chunk (the order an octree yields), chunk after
 chunk in file order. The cloud is cut into equal chunks of at most :data:`CHUNK_POINTS` points in file
 order (:func:`chunk_points`), each its own octree on the shared grid, coded on a thread pool (:mod:`shared.compress._octree`),
-so a 100 M-point cloud streams through bounded memory on both cores.
+so a 100 M-point cloud streams through bounded memory on both cores. Each chunk carries a
+CRC-32 of what it decodes to, bound to its place and to the header (:func:`_chunk_check`), so
+that damage the container's CRC-32 does not see (a buggy tool rewrote it) is refused too.
 """
 
 from __future__ import annotations
