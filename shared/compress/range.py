@@ -4,7 +4,8 @@ predictor) or, error-bounded, hierarchical interpolation (SZ3's order), and rANS
 ``quadtree-lp-9`` (``quadtree-lp-7``'s streams, each band with the check of the samples it
 decodes to, :mod:`shared.compress._check`, bound to the band's place and to the header:
 ``quadtree-lp-8``'s check was not, so a file whose chunks were swapped or repeated, each with its
-CRC, or whose header was rewritten with its CRC, decoded to another image).
+CRC, decoded to another image, and one whose header was rewritten with its CRC to another camera
+or units decoded with them).
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -209,8 +210,8 @@ def _band_key(i: int, header: int) -> int:
     (:func:`shared.formats.container.header_crc`): a different 32-bit value for every band (an
     odd multiplier is a bijection modulo 2**32) and every header, so that a band's chunk in
     another band's place (a writer's mix-up, each chunk with its CRC) and a header rewritten
-    with its CRC (another quantum or scale: every sample decodes scaled) fail the check of the
-    decoded samples."""
+    with its CRC fail the check of the decoded samples: another scale changes the samples
+    themselves, but another camera (``K``, ``dist``) or ``units`` would have decoded silently."""
     return ((i * 0x9E3779B1) ^ header) & 0xFFFFFFFF
 
 
