@@ -320,7 +320,8 @@ def test_a_header_or_npz_with_a_malformed_camera_or_size_is_refused_by_name(tmp_
     # this one's header edited)
     cameraless = read_range(encode_range(RangeImage(z), quantum=0.02))
     assert cameraless.K is None and np.isnan(cameraless.z).sum() == np.isnan(z).sum()
-    # a valid header rewritten with its CRC: another scale would decode every sample scaled
+    # a valid header rewritten with its CRC: another scale changes the decoded samples (their
+    # check), another camera or units would not (the check's binding to the header)
     for key, value in (("scale", 0.04), ("K", None), ("units", "m")):
         with pytest.raises(InputError, match=r"^<bytes>: corrupt chunk 0 \(its decoded samples fail their check\)$"):
             read_range(with_meta(**{key: value}))
