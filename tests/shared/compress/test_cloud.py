@@ -142,8 +142,8 @@ def test_chunks_rewritten_with_a_fresh_crc_are_refused(monkeypatch: pytest.Monke
     """Damage the container's CRC-32 cannot see (a buggy tool rewrote it): a chunk's offset
     changed (``octree-rans-4`` decoded it, every point of the chunk shifted), chunks swapped (each
     an intact stream), the header's precision (every point scaled), and one random byte a copy,
-    in the head, the tables or the words: each
-    refused by the chunk's check of what it decodes to, or decoded to exactly the intact cloud."""
+    in the head, the tables or the words: each refused by the chunk's check of what it decodes
+    to, or decoded to exactly the intact cloud."""
     import io
     import struct
     import zlib
