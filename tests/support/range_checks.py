@@ -4,6 +4,7 @@ and damaged streams refused or decoded to the very same image (never a wrong one
 
 from __future__ import annotations
 
+import json
 import struct
 import zlib
 
@@ -15,6 +16,7 @@ from shared.core.errors import InputError
 from shared.formats.container import MAGIC, TRAILER
 
 _CHUNK = struct.Struct("<II")
+_FIXED = struct.Struct("<HBBII")  # the container's version, kind, flags, header length and CRC
 
 
 def check_lossless(z: np.ndarray, q: float) -> float:
@@ -62,6 +64,19 @@ def chunk_spans(blob: bytes) -> list[tuple[int, int]]:
         spans.append((pos + 8, pos + 8 + length))
         pos += 8 + length
     return spans
+
+
+def rebuilt(blob: bytes, payloads: list[bytes], meta: dict | None = None) -> bytes:
+    """The container ``blob`` with its chunks replaced by ``payloads`` (and its header document
+    by ``meta``), every CRC-32 rewritten to match: what a buggy tool that recomputes checksums
+    writes."""
+    hl = struct.unpack_from("<I", blob, len(MAGIC) + 4)[0]
+    head = blob[: len(MAGIC) + _FIXED.size + hl]
+    if meta is not None:
+        version, kind, flags, _, _ = _FIXED.unpack_from(blob, len(MAGIC))
+        doc = json.dumps(meta, separators=(",", ":")).encode()
+        head = MAGIC + _FIXED.pack(version, kind, flags, len(doc), zlib.crc32(doc)) + doc
+    return head + b"".join(_CHUNK.pack(len(p), zlib.crc32(p)) + p for p in payloads) + TRAILER
 
 
 def check_damage_refused(blob: bytes, seed: int = 0) -> int:

@@ -8,9 +8,7 @@ cloud, with no error."""
 
 from __future__ import annotations
 
-import json
 import struct
-import zlib
 from collections.abc import Callable
 
 import numpy as np
@@ -18,27 +16,13 @@ import pytest
 
 from shared.compress import RangeImage, decode_cloud, encode_cloud, encode_range, read_range
 from shared.core.errors import InputError
-from shared.formats.container import MAGIC, TRAILER
-from tests.support.range_checks import chunk_spans
+from shared.formats.container import open_container
+from tests.support.range_checks import chunk_spans, rebuilt
 from tests.support.range_images import synthetic_range
-
-_FIXED = struct.Struct("<HBBII")  # the container's version, kind, flags, header length and CRC
 
 
 def _payloads(blob: bytes) -> list[bytes]:
     return [blob[a:b] for a, b in chunk_spans(blob)]
-
-
-def _rebuilt(blob: bytes, payloads: list[bytes], meta: dict | None = None) -> bytes:
-    """``blob`` with its chunks replaced by ``payloads`` (and its header document by ``meta``),
-    every CRC-32 rewritten to match."""
-    hl = struct.unpack_from("<I", blob, len(MAGIC) + 4)[0]
-    head = blob[: len(MAGIC) + _FIXED.size + hl]
-    if meta is not None:
-        version, kind, flags, _, _ = _FIXED.unpack_from(blob, len(MAGIC))
-        doc = json.dumps(meta, separators=(",", ":")).encode()
-        head = MAGIC + _FIXED.pack(version, kind, flags, len(doc), zlib.crc32(doc)) + doc
-    return head + b"".join(struct.pack("<II", len(p), zlib.crc32(p)) + p for p in payloads) + TRAILER
 
 
 def _damaged(rng: np.random.Generator, payloads: list[bytes], tables_length: bool) -> list[bytes]:
@@ -124,7 +108,7 @@ def test_chunks_damaged_and_rechecksummed(codec: str, monkeypatch: pytest.Monkey
             if damaged == payloads:
                 continue
             total += 1
-            refused += _same_or_refused(decode, good, _rebuilt(blob, damaged), f"{name}, damage {k}")
+            refused += _same_or_refused(decode, good, rebuilt(blob, damaged), f"{name}, damage {k}")
     # most damage is refused; what decodes decodes to the intact image (checked above)
     assert refused >= 0.8 * total, (refused, total)
 
@@ -136,8 +120,7 @@ def test_header_fields_rewritten_with_their_crc(codec: str, monkeypatch: pytest.
     for name, blob in cases:
         good = decode(blob)
         payloads = _payloads(blob)
-        hl = struct.unpack_from("<I", blob, len(MAGIC) + 4)[0]
-        meta = json.loads(blob[len(MAGIC) + _FIXED.size : len(MAGIC) + _FIXED.size + hl])
+        meta = open_container(blob)[0].meta
         for key, value in meta.items():
             others = [0, -1, 1, 255, 256, 2**40, 0.5, 1e300, "x", None, True, []]
             if isinstance(value, int | float) and not isinstance(value, bool):
@@ -145,6 +128,6 @@ def test_header_fields_rewritten_with_their_crc(codec: str, monkeypatch: pytest.
             for other in others:
                 if other == value and type(other) is type(value):
                     continue
-                changed = _rebuilt(blob, payloads, {**meta, key: other})
+                changed = rebuilt(blob, payloads, {**meta, key: other})
                 assert _same_or_refused(decode, good, changed, f"{name}: {key}={other!r}"), \
                     f"{name}: {key}={other!r} decoded, its header changed"  # fmt: skip
