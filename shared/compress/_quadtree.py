@@ -1,7 +1,7 @@
 """Quadtree range-image band codec kernels (private; the public API is :mod:`shared.compress.range`,
 the band's encoder and decoder over these kernels :mod:`shared.compress._band`).
 
-A band of rows is coded as one rANS stream (codec ``quadtree-lp-9``) of three parts:
+A band of rows is coded as one rANS stream (codec ``quadtree-lp-10``) of three parts:
 
 1. the validity mask, exactly (:mod:`shared.compress._mask`): its coder, then per row where its
    alternating invalid/valid runs end, against the row above, or each sample in the context

@@ -1,11 +1,12 @@
 """Range images (depth on the camera grid) coded by a quadtree of surface models, local
 prediction (LOCO-I/CALIC-style, a least-squares predictor fitted per band, JPEG-XL's weighted
 predictor) or, error-bounded, hierarchical interpolation (SZ3's order), and rANS: codec
-``quadtree-lp-9`` (``quadtree-lp-7``'s streams, each band with the check of the samples it
-decodes to, :mod:`shared.compress._check`, bound to the band's place and to the header:
-``quadtree-lp-8``'s check was not, so a file whose chunks were swapped or repeated, each with its
-CRC, decoded to another image, and one whose header was rewritten with its CRC to another camera
-or units decoded with them).
+``quadtree-lp-10`` (``quadtree-lp-9``'s streams with two more predictors a leaf may choose,
+its N and its W neighbour; each band with the check of the samples it decodes to,
+:mod:`shared.compress._check`, bound to the band's place and to the header: ``quadtree-lp-8``'s
+check was not, so a file whose chunks were swapped or repeated, each with its CRC, decoded to
+another image, and one whose header was rewritten with its CRC to another camera or units
+decoded with them).
 
 A range image is ``z`` (H, W) float32, depth in the rig's units with NaN holes (the
 ``range.npz`` a scan writes). Two modes:
@@ -65,10 +66,10 @@ log = logging.getLogger(__name__)
 
 #: Rows per chunk (a multiple of the quadtree's top block).
 BAND_ROWS = 256
-CODEC = "quadtree-lp-9"
+CODEC = "quadtree-lp-10"
 #: Range codecs of earlier releases, refused by name (their streams are not read any more).
 OLD_CODECS = ("quadtree-rans-1", "quadtree-lp-2", "quadtree-lp-3", "quadtree-lp-4", "quadtree-lp-5", "quadtree-lp-6",
-              "quadtree-lp-7", "quadtree-lp-8")
+              "quadtree-lp-7", "quadtree-lp-8", "quadtree-lp-9")
 #: The encoder's options per effort. 1 (the default): every tool but JPEG-XL's weighted
 #: predictor (the least-squares predictor included: its bands encode about half as fast,
 #: 5 MP per CPU second against 9-10 on the relief and the bunny); 2: the weighted predictor
