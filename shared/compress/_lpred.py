@@ -288,7 +288,7 @@ FB_MAX = 16
 #: sample's, clipped at each, give a least-squares fit each (:func:`feedback_weights`).
 FB_CLIPS = (1, 2, 8, 64)
 #: Every FB_STRIDE-th row of a band (of 2 FB_STRIDE rows or more) is sampled for the fits and costs.
-FB_STRIDE = 4
+FB_STRIDE = 8
 #: The least share of its log cost a fit must save against no feedback to be tried.
 FB_MIN_GAIN = 0.02
 

@@ -27,7 +27,11 @@ bands of :data:`BAND_ROWS` rows, each an independent chunk of the container
 Files of the earlier codecs (:data:`OLD_CODECS`) are refused by name (re-encode them from the
 ``range.npz``).
 
-Measured with ``quadtree-lp-7`` (the check adds 4 bytes a band of 256 rows)
+Measured with ``quadtree-lp-10`` (``make bench``; the lossless sizes of ``quadtree-lp-9`` in
+brackets): the bunny at 1:1 4.044 (4.180; JPEG-XL effort 7 4.017), the Cyberware dragon scans
+4.576 / 4.359 (4.771 / 4.471; JPEG-XL 4.552 / 4.481), the relief at 2:1 1.948 (1.971), the real
+captures 8.45-8.99 (8.47-9.10), the synthetic image 5.493 (5.495). Measured with
+``quadtree-lp-7`` (the check adds 4 bytes a band of 256 rows)
 (``tests/bench/bench_compress.py``, bits per valid sample, lossless at 0.02 mm / within
 0.1 mm, effort 1): a simulated carved relief scanned by a 2048x1536 camera over a 1024x768
 projector 1.971 / 0.379 (``quadtree-lp-6`` 1.977 / 0.379; JPEG-XL effort 7 2.16, JPEG-LS 2.44,
