@@ -307,6 +307,42 @@ def _fit(sww, swn, snn, swe, sne):
     return qw, qn
 
 
+@helper(inline=False)
+def _row_sums(e, ea, v, c, sums):
+    """Add a row's sums of products of the W, N and own errors, each clipped at ``c``, to
+    ``sums`` (5,) int64 (sww, swn, snn, swe, sne): ``e``, ``ea`` (W + 1,) int64 the row's and the
+    row above's errors after a 0, ``v`` (W,) bool the row's valid samples. Integers: clipped
+    errors below 2**11, products below 2**22, no overflow below 2**41 samples. A helper of its
+    own, not inlined: its vectorised loop compiles once, not once per clip."""
+    sww = swn = snn = swe = sne = 0
+    for x in range(v.shape[0]):
+        m = np.int64(v[x])
+        fe = min(max(e[x + 1], -c), c)
+        fw = min(max(e[x], -c), c) * m
+        fn = min(max(ea[x + 1], -c), c) * m
+        sww += fw * fw
+        swn += fw * fn
+        snn += fn * fn
+        swe += fw * fe
+        sne += fn * fe
+    sums[0] += sww
+    sums[1] += swn
+    sums[2] += snn
+    sums[3] += swe
+    sums[4] += sne
+
+
+@helper(inline=False)
+def _row_cost(e, ea, v, aw, an):
+    """The summed :func:`_log_cost` of a row's errors less the feedback ``aw``, ``an`` of their W
+    and N neighbours' (arrays as :func:`_row_sums`)."""
+    cost = 0
+    for x in range(v.shape[0]):
+        r = e[x + 1] - ((aw * e[x] + an * ea[x + 1]) >> FB_SHIFT)
+        cost += _log_cost(r) * np.int64(v[x])
+    return cost
+
+
 @kernel
 def feedback_weights(t, valid, cells, leaves, lcoef, pw, pls):
     """The band's error-feedback weights (aw, an), in sixteenths, added to each sample's
@@ -348,43 +384,29 @@ def feedback_weights(t, valid, cells, leaves, lcoef, pw, pls):
                 pl = local_pred(k, rb[x], ra[x + 1], ra[x], ra[x + 2], pf[x])
             eb[x + 1] = min(max(t[y, x] - pl, -E_LIM), E_LIM)
         if y % stride == stride - 1:
-            kept[y // stride, 0, :] = ea
-            kept[y // stride, 1, :] = eb
+            # element by element: an array assigned to a slice has numba compile its shape
+            # mismatch's message (1.75 s of string formatting)
+            for x in range(W + 1):
+                kept[y // stride, 0, x] = ea[x]
+                kept[y // stride, 1, x] = eb[x]
         ra, rb = rb, ra
         ea, eb = eb, ea
-    # one fit per clip, then each fit's cost and no feedback's; integer sums over whole rows
-    # (clipped errors below 2**11, products below 2**22: no overflow below 2**41 samples)
+    # one fit per clip, then each fit's cost and no feedback's, a sampled row at a time
     cw = zeros(nc + 1, np.int64)
     cn = zeros(nc + 1, np.int64)
     for j in range(nc):
-        c = FB_CLIPS[j] * FINE
-        sww = swn = snn = swe = sne = 0
+        sums = zeros(5, np.int64)
         for i in range(ns):
-            y = i * stride + stride - 1
-            for x in range(W):
-                v = np.int64(valid[y, x])
-                fe = min(max(kept[i, 1, x + 1], -c), c)
-                fw = min(max(kept[i, 1, x], -c), c) * v
-                fn = min(max(kept[i, 0, x + 1], -c), c) * v
-                sww += fw * fw
-                swn += fw * fn
-                snn += fn * fn
-                swe += fw * fe
-                sne += fn * fe
-        cw[j + 1], cn[j + 1] = _fit(float(sww), float(swn), float(snn), float(swe), float(sne))
+            _row_sums(kept[i, 1], kept[i, 0], valid[i * stride + stride - 1], FB_CLIPS[j] * FINE, sums)
+        cw[j + 1], cn[j + 1] = _fit(float(sums[0]), float(sums[1]), float(sums[2]), float(sums[3]), float(sums[4]))
     best = 0
     best_cost = 0.0
     for j in range(nc + 1):
         if j > 0 and cw[j] == 0 and cn[j] == 0:
             continue
-        aw = cw[j]
-        an = cn[j]
         cost = 0
         for i in range(ns):
-            y = i * stride + stride - 1
-            for x in range(W):
-                r = kept[i, 1, x + 1] - ((aw * kept[i, 1, x] + an * kept[i, 0, x + 1]) >> FB_SHIFT)
-                cost += _log_cost(r) * np.int64(valid[y, x])
+            cost += _row_cost(kept[i, 1], kept[i, 0], valid[i * stride + stride - 1], cw[j], cn[j])
         if j == 0:
             best_cost = (1.0 - FB_MIN_GAIN) * cost
         elif cost < best_cost:
