@@ -58,7 +58,6 @@ def make_app(settings: Settings) -> Celery:
             name=task_name(name),
             shared=False,
             bind=True,
-            queue=settings.queue(spec.queue),
             time_limit=spec.time_limit,
             soft_time_limit=int(spec.time_limit * 0.9),
             autoretry_for=TRANSIENT,
@@ -79,10 +78,10 @@ def make_app(settings: Settings) -> Celery:
     def rerender_preview_task(rerender_id: str) -> str:
         return run_rerender(str(rerender_id), settings)
 
-    app.task(reconcile_task, name=RECONCILE_TASK, queue=settings.queue("control"), time_limit=300, shared=False)
-    app.task(rerender_task, name=RERENDER_TASK, queue=settings.queue("control"), time_limit=3600, shared=False)
+    app.task(reconcile_task, name=RECONCILE_TASK, time_limit=300, shared=False)
+    app.task(rerender_task, name=RERENDER_TASK, time_limit=3600, shared=False)
     preview = all_stage_specs()["preview"]
-    app.task(rerender_preview_task, name=RERENDER_PREVIEW_TASK, queue=settings.queue("render"), shared=False,
+    app.task(rerender_preview_task, name=RERENDER_PREVIEW_TASK, shared=False,
              time_limit=preview.time_limit, soft_time_limit=int(preview.time_limit * 0.9),
              autoretry_for=TRANSIENT, retry_backoff=2, retry_backoff_max=120, retry_jitter=True, max_retries=4)  # fmt: skip
     return app

@@ -28,13 +28,13 @@ from celery import Celery
 from celery.schedules import crontab
 
 from shared.service.config import Settings
-from shared.service.jobs import QUEUES, base_name, longest_time_limit
+from shared.service.jobs import QUEUES, all_stage_specs, base_name, longest_time_limit
 from shared.service.jobstore import Stage
 
 log = logging.getLogger(__name__)
 
 __all__ = ["QUEUES", "RECONCILE_TASK", "RERENDER_PREVIEW_TASK", "RERENDER_TASK", "celery_config", "publish_rerender",
-           "publish_stages", "publisher", "task_name"]
+           "publish_stages", "publisher", "task_name", "task_routes"]
 
 #: Tasks that are not stages, run from beat on the ``control`` queue.
 RECONCILE_TASK = "graylight.reconcile"
@@ -50,11 +50,24 @@ def task_name(stage: str) -> str:
     return f"graylight.stage.{base_name(stage)}"
 
 
+def task_routes(settings: Settings) -> dict[str, dict[str, str]]:
+    """Each task's queue: a stage's its spec's, the beat tasks' ``control``, one preview
+    re-render's ``render``. In the configuration, not on the tasks: Celery 5.7 deprecates a
+    task's own ``queue`` attribute (a warning a task at every registration)."""
+    routes = {task_name(name): {"queue": settings.queue(spec.queue)} for name, spec in all_stage_specs().items()}
+    control = {"queue": settings.queue("control")}
+    routes[RECONCILE_TASK] = control
+    routes[RERENDER_TASK] = control
+    routes[RERENDER_PREVIEW_TASK] = {"queue": settings.queue("render")}
+    return routes
+
+
 def celery_config(settings: Settings) -> dict[str, Any]:
     """The Celery configuration for ``settings`` (publisher and workers alike)."""
     visibility = int(longest_time_limit() * 1.5) + 300
     control = settings.queue("control")
     return {
+        "task_routes": task_routes(settings),
         "broker_url": settings.broker_url,
         "broker_transport_options": {"visibility_timeout": visibility},
         "result_backend": None,
