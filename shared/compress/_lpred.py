@@ -19,8 +19,9 @@ predictions above it):
   one in the leaves that take it, from a third row buffer);
 - error feedback (lossless mode): the W and N neighbours' prediction errors, weighted by the
   band's weights (:func:`feedback_weights`: least-squares fits with the errors clipped at four
-  sizes, or none, whichever leaves the smallest log cost; coded in sixteenths), are added to
-  the prediction -- the sub-pixel decoder's errors are correlated along the stripes;
+  sizes, the one of least log cost where it saves :data:`FB_MIN_GAIN` of no feedback's; coded
+  in sixteenths), are added to the prediction where the band codes smaller with them (the
+  encoder tries them last, both ways);
 - the coding context is the local activity: the sizes of the W, N, NW, NE prediction errors
   and the curvature of the row above, in :data:`NLEVEL` half-octave levels; in a band running
   the weighted predictor, half that plus twice the predictor's largest neighbour error
@@ -351,8 +352,10 @@ def feedback_weights(t, valid, cells, leaves, lcoef, pw, pls):
     sub-pixel depth are correlated along the stripes; white noise gives weights near 0.
 
     Candidates: no feedback and one least-squares fit of each sample's error to its neighbours'
-    per clip of :data:`FB_CLIPS` (errors clipped there); kept, the one of least summed
-    :func:`_log_cost` of the errors it leaves. One fit alone (clipped at 64 quanta) made the
+    per clip of :data:`FB_CLIPS` (errors clipped there), over every :data:`FB_STRIDE`-th row;
+    the fit of least summed :func:`_log_cost` of the errors it leaves, where that is below
+    ``1 - FB_MIN_GAIN`` of no feedback's, else (0, 0). The encoder then keeps the weights only
+    where the band codes smaller with them. One fit alone (clipped at 64 quanta) made the
     bunny at 1:1 sampling code 1.6 % larger than with no feedback: on a far backdrop the
     decoder's one-column misreads are errors of +-100 quanta, which a least-squares fit follows;
     the errors do not depend on the weights, so every candidate's cost comes from one pass.
