@@ -285,8 +285,6 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
                 pls, lsw = none, None
             sure = with_ls < LS_SURE * without
     ls = ZERO if lsw is None else ONE
-    # error feedback: tried last, on the band's other choices (below)
-    aw = an = ZERO
     # the flags of bias cancellation and the weighted predictor, the weights and each leaf's
     # predictor, then the residuals
     head_n = HEAD_N + (2 * NLS * n_tiles(W) if ls else 0)
@@ -298,13 +296,13 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
     if not lossless and (opts & lp.OPT_BIAS) and _model_share(leaves[:nleaf]) < BIAS_MODEL_MAX:
         # bias cancellation pays on smooth depth coarsely quantised (bounded mode), not on
         # noise: both ways, the smaller kept
-        n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ONE, aw, an, TR,
+        n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ONE, ZERO, ZERO, TR,
                                  tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt_b, pls, scale, chk_b)
         if n1 < 0:
             return -1, None
         with_bias = lv.context_choice(tab, val, nb, n_res, np.int64(n1), TR)[0]
         keep = _save(tab, val, nb, n_res, n1)
-        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
+        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, ZERO, ZERO,
                                     TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt, pls, scale, chk)
         if n_end < 0 or with_bias < lv.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]:
             bias = 1
@@ -313,7 +311,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             alt, alt_b = alt_b, alt
             chk, chk_b = chk_b, chk
     else:
-        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
+        n_end = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, ZERO, ZERO,
                                     TR, tab, val, nb, n_res, none, none, ZERO, ZERO, ZERO, alt, pls, scale, chk)
         if n_end < 0:
             return -1, None
@@ -328,7 +326,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, none, ZERO, none, ZERO, cost, ZERO,
                                  NO_KNOWN)
             n_res0 = np.int64(n + HEAD_N + nleaf)  # the header without the weights
-            n0 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
+            n0 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, ZERO, ZERO,
                                      TR, tab, val, nb, n_res0, none, none, ZERO, ZERO, ZERO, alt_b, none, scale, NO_CHK)
             if n0 < 0:
                 return -1, None
@@ -350,7 +348,7 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             pw, pe = lp.wp_band(t, valid, cells, leaves, lcoef)
             lp.choose_predictors(t, valid, cells, leaves, lcoef, nleaf, lossless, opts, pw, ONE, pls, ls, cost, ZERO,
                                  NO_KNOWN)
-            n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, aw, an,
+            n1 = lp.encode_residuals(t, valid, cells, leaves, lcoef, lossless, opts, ZERO, ZERO, ZERO,
                                      TR, tab, val, nb, n_res, pw, pe, ONE, ZERO, ZERO, alt_b, pls, scale, NO_CHK)
             if n1 < 0:
                 return -1, None
@@ -361,13 +359,15 @@ def _encode_events(t: np.ndarray, valid: np.ndarray, lossless: bool, opts: int, 
             else:
                 _restore(tab, val, nb, n_res, keep)
                 leaves[:nleaf, 4] = keep_k
+    # error feedback (none until here: tried last, on the band's other choices)
+    aw = an = ZERO
     if lossless and (opts & lp.OPT_FEEDBACK):
         # error feedback (lossless mode: in bounded mode the reconstruction's rounding noise in
         # the neighbours' errors made it cost more than it saved), on the band's other choices:
         # the weights feedback_weights finds, kept where the band codes smaller with them (their
         # log cost leaves out the activity contexts, which follow the neighbours' errors
         # already: the weights alone coded the Cyberware dragon 1.2 % larger than no feedback,
-        # and with a least-squares fit alone the bench's images 0.4-4 % larger)
+        # and a least-squares fit alone the bench's images up to 4.3 % larger)
         fw, fn = lp.feedback_weights(t, valid, cells, leaves, lcoef, pw, pls)
         if fw != 0 or fn != 0:
             without = lv.context_choice(tab, val, nb, n_res, np.int64(n_end), TR)[0]

@@ -313,8 +313,7 @@ def _row_sums(e, ea, v, c, sums):
     """Add a row's sums of products of the W, N and own errors, each clipped at ``c``, to
     ``sums`` (5,) int64 (sww, swn, snn, swe, sne): ``e``, ``ea`` (W + 1,) int64 the row's and the
     row above's errors after a 0, ``v`` (W,) bool the row's valid samples. Integers: clipped
-    errors below 2**11, products below 2**22, no overflow below 2**41 samples. A helper of its
-    own, not inlined: its vectorised loop compiles once, not once per clip."""
+    errors below 2**11, products below 2**22, no overflow below 2**41 samples."""
     sww = swn = snn = swe = sne = 0
     for x in range(v.shape[0]):
         m = np.int64(v[x])
@@ -357,8 +356,9 @@ def feedback_weights(t, valid, cells, leaves, lcoef, pw, pls):
     ``1 - FB_MIN_GAIN`` of no feedback's, else (0, 0). The encoder then keeps the weights only
     where the band codes smaller with them. One fit alone (clipped at 64 quanta) made the
     bunny at 1:1 sampling code 1.6 % larger than with no feedback: on a far backdrop the
-    decoder's one-column misreads are errors of +-100 quanta, which a least-squares fit follows;
-    the errors do not depend on the weights, so every candidate's cost comes from one pass.
+    decoder's one-column misreads are errors of +-100 quanta, which a least-squares fit follows.
+    The errors do not depend on the weights: they are computed once, and every candidate is
+    costed on the rows kept.
     ``pw``, ``pls`` (H, W) int64: the weighted and least-squares predictors' predictions where a
     leaf takes them (:func:`wp_band`, :func:`shared.compress._ls.ls_band`)."""
     H, W = t.shape
